@@ -1,0 +1,13 @@
+"""Errors a user can act on: each message names the input, the bad value and the fix."""
+
+
+class DifffogError(Exception):
+    """Base class of every error difffog raises on purpose; the CLI prints it without a traceback."""
+
+
+class SceneError(DifffogError, ValueError):
+    """A scene file, a built-in scene name or a ``--set`` override is invalid."""
+
+
+class SolverError(DifffogError, RuntimeError):
+    """A light solve cannot produce a meaningful answer (e.g. no steady state exists)."""
