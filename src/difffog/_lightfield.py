@@ -14,6 +14,8 @@ class LightField(eqx.Module):
         — the mean diffuse radiance is Λ/4π.
     sun_fluence: F·T_sun, the uncollided sun arriving at each node (irradiance on a plane
         perpendicular to the beam).
+    sky_fluence: Σ_k w_k·sky·T_k, the uncollided sky light arriving at each node (first-collision
+        sky; zero when the sky is propagated through the lattice directions instead).
     radiosity: B, the Lambertian exitant radiance of SURFACE nodes (0 elsewhere).
     source: Q = (ζ/(ζ+γ))·J, the step source radiance at FREE nodes (isotropic part).
     residuals: relative change of the solution per iteration (NaN past ``iterations``).
@@ -22,6 +24,7 @@ class LightField(eqx.Module):
 
     fluence: Float[Array, "nx ny nz"]
     sun_fluence: Float[Array, "nx ny nz"]
+    sky_fluence: Float[Array, "nx ny nz"]
     radiosity: Float[Array, "nx ny nz"]
     source: Float[Array, "nx ny nz"]
     residuals: Float[Array, " max_iters"]

@@ -24,7 +24,7 @@ from ._directions import FACE_AXES, cosine_normalization, direction_set, face_pl
 from ._errors import SceneError
 from ._lightfield import LightField
 from ._params import Params
-from ._sun import sun_transmittance
+from ._uncollided import sky_quadrature, sky_uncollided, sun_transmittance
 from ._sweep import (
     FOUR_PI,
     FaceGeometry,
@@ -58,6 +58,7 @@ class SweepGeometry(eqx.Module):
     material: jax.Array  # int, shape index of SURFACE/SOLID nodes (0 where none)
     cnorm: jax.Array  # cosine normalization per SURFACE node
     sun_cos: jax.Array  # max(0, N·ŝ) per SURFACE node
+    normal: jax.Array  # (nx, ny, nz, 3) unit normals of SURFACE nodes (0 elsewhere)
     h: float = eqx.field(static=True)
     M: int = eqx.field(static=True)
     periodic_xy: bool = eqx.field(static=True)
@@ -94,6 +95,9 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
     sun_cos = np.zeros(nt.shape) if sun_dir is None else np.maximum(normal @ np.array(sun_dir), 0)
     sun_cos = np.where(surf, sun_cos, 0.0)
     periodic_xy = lattice.boundary == "periodic-xy"
+    sdf = getattr(lattice, "sdf", None)
+    depth = np.zeros(nt.shape) if sdf is None else np.asarray(sdf, np.float64) / lattice.h
+    depth = np.where(surf, np.maximum(depth, 1e-3), 0.0)
     faces = []
     for axis, sign in FACE_AXES:
         u, v = face_plane_axes(axis)
@@ -103,6 +107,7 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
                 free=to_face(jnp.asarray(free), axis, sign),
                 surf=to_face(jnp.asarray(surf), axis, sign),
                 normal=to_face(jnp.asarray(n_face, jnp.float32), axis, sign),
+                depth=to_face(jnp.asarray(depth, jnp.float32), axis, sign),
             )
         )
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
@@ -120,6 +125,7 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
         material=jnp.asarray(material, jnp.int32),
         cnorm=f32(cnorm),
         sun_cos=f32(sun_cos),
+        normal=f32(normal),
         h=float(lattice.h),
         M=M,
         periodic_xy=periodic_xy,
@@ -133,14 +139,15 @@ class _Problem(eqx.Module):
     """Everything one Jacobi iteration needs: static geometry + arrays derived from Params."""
 
     geom: SweepGeometry
-    tau_half: tuple[jax.Array, ...]  # per face, in the face frame: σ̄_t·h/2 (per unit |L|)
+    tau_half: tuple[jax.Array, ...]  # per face, in the face frame: σ̄_t·h/2 (per unit |L|), 0 in solids
     sigma_t: jax.Array  # (ζ'+γ)·density per node
     ssa: jax.Array  # single-scattering albedo ζ'/(ζ'+γ)
     sun_fluence: jax.Array  # F·T_sun
+    sky_fluence: jax.Array  # uncollided sky Σ_k w_k sky T_k (0 if the sky goes through the lattice)
     rho: jax.Array  # albedo per node (SURFACE)
     emission: jax.Array  # emission per node (SURFACE)
-    direct: jax.Array  # direct sun irradiance on SURFACE nodes
-    sky: jax.Array  # sky radiance
+    direct: jax.Array  # direct (uncollided) sun and sky irradiance on SURFACE nodes
+    sky: jax.Array  # sky radiance entering the lattice directions (0 with first-collision sky)
     max_iterations: int = eqx.field(static=True)
     tol: float = eqx.field(static=True)
 
@@ -148,7 +155,7 @@ class _Problem(eqx.Module):
 def _sources(state, pb: _Problem):
     lam, irr = state
     g = pb.geom
-    q = jnp.where(g.free, pb.ssa * (lam + pb.sun_fluence) / FOUR_PI, 0.0)
+    q = jnp.where(g.solid, 0.0, pb.ssa * (lam + pb.sun_fluence + pb.sky_fluence) / FOUR_PI)
     b = jnp.where(g.surf, pb.emission + pb.rho / math.pi * (g.cnorm * irr + pb.direct), 0.0)
     return q, b
 
@@ -195,7 +202,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
         lam = lam + from_face(lf, axis, sign)
         irr = irr + from_face(ef, axis, sign)
         exits.append(ex)
-    lam = jnp.where(g.free, lam, 0.0)
+    lam = jnp.where(g.solid, 0.0, lam)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
 
@@ -263,12 +270,16 @@ class SweepSolver(AbstractLightSolver):
     max_iterations: cap on Jacobi iterations; tol: stop when the estimated remaining relative
     error falls below it (0 runs exactly ``max_iterations``).
     adjoint_rtol: tolerance of the GMRES solve of the implicit adjoint.
+    sky_quadrature: (n_μ, n_φ) directions of the first-collision sky (Gauss–Legendre in μ ×
+    uniform φ): the uncollided sky is swept along these directions instead of the lattice's,
+    which resolve near-grazing sky light poorly; (0, 0) sends the sky through the lattice.
     """
 
     M: int = eqx.field(static=True, default=3)
     max_iterations: int = eqx.field(static=True, default=200)
     tol: float = eqx.field(static=True, default=1e-4)
     adjoint_rtol: float = eqx.field(static=True, default=1e-6)
+    sky_quadrature: tuple[int, int] = eqx.field(static=True, default=(8, 16))
 
     def __check_init__(self):
         if not isinstance(self.M, int) or self.M < 1:
@@ -294,6 +305,18 @@ class SweepSolver(AbstractLightSolver):
             sun_fluence = params.sun_irradiance * t_sun
         else:
             sun_fluence = jnp.zeros(geom.shape, dt)
+        n_mu, n_phi = self.sky_quadrature
+        if n_mu > 0 and n_phi > 0:
+            sdirs, swts = sky_quadrature(n_mu, n_phi)
+            flu, irr = sky_uncollided(sigma_t, geom.solid, geom.normal, sdirs, swts, geom.h,
+                                      geom.periodic_xy)
+            sky_fluence = jnp.where(geom.solid, 0.0, params.sky_radiance * flu)
+            sky_direct = jnp.where(geom.surf, params.sky_radiance * irr, 0.0)
+            lattice_sky = jnp.zeros_like(params.sky_radiance)
+        else:
+            sky_fluence = jnp.zeros(geom.shape, dt)
+            sky_direct = jnp.zeros(geom.shape, dt)
+            lattice_sky = params.sky_radiance
         rho = jnp.where(geom.surf, params.albedo[geom.material], 0.0) if params.albedo.size else (
             jnp.zeros(geom.shape, dt))
         emis = jnp.where(geom.surf, params.emission[geom.material], 0.0) if params.emission.size \
@@ -303,9 +326,9 @@ class SweepSolver(AbstractLightSolver):
             tau_half=tuple(
                 to_face(
                     jnp.where(
-                        geom.free,
-                        segment_depth(sigma_t, geom.M, axis, geom.periodic_xy and axis < 2),
+                        geom.solid,
                         0.0,
+                        segment_depth(sigma_t, geom.M, axis, geom.periodic_xy and axis < 2),
                     )
                     * (geom.h / 2.0),
                     axis,
@@ -316,10 +339,11 @@ class SweepSolver(AbstractLightSolver):
             sigma_t=sigma_t,
             ssa=_safe_div(zeta, ext),
             sun_fluence=jnp.where(geom.solid, 0.0, sun_fluence),
+            sky_fluence=sky_fluence,
             rho=rho,
             emission=emis,
-            direct=sun_fluence * geom.sun_cos.astype(dt),
-            sky=params.sky_radiance,
+            direct=sun_fluence * geom.sun_cos.astype(dt) + sky_direct,
+            sky=lattice_sky,
             max_iterations=self.max_iterations,
             tol=self.tol,
         )
@@ -335,6 +359,7 @@ class SweepSolver(AbstractLightSolver):
         return LightField(
             fluence=root[0],
             sun_fluence=pb.sun_fluence,
+            sky_fluence=pb.sky_fluence,
             radiosity=b,
             source=q,
             residuals=hist,

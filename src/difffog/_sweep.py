@@ -7,9 +7,17 @@ of F's (2M+1)² directions L = (p, q, M).  The paper's Local_Transformation C_i^
 slabs of M planes and carries the radiance of the previous slab (shape (M, D, nu, nv)).
 
 Node cases for the node z = y − L a ray left before arriving at y (the paper's ``case {x − L}``):
-  SOLID   → 0
-  SURFACE → the surface's radiosity B(z) if L·N(z) > 0, else 0
-  FREE    → the arriving radiance, attenuated through the fog.
+  SOLID   → the ray starts at the surface between z and y: it arrives at y with y's radiosity B(y)
+            (implemented with a negative sentinel, since radiance is otherwise never negative);
+  FREE    → the arriving radiance, attenuated through the fog;
+  SURFACE → 0 if the step reaches the surface ahead of z (−L·N(z) ≥ d(z), with d = sdf/h the
+            node's distance to the surface in nodes: this stops rays jumping over thin solids),
+            else the arriving radiance through the fog, as at a FREE node.
+The paper's rule (B(z) if L·N(z) > 0, else 0) makes the M-node shell opaque: nodes deep in the
+shell are shadowed by shallower ones (the innermost, which a camera sees, get ~70% of their
+irradiance), rays near edges that leave the other wall arrive as 0, and the geometry grows by
+up to M nodes.  Starting rays where they actually leave a solid keeps the surface where it is
+and lets grazing rays pass through the shell fog.
 Each node owns half of each segment it touches, with its own extinction σ_t and source; over a
 half-segment of optical depth τ = σ_t·h·|L|/2 the exact step ("step characteristic") update is
     R ← T·R + (1 − T)·Q,   T = exp(−τ),
@@ -36,6 +44,7 @@ import numpy as np
 from ._directions import FACE_AXES, DirectionSet, face_plane_axes
 
 FOUR_PI = 4.0 * math.pi
+_SOLID = -1.0  # sentinel radiance leaving a SOLID node (real radiance is never negative)
 
 
 def to_face(x, axis: int, sign: int):
@@ -82,6 +91,7 @@ class FaceGeometry(eqx.Module):
     free: jax.Array  # bool
     surf: jax.Array  # bool
     normal: jax.Array  # (nw, nu, nv, 3) normal in the face frame (u, v, w)
+    depth: jax.Array  # distance of SURFACE nodes to the surface, in nodes (sdf/h)
 
 
 class SweepConsts(eqx.Module):
@@ -126,30 +136,33 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
         return a.reshape((total // M, M) + a.shape[1:])
 
     xs = (slabs(Q), slabs(B), slabs(tau_half_unit), slabs(geo.free), slabs(geo.surf),
-          slabs(geo.normal))
+          slabs(geo.normal), slabs(geo.depth))
     unit = consts.unit.astype(dt)
     length = consts.length.astype(dt)
     weight = consts.weight.astype(dt)
     bc_pq = bc.reshape(P, P).astype(dt)
 
     def step(carry, slab):
-        Qs, Bs, ts, fs, ss, ns = slab  # (M, nu, nv), normal (M, nu, nv, 3)
+        Qs, Bs, ts, fs, ss, ns, ds = slab  # (M, nu, nv); normal (M, nu, nv, 3)
         r_mid = _shift_plane(carry.reshape(M, P, P, nu, nv), bc_pq, M, per_u, per_v)
         r_mid = r_mid.reshape(M, D, nu, nv)
-        # half-segment in this node (arrival): R + expm1(-τ)(R - Q)
+        # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off the fog
         em = jnp.expm1(-ts[:, None] * length[None, :, None, None])
-        fb = fs[:, None]
-        r_arr = jnp.where(fb, r_mid + em * (r_mid - Qs[:, None]), r_mid)
+        r_arr = r_mid + em * (r_mid - Qs[:, None])
+        if surfaces:  # a ray leaving a solid starts with the radiosity of the node it reaches
+            r_arr = jnp.where(r_mid < 0, Bs[:, None], r_arr)
         lam = jnp.einsum("mdij,d->mij", r_arr, weight)
-        # out of this node: FREE → second half-segment; SURFACE → B if L·N > 0; SOLID → 0
+        r_through = r_arr + em * (r_arr - Qs[:, None])  # second half-segment
         if surfaces:
-            ldotn = jnp.einsum("mijc,dc->mdij", ns, unit)
+            ldotn = jnp.einsum("mijc,dc->mdij", ns, unit)  # L̂·N
             irr = jnp.einsum("mdij,d->mij", r_arr * jnp.maximum(-ldotn, 0.0), weight)
-            emit = jnp.where(ss[:, None] & (ldotn > 0), Bs[:, None], 0.0)
+            # the step's displacement towards the surface, in nodes, against the distance to it
+            hits = ss[:, None] & (-ldotn * length[None, :, None, None] >= ds[:, None])
+            r_out = jnp.where(hits, 0.0, r_through)
+            r_out = jnp.where(fs[:, None] | ss[:, None], r_out, _SOLID)
         else:
             irr = jnp.zeros_like(lam)
-            emit = jnp.zeros_like(r_arr)
-        r_out = jnp.where(fb, r_arr + em * (r_arr - Qs[:, None]), emit)
+            r_out = jnp.where(fs[:, None], r_through, 0.0)
         return r_out, (lam, irr)
 
     if per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
