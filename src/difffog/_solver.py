@@ -377,7 +377,7 @@ def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2
     consts = []
     for f, c in enumerate(geom.consts):
         world = np.asarray(direction_set(geom.M).vectors[f][:, axis])
-        consts.append(SweepConsts(unit=c.unit, length=c.length, weight=c.weight * world))
+        consts.append(eqx.tree_at(lambda k: k.weight, c, c.weight * world))
     geom_m = eqx.tree_at(lambda g: g.consts, geom, tuple(consts))
     pb_m = eqx.tree_at(lambda p: p.geom, pb, geom_m)
     q = light.source
