@@ -273,13 +273,16 @@ class SweepSolver(AbstractLightSolver):
     sky_quadrature: (n_μ, n_φ) directions of the first-collision sky (Gauss–Legendre in μ ×
     uniform φ): the uncollided sky is swept along these directions instead of the lattice's,
     which resolve near-grazing sky light poorly; (0, 0) sends the sky through the lattice.
+    None (default) picks (8, 16) for open domains and (0, 0) for laterally periodic ones, where
+    horizontal lattice rays never leave and the missing horizontal sky offsets that (measured on
+    thin slabs: R within 0.4-5.6% at M = 2 against 4-10% with the first-collision sky).
     """
 
     M: int = eqx.field(static=True, default=3)
     max_iterations: int = eqx.field(static=True, default=200)
     tol: float = eqx.field(static=True, default=1e-4)
     adjoint_rtol: float = eqx.field(static=True, default=1e-6)
-    sky_quadrature: tuple[int, int] = eqx.field(static=True, default=(8, 16))
+    sky_quadrature: tuple[int, int] | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.M, int) or self.M < 1:
@@ -305,7 +308,7 @@ class SweepSolver(AbstractLightSolver):
             sun_fluence = params.sun_irradiance * t_sun
         else:
             sun_fluence = jnp.zeros(geom.shape, dt)
-        n_mu, n_phi = self.sky_quadrature
+        n_mu, n_phi = self.sky_quadrature or ((0, 0) if geom.periodic_xy else (8, 16))
         if n_mu > 0 and n_phi > 0:
             sdirs, swts = sky_quadrature(n_mu, n_phi)
             flu, irr = sky_uncollided(sigma_t, geom.solid, geom.normal, sdirs, swts, geom.h,
