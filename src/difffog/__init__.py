@@ -1,7 +1,29 @@
-"""difffog: a differentiable JAX solver for inverse fog estimation."""
+"""difffog: a differentiable JAX solver for inverse fog estimation.
 
+Pipeline: ``load_scene`` (scene file → :class:`Scene`) → ``voxelize`` (→ :class:`Lattice`) →
+a light solver (``SweepSolver``) → :class:`LightField` → cameras → images; :func:`render` runs
+it all with one light solve for every camera, :class:`Renderer` keeps the host-side work for
+repeated, differentiable renders.
+"""
+
+from ._directions import DirectionSet as DirectionSet, direction_set as direction_set
 from ._errors import DifffogError as DifffogError, SceneError as SceneError, SolverError as SolverError
-from ._params import Params as Params, get_param as get_param, param_paths as param_paths, set_param as set_param
-from ._scene import Scene as Scene
+from ._lattice import Lattice as Lattice, voxelize as voxelize
+from ._lightfield import LightField as LightField
+from ._params import (
+    Params as Params,
+    get_param as get_param,
+    param_paths as param_paths,
+    set_param as set_param,
+)
+from ._render import Rendered as Rendered, Renderer as Renderer, render as render
+from ._scene import Camera as Camera, Scene as Scene
+from ._scene_io import (
+    apply_overrides as apply_overrides,
+    builtin_scenes as builtin_scenes,
+    load_scene as load_scene,
+    scalar_paths as scalar_paths,
+)
+from ._solver import AbstractLightSolver as AbstractLightSolver, SweepSolver as SweepSolver
 
 __version__ = "0.1.0"

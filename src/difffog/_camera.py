@@ -195,6 +195,11 @@ class LatticeFields(eqx.Module):
         static=True, default=None, converter=_as_sun_dir)
     sky: Float[Array, ""] = eqx.field(default=0.0, converter=jnp.asarray)
     periodic_xy: bool = eqx.field(static=True, default=False, converter=bool)
+    # optional: unit normals (nx, ny, nz, 3) of the surface nodes, zero elsewhere.  When given,
+    # the radiosity at a hit is interpolated over surface nodes only, each weighted by how much
+    # it faces the viewer, instead of from radiosity_ext (which mixes in the far side of thin
+    # walls and edges).
+    surface_normal: Float[Array, "nx ny nz 3"] | None = None
 
     def __post_init__(self):
         if self.shape is None:
@@ -586,7 +591,15 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
     hit = valid & jnp.isfinite(t_hit)
     t_safe = jnp.where(hit, t_hit, t0)
     p_hit = o + (t_safe - HIT_BACKOFF * fields.h)[:, None] * d
-    b_hit = _interp(rad_table, p_hit, geo)[:, 0]
+    rad = _interp(rad_table, p_hit, geo)
+    b_hit = rad[:, 0]
+    if rad.shape[1] > 1:  # columns: ext, m·B, m, m·B·N (3), m·N (3)
+        facing_b = -(rad[:, 3:6] * d).sum(-1)
+        facing = -(rad[:, 6:9] * d).sum(-1)
+        ok_f = facing > 1e-3
+        ok_m = rad[:, 2] > 1e-3
+        b_mask = jnp.where(ok_m, rad[:, 1] / jnp.where(ok_m, rad[:, 2], 1.0), b_hit)
+        b_hit = jnp.where(ok_f, facing_b / jnp.where(ok_f, facing, 1.0), b_mask)
     escaped = ~hit & reached & (d[:, 2] > 0)
     sky = jnp.asarray(fields.sky, dtype)
     radiance = L + jnp.where(hit, T * b_hit, 0.0) + jnp.where(escaped, T * sky, 0.0)
@@ -599,7 +612,13 @@ def _trace_jit(fields, origins, directions, *, n_steps: int, step: float, chunk:
     chans = [fields.sigma_t, fields.j_iso]
     chans += ([fields.j_sun] if fields.sun_dir is not None else []) + [fields.sdf]
     table = _flat_table(chans, dtype)  # (n_nodes', C), built once for all chunks
-    rad_table = _flat_table([fields.radiosity_ext], dtype)
+    rad = [fields.radiosity_ext]
+    if fields.surface_normal is not None:
+        nrm = jnp.asarray(fields.surface_normal, dtype)
+        m = (jnp.sum(nrm * nrm, axis=-1) > 0).astype(dtype)
+        b = fields.radiosity_ext * m
+        rad += [b, m] + [b * nrm[..., c] for c in range(3)] + [nrm[..., c] for c in range(3)]
+    rad_table = _flat_table(rad, dtype)
     n = origins.shape[0]
     n_chunks = -(-n // max(1, chunk))
     chunk = -(-n // n_chunks)  # balanced chunks: fewer than n_chunks padded rays

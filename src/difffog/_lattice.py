@@ -131,11 +131,16 @@ class Lattice:
 # entry point
 
 
-def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto") -> Lattice:
+def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
+             margin: int = 0) -> Lattice:
     """Voxelize ``scene`` on a cubic lattice of ``resolution`` nodes along its longest side.
 
     ``M`` is the shell thickness in nodes (and the half-width of the solver's direction set);
     ``normals`` is ``"auto"`` (= ``"analytic"``), ``"analytic"`` or ``"com"`` (see the module doc).
+    ``margin``: vacuum nodes added outside the domain on every open side (z only for a periodic
+    domain).  Surfaces lying on the domain boundary (a wall's top at z = max) then get SURFACE
+    nodes on their outer side, so they are lit and seen as in open space; the renderer uses
+    M + 1.  The fog stays inside the domain.
     """
     _check_int("resolution", resolution, 2, "use e.g. resolution=64")
     _check_int("M", M, 1, "use e.g. M=3 (the paper uses M=5 at resolution 128)")
@@ -143,9 +148,10 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto") ->
         raise SceneError(
             f"normals={normals!r} is not a normal rule; use 'auto', 'analytic' or 'com'"
         )
+    _check_int("margin", margin, 0, "use 0 (none) or M + 1")
     resolution, M = int(resolution), int(M)
 
-    grid = _Grid.from_domain(scene.domain, resolution)
+    grid = _Grid.from_domain(scene.domain, resolution, int(margin))
     shapes = [_make_shape(s, i, grid) for i, s in enumerate(scene.shapes)]
     for s in shapes:
         s.warn_if_thin(grid, resolution)
@@ -227,14 +233,16 @@ class _Grid:
     domain_size: np.ndarray
 
     @classmethod
-    def from_domain(cls, domain, resolution):
+    def from_domain(cls, domain, resolution, margin=0):
         lo = np.asarray(domain.min, np.float64)
         size = np.asarray(domain.max, np.float64) - lo
         if not (size > 0).all():
             raise SceneError(f"domain min {tuple(domain.min)} / max {tuple(domain.max)} is empty")
         h = float(size.max()) / resolution
-        shape = tuple(max(1, round(s / h)) for s in size)
-        return cls(shape, h, lo, domain.boundary, lo, size)
+        pad = np.array([0 if (domain.boundary == "periodic-xy" and a < 2) else margin
+                        for a in range(3)])
+        shape = tuple(max(1, round(s / h)) + 2 * int(m) for s, m in zip(size, pad))
+        return cls(shape, h, lo - pad * h, domain.boundary, lo, size)
 
     @property
     def periodic(self) -> bool:
@@ -944,8 +952,12 @@ def _density(scene: Scene, grid: _Grid, solid: np.ndarray) -> np.ndarray:
         g = np.ones(grid.shape)
     if fog.region is not None:
         (r0, r1) = (np.asarray(fog.region[0], float), np.asarray(fog.region[1], float))
-        ins = [(grid.axis_coords(a) >= r0[a]) & (grid.axis_coords(a) <= r1[a]) for a in range(3)]
-        g = g * (ins[0][:, None, None] & ins[1][None, :, None] & ins[2][None, None, :])
+    else:
+        r0, r1 = grid.domain_min, grid.domain_min + grid.domain_size
+    r0 = np.maximum(r0, grid.domain_min)  # the fog never leaves the domain (vacuum margin)
+    r1 = np.minimum(r1, grid.domain_min + grid.domain_size)
+    ins = [(grid.axis_coords(a) >= r0[a]) & (grid.axis_coords(a) <= r1[a]) for a in range(3)]
+    g = g * (ins[0][:, None, None] & ins[1][None, :, None] & ins[2][None, None, :])
     g = np.where(solid, 0.0, g)
     return g.astype(np.float32)
 

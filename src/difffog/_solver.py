@@ -32,6 +32,7 @@ from ._sweep import (
     face_consts,
     from_face,
     sky_boundary,
+    segment_blocking,
     sweep_face,
     to_face,
 )
@@ -43,6 +44,17 @@ def _safe_div(a, b):
     """a / b with 0 where b == 0, NaN-free in value and gradient (double where)."""
     ok = b != 0
     return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+
+def _pack_bits(blocked: np.ndarray) -> np.ndarray:
+    """(D, nx, ny, nz) bool → (nx, ny, nz, ceil(D/8)) uint8, bit d%8 of byte d//8 (then the
+    face transform moves the byte axis after the sweep axis)."""
+    D = blocked.shape[0]
+    nb = -(-D // 8)
+    out = np.zeros(blocked.shape[1:] + (nb,), np.uint8)
+    for d in range(D):
+        out[..., d // 8] |= blocked[d].astype(np.uint8) << (d % 8)
+    return out
 
 
 class SweepGeometry(eqx.Module):
@@ -95,11 +107,15 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
     sun_cos = np.zeros(nt.shape) if sun_dir is None else np.maximum(normal @ np.array(sun_dir), 0)
     sun_cos = np.where(surf, sun_cos, 0.0)
     periodic_xy = lattice.boundary == "periodic-xy"
-    sdf = getattr(lattice, "sdf", None)
-    depth = np.zeros(nt.shape) if sdf is None else np.asarray(sdf, np.float64) / lattice.h
-    depth = np.where(surf, np.maximum(depth, 1e-3), 0.0)
     faces = []
-    for axis, sign in FACE_AXES:
+    blocking = []
+    for f, (axis, sign) in enumerate(FACE_AXES):
+        u, v = face_plane_axes(axis)
+        vec = np.zeros((dirs.D, 3), np.int64)
+        vec[:, axis] = sign * M
+        vec[:, u], vec[:, v] = dirs.pq[:, 0], dirs.pq[:, 1]
+        blocking.append(segment_blocking(solid, surf, vec, periodic_xy))
+    for f, (axis, sign) in enumerate(FACE_AXES):
         u, v = face_plane_axes(axis)
         n_face = np.stack([normal[..., u], normal[..., v], sign * normal[..., axis]], -1)
         faces.append(
@@ -107,7 +123,7 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
                 free=to_face(jnp.asarray(free), axis, sign),
                 surf=to_face(jnp.asarray(surf), axis, sign),
                 normal=to_face(jnp.asarray(n_face, jnp.float32), axis, sign),
-                depth=to_face(jnp.asarray(depth, jnp.float32), axis, sign),
+                blocked=to_face(jnp.asarray(_pack_bits(blocking[f]), jnp.uint8), axis, sign),
             )
         )
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731

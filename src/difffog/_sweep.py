@@ -7,17 +7,15 @@ of F's (2M+1)² directions L = (p, q, M).  The paper's Local_Transformation C_i^
 slabs of M planes and carries the radiance of the previous slab (shape (M, D, nu, nv)).
 
 Node cases for the node z = y − L a ray left before arriving at y (the paper's ``case {x − L}``):
-  SOLID   → the ray starts at the surface between z and y: it arrives at y with y's radiosity B(y)
-            (implemented with a negative sentinel, since radiance is otherwise never negative);
-  FREE    → the arriving radiance, attenuated through the fog;
-  SURFACE → 0 if the step reaches the surface ahead of z (−L·N(z) ≥ d(z), with d = sdf/h the
-            node's distance to the surface in nodes: this stops rays jumping over thin solids),
-            else the arriving radiance through the fog, as at a FREE node.
-The paper's rule (B(z) if L·N(z) > 0, else 0) makes the M-node shell opaque: nodes deep in the
-shell are shadowed by shallower ones (the innermost, which a camera sees, get ~70% of their
-irradiance), rays near edges that leave the other wall arrive as 0, and the geometry grows by
-up to M nodes.  Starting rays where they actually leave a solid keeps the surface where it is
-and lets grazing rays pass through the shell fog.
+  FREE or SURFACE z → the arriving radiance, attenuated through the fog (shell nodes hold fog too);
+  blocked segment   → if the segment z → y crosses a SOLID node (``segment_blocking``, computed
+                      once on the host), the ray was emitted by the surface between them: it
+                      arrives at y with y's radiosity B(y).  (A SOLID z always blocks.)
+The paper's rule (SURFACE z emits B(z) if L·N(z) > 0, else 0) makes the M-node shell opaque:
+nodes deep in the shell are shadowed by shallower ones (the innermost, which a camera sees, get
+~70% of their irradiance) and the geometry grows by up to M nodes.  Tangent-plane tests at z or
+y (which we tried) fail at convex edges — the rim of an open box, where all the sky enters — and
+on small spheres; testing the segment against the solid nodes is exact for the lattice's geometry.
 Each node owns half of each segment it touches, with its own extinction σ_t and source; over a
 half-segment of optical depth τ = σ_t·h·|L|/2 the exact step ("step characteristic") update is
     R ← T·R + (1 − T)·Q,   T = exp(−τ),
@@ -98,7 +96,8 @@ class FaceGeometry(eqx.Module):
     free: jax.Array  # bool
     surf: jax.Array  # bool
     normal: jax.Array  # (nw, nu, nv, 3) normal in the face frame (u, v, w)
-    depth: jax.Array  # distance of SURFACE nodes to the surface, in nodes (sdf/h)
+    blocked: jax.Array  # (nw, ceil(D/8), nu, nv) uint8: bit d set if the segment of direction d
+    #                     arriving at this node crosses a SOLID node (SURFACE nodes only)
 
 
 class SweepConsts(eqx.Module):
@@ -144,19 +143,21 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
         return a.reshape((total // M, M) + a.shape[1:])
 
     xs = (slabs(Q), slabs(B), slabs(tau_half_unit), slabs(geo.free), slabs(geo.surf),
-          jnp.moveaxis(slabs(geo.normal), -1, 0).swapaxes(0, 1), slabs(geo.depth))
+          jnp.moveaxis(slabs(geo.normal), -1, 0).swapaxes(0, 1), jnp.moveaxis(slabs(geo.blocked), -1, 2))
     unit = consts.unit.astype(dt)
     length = consts.length.astype(dt)
     weight = consts.weight.astype(dt)
     bc_d = bc.astype(dt)
     pq = jnp.asarray(consts.pq, jnp.int32)
 
+    byte_of = np.arange(D) // 8
+    bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))[None, :, None, None]
     w4 = weight[None, :, None, None]
     len4 = length[None, :, None, None]
     u4 = [unit[None, :, c, None, None] for c in range(3)]
 
     def step(carry, slab):
-        Qs, Bs, ts, fs, ss, ns, ds = slab  # (M, nu, nv); normal (3, M, nu, nv)
+        Qs, Bs, ts, fs, ss, ns, bits = slab  # (M, nu, nv); normal (3, M, nu, nv)
         r_mid = _shift_plane(carry, bc_d, pq, M, per_u, per_v)
         # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off the fog.
         # (Written with broadcasts rather than einsum: XLA on CPU then fuses each reduction
@@ -164,17 +165,15 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
         em = jnp.expm1(-ts[:, None] * len4)
         q4 = Qs[:, None]
         r_arr = r_mid + em * (r_mid - q4)
-        if surfaces:  # a ray leaving a solid starts with the radiosity of the node it reaches
-            r_arr = jnp.where(r_mid < 0, Bs[:, None], r_arr)
+        if surfaces:
+            blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
+            r_arr = jnp.where((blocked > 0) | (r_mid < 0), Bs[:, None], r_arr)
         lam = (r_arr * w4).sum(1)
         r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:
             ldotn = ns[0][:, None] * u4[0] + ns[1][:, None] * u4[1] + ns[2][:, None] * u4[2]
             irr = (r_arr * jnp.maximum(-ldotn, 0.0) * w4).sum(1)
-            # the step's displacement towards the surface, in nodes, against the distance to it
-            hits = ss[:, None] & (-ldotn * len4 >= ds[:, None])
-            keep = fs[:, None] | ss[:, None]
-            r_out = jnp.where(hits | ~keep, jnp.where(hits, 0.0, _SOLID), r_through)
+            r_out = jnp.where(fs[:, None] | ss[:, None], r_through, _SOLID)
         else:
             irr = jnp.zeros_like(lam)
             r_out = jnp.where(fs[:, None], r_through, 0.0)
@@ -215,3 +214,39 @@ def sky_boundary(dirs: DirectionSet, face: int) -> np.ndarray:
     """
     lz = dirs.vectors[face][:, 2]
     return np.where(lz < -1e-12, 1.0, np.where(lz > 1e-12, 0.0, 0.5))
+
+
+def segment_blocking(solid: np.ndarray, surface: np.ndarray, vectors_int: np.ndarray,
+                     periodic_xy: bool) -> np.ndarray:
+    """For each SURFACE node y and lattice vector L: does the segment from y − L to y cross a
+    SOLID node?  Host-side, once per lattice.
+
+    solid, surface: (nx, ny, nz) bool; vectors_int: (D, 3) integer lattice vectors.  The segment
+    is sampled at 2·max|L| points (every half node or closer) and each sample tested against the
+    SOLID node it falls in.  Returns (D, nx, ny, nz) bool (False away from SURFACE nodes).
+    """
+    D = vectors_int.shape[0]
+    n = np.array(solid.shape)
+    out = np.zeros((D,) + solid.shape, bool)
+    if not surface.any():
+        return out
+    lo = np.argwhere(surface).min(0)
+    hi = np.argwhere(surface).max(0) + 1
+    for d in range(D):
+        L = vectors_int[d]
+        S = 2 * int(np.abs(L).max())
+        offsets = {tuple(np.rint(k / S * L).astype(int)) for k in range(1, S + 1)}
+        acc = np.zeros(tuple(hi - lo), bool)
+        for off in offsets:
+            src = [np.arange(lo[a], hi[a]) - off[a] for a in range(3)]
+            ok = [np.ones(len(s_), bool) for s_ in src]
+            for a in range(3):
+                if periodic_xy and a < 2:
+                    src[a] = src[a] % n[a]
+                else:
+                    ok[a] = (src[a] >= 0) & (src[a] < n[a])
+                    src[a] = np.clip(src[a], 0, n[a] - 1)
+            inside = ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
+            acc |= solid[np.ix_(*src)] & inside
+        out[d, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = acc
+    return out & surface[None]

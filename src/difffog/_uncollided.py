@@ -99,7 +99,45 @@ def sky_quadrature(n_mu: int, n_phi: int):
 
 
 def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
-    """Uncollided sky light at every node, by a batched light-aligned sheet sweep along −z.
+    """Uncollided sky light at every node: Σ_k w_k T_k and Σ_k w_k T_k max(0, ω_k·N).
+
+    The directions are grouped by their dominant axis and each group is swept sheet by sheet
+    along that axis, so the lateral offset per sheet is at most one voxel: marching every
+    direction along z let shallow sky light jump over walls a few voxels thick (measured: the
+    floor of ring-box's open box got 27% too much sky).  Laterally periodic domains sweep along
+    z only (their x, y sweeps would never start).
+    """
+    dirs = np.asarray(sky_dirs, np.float64)
+    wts = np.asarray(sky_wts, np.float64)
+    if periodic_xy:
+        groups = {(2, 1): np.arange(len(dirs))}
+    else:
+        axis = np.argmax(np.abs(dirs), axis=1)
+        sign = np.where(dirs[np.arange(len(dirs)), axis] > 0, 1, -1)
+        groups = {}
+        for k, key in enumerate(zip(axis.tolist(), sign.tolist())):
+            groups.setdefault(key, []).append(k)
+    flu = jnp.zeros_like(sigma_t)
+    irr = jnp.zeros_like(sigma_t)
+    for (a, sgn), idx in groups.items():
+        idx = np.asarray(idx)
+        u, v = face_plane_axes(a)
+        perm = (u, v, a)  # sweep axis last, as z
+        d = dirs[idx][:, perm] * np.array([1.0, 1.0, sgn])
+        flip = (lambda x: x[:, :, ::-1]) if sgn < 0 else (lambda x: x)  # noqa: E731
+        st = flip(jnp.transpose(sigma_t, perm))
+        op = flip(jnp.transpose(opaque, perm))
+        nm = normal[..., list(perm)] * jnp.asarray([1.0, 1.0, float(sgn)], normal.dtype)
+        nm = flip(jnp.transpose(nm, perm + (3,)))
+        f, e = _sheet_sweep(st, op, nm, d, wts[idx], h, periodic_xy)
+        inv = np.argsort(perm)
+        flu = flu + jnp.transpose(flip(f), inv)
+        irr = irr + jnp.transpose(flip(e), inv)
+    return flu, irr
+
+
+def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
+    """Batched light-aligned sheet sweep along −z (the frame of :func:`sky_uncollided`).
 
     For each quadrature direction ω_k (towards the sky) the transmittance T_k(x) from the top
     of the domain (or from its open sides) to x is carried sheet by sheet from the top down,
