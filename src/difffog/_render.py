@@ -124,6 +124,7 @@ class Renderer:
         self.scene = scene
         self.solver = solver if solver is not None else SweepSolver()
         self.supersample = int(supersample)
+        self.resolution = int(resolution)
         names = [c.name for c in scene.cameras] if cameras is None else list(cameras)
         self.cameras = [scene.camera(n) for n in names]
         self.timings: dict[str, float] = {}
@@ -189,8 +190,8 @@ class Renderer:
                 for k in ("M", "max_iterations", "tol", "sky_quadrature")
                 if hasattr(self.solver, k)
             },
-            "resolution": int(max(lat.shape)),
-            "lattice_shape": list(lat.shape),
+            "resolution": self.resolution,
+            "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides
             "voxel_size": lat.h,
             "node_counts": lat.counts(),
             "supersample": self.supersample,

@@ -1,0 +1,80 @@
+"""The command line: outputs on disk, exit codes and one-line errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from difffog._cli import main
+
+
+def test_info_summarizes_scene(capsys):
+    assert main(["info", "fog-balls", "-N", "24", "-M", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "24x24x24 nodes" not in out  # the lattice carries the vacuum margin around open sides
+    assert "30x30x30 nodes" in out
+    for needle in ("free", "surface", "solid", "opt.depth", "sun", "camera     top",
+                   "anisotropic phase: no", "sun: yes"):
+        assert needle in out
+
+
+def test_info_periodic_slab_has_no_lateral_margin(capsys):
+    assert main(["info", "slab", "-N", "16", "-M", "2"]) == 0
+    assert "16x16x22 nodes" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv,needle",
+    [
+        (["info", "no-such-scene"], "no built-in scene of that name"),
+        (["info", "fog-balls", "--set", "fog.scater=1"], "Did you mean 'fog.scattering'"),
+        (["info", "fog-balls", "--set", "fog.scattering=-1"], "fog.scattering"),
+        (["render", "fog-balls", "--camera", "nope", "--out", "OUT"], "has no camera 'nope'"),
+        (["render", "fog-balls", "-N", "0", "--out", "OUT"], "--resolution must be a positive"),
+        (["render", "fog-balls", "--tol", "-1", "--out", "OUT"], "--tol must be a positive"),
+    ],
+)
+def test_errors_are_one_line_and_exit_2(argv, needle, capsys, tmp_path):
+    argv = [str(tmp_path / "o") if a == "OUT" else a for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("difffog: error:") and needle in err[0]
+    assert not (tmp_path / "o").exists()  # nothing half-written
+
+
+def test_render_writes_images_and_report(tmp_path, capsys):
+    out = tmp_path / "furnace"
+    assert main(["render", "furnace", "-N", "12", "-M", "2", "--tol", "1e-5", "--out", str(out),
+                 "--supersample", "1"]) == 0
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["inside.npy", "inside.png", "report.json"]
+    img = np.load(out / "inside.npy")
+    assert img.dtype == np.float32 and img.shape == (64, 64)  # (height, width)
+    np.testing.assert_allclose(img, 10.0, rtol=0.02)  # exact answer of the furnace: 1/(1-0.9)
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["settings"]["resolution"] == 12 and rep["settings"]["solver_options"]["M"] == 2
+    assert rep["iterations"] == len(rep["residuals"]) > 10
+    assert rep["error_estimate"] < 1e-5
+    assert set(rep["timings_s"]) >= {"voxelize_s", "solve_s", "render_s", "solve_compile_s"}
+    assert rep["peak_memory_mb"] > 0
+    assert not list(tmp_path.glob(".difffog-*"))  # the staging folder is gone
+
+
+def test_render_fixed_iterations_and_override(tmp_path):
+    out = tmp_path / "o"
+    assert main(["render", "furnace", "-N", "12", "-M", "2", "--iterations", "3", "-q",
+                 "--set", "shape.walls.albedo=0.5", "--set", "fog.scattering=0",
+                 "--out", str(out), "--supersample", "1"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["iterations"] == 3
+    assert rep["overrides"] == ["shape.walls.albedo=0.5", "fog.scattering=0"]
+    # an empty furnace of albedo 0.5 after 3 Jacobi iterations: B = 1 + 0.5·(1 + 0.5·(1 + 0.5))
+    assert float(np.load(out / "inside.npy").mean()) == pytest.approx(1.875, rel=0.02)
+
+
+def test_console_script_entry_point():
+    r = subprocess.run([sys.executable, "-m", "difffog._cli", "info", "slab", "-N", "8", "-M", "1"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "slab" in r.stdout
