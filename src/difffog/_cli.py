@@ -78,15 +78,16 @@ def cmd_render(args) -> int:
             scene.camera(c)  # raises a clear error for an unknown name
     if not scene.cameras:
         raise DifffogError(f"scene '{scene.title}' has no [[camera]]: add one to render images")
+    progress = sys.stderr.isatty() and not args.quiet
     solver = SweepSolver(
         M=args.directions,
         max_iterations=args.iterations or 500,
         tol=0.0 if args.iterations else (args.tol if args.tol is not None else 1e-4),
+        progress=progress,
     )
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise DifffogError(f"--out {out}: exists and is not a folder; choose a folder path")
-    progress = sys.stderr.isatty() and not args.quiet
 
     def say(msg):
         if progress:
@@ -98,6 +99,8 @@ def cmd_render(args) -> int:
                         supersample=args.supersample)
     say("solving the light (compiling first)…")
     result = renderer.render()
+    if progress:
+        print(file=sys.stderr)
     say(f"done: {int(result.light.iterations)} iterations, writing {out}/")
     # write everything into a temporary folder beside the target, then move into place
     out.parent.mkdir(parents=True, exist_ok=True)

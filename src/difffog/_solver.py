@@ -166,6 +166,15 @@ class _Problem(eqx.Module):
     sky: jax.Array  # sky radiance entering the lattice directions (0 with first-collision sky)
     max_iterations: int = eqx.field(static=True)
     tol: float = eqx.field(static=True)
+    progress: bool = eqx.field(static=True, default=False)
+
+
+def _report_progress(k, change, err):
+    import sys
+
+    sys.stderr.write(f"\r  iteration {int(k):4d}: change {float(change):.2e}, "
+                     f"estimated error {float(err):.2e}   ")
+    sys.stderr.flush()
 
 
 def _sources(state, pb: _Problem):
@@ -254,6 +263,8 @@ def _iterate(pb: _Problem):
         d = _rel_change(new, state)
         rho = jnp.clip(_safe_div(d, prev), 0.0, 0.999999)
         err = jnp.where(k < 1, jnp.inf, d * rho / (1.0 - rho))
+        if pb.progress:
+            jax.debug.callback(_report_progress, k + 1, d, err)
         return new, k + 1, d, err, hist.at[k].set(d)
 
     init = ((zero, zero), jnp.asarray(0), jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt), hist0)
@@ -299,6 +310,7 @@ class SweepSolver(AbstractLightSolver):
     tol: float = eqx.field(static=True, default=1e-4)
     adjoint_rtol: float = eqx.field(static=True, default=1e-6)
     sky_quadrature: tuple[int, int] | None = eqx.field(static=True, default=None)
+    progress: bool = eqx.field(static=True, default=False)  # print each iteration to stderr
 
     def __check_init__(self):
         if not isinstance(self.M, int) or self.M < 1:
@@ -365,6 +377,7 @@ class SweepSolver(AbstractLightSolver):
             sky=lattice_sky,
             max_iterations=self.max_iterations,
             tol=self.tol,
+            progress=self.progress,
         )
 
     def solve(self, geom: SweepGeometry, params: Params) -> LightField:
