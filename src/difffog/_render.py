@@ -139,6 +139,7 @@ class Renderer:
         self.timings["prepare_s"] = time.perf_counter() - t
         self._solve = jax.jit(self.solver.solve)
         self._images = jax.jit(self._images_impl)
+        self._forward = jax.jit(self._forward_impl)
 
     def params(self, dtype=None) -> Params:
         return Params.from_scene(self.scene, dtype)
@@ -153,10 +154,12 @@ class Renderer:
     def images(self, light: LightField, params: Params) -> dict[str, jax.Array]:
         return self._images(light, params)
 
-    def __call__(self, params: Params | None = None) -> dict[str, jax.Array]:
-        """Differentiable: images of every camera for these parameters."""
-        params = self.params() if params is None else params
+    def _forward_impl(self, params: Params):
         return self._images_impl(self.solver.solve(self.geometry, params), params)
+
+    def __call__(self, params: Params | None = None) -> dict[str, jax.Array]:
+        """Differentiable (and jitted): images of every camera for these parameters."""
+        return self._forward(self.params() if params is None else params)
 
     def render(self, params: Params | None = None) -> Rendered:
         """Solve and render every camera, timing each stage (compile included, reported apart)."""
