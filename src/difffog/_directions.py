@@ -142,6 +142,6 @@ def cosine_normalization(normals: np.ndarray, dirs: DirectionSet) -> np.ndarray:
     out = np.empty(flat.shape[0])
     for start in range(0, flat.shape[0], 65536):  # chunks bound the (chunk, 6D) temporary
         c = flat[start : start + 65536] @ V.T
-        out[start : start + 65536] = (np.maximum(c, 0.0) * W).sum(-1)
+        out[start : start + 65536] = np.maximum(c, 0.0, out=c) @ W
     ok = out > 0
     return np.where(ok, np.pi / np.where(ok, out, 1.0), 1.0).reshape(n.shape[:-1])

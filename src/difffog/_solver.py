@@ -20,6 +20,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from ._blocking import segment_blocking
 from ._directions import FACE_AXES, cosine_normalization, direction_set, face_plane_axes
 from ._errors import SceneError
 from ._lightfield import LightField
@@ -32,7 +33,6 @@ from ._sweep import (
     face_consts,
     from_face,
     sky_boundary,
-    segment_blocking,
     sweep_face,
     to_face,
 )
@@ -102,7 +102,8 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
     free, surf, solid = nt == FREE, nt == SURFACE, nt == SOLID
     normal = np.asarray(lattice.normal, dtype=np.float64)
     normal = np.where(surf[..., None], normal, 0.0)
-    cnorm = np.where(surf, cosine_normalization(normal, dirs), 0.0)
+    cnorm = np.zeros(nt.shape)
+    cnorm[surf] = cosine_normalization(normal[surf], dirs)
     sun_dir = None if scene.sun is None else tuple(float(x) for x in scene.sun.direction)
     sun_cos = np.zeros(nt.shape) if sun_dir is None else np.maximum(normal @ np.array(sun_dir), 0)
     sun_cos = np.where(surf, sun_cos, 0.0)

@@ -215,38 +215,3 @@ def sky_boundary(dirs: DirectionSet, face: int) -> np.ndarray:
     lz = dirs.vectors[face][:, 2]
     return np.where(lz < -1e-12, 1.0, np.where(lz > 1e-12, 0.0, 0.5))
 
-
-def segment_blocking(solid: np.ndarray, surface: np.ndarray, vectors_int: np.ndarray,
-                     periodic_xy: bool) -> np.ndarray:
-    """For each SURFACE node y and lattice vector L: does the segment from y − L to y cross a
-    SOLID node?  Host-side, once per lattice.
-
-    solid, surface: (nx, ny, nz) bool; vectors_int: (D, 3) integer lattice vectors.  The segment
-    is sampled at 2·max|L| points (every half node or closer) and each sample tested against the
-    SOLID node it falls in.  Returns (D, nx, ny, nz) bool (False away from SURFACE nodes).
-    """
-    D = vectors_int.shape[0]
-    n = np.array(solid.shape)
-    out = np.zeros((D,) + solid.shape, bool)
-    if not surface.any():
-        return out
-    lo = np.argwhere(surface).min(0)
-    hi = np.argwhere(surface).max(0) + 1
-    for d in range(D):
-        L = vectors_int[d]
-        S = 2 * int(np.abs(L).max())
-        offsets = {tuple(np.rint(k / S * L).astype(int)) for k in range(1, S + 1)}
-        acc = np.zeros(tuple(hi - lo), bool)
-        for off in offsets:
-            src = [np.arange(lo[a], hi[a]) - off[a] for a in range(3)]
-            ok = [np.ones(len(s_), bool) for s_ in src]
-            for a in range(3):
-                if periodic_xy and a < 2:
-                    src[a] = src[a] % n[a]
-                else:
-                    ok[a] = (src[a] >= 0) & (src[a] < n[a])
-                    src[a] = np.clip(src[a], 0, n[a] - 1)
-            inside = ok[0][:, None, None] & ok[1][None, :, None] & ok[2][None, None, :]
-            acc |= solid[np.ix_(*src)] & inside
-        out[d, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = acc
-    return out & surface[None]
