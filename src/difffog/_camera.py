@@ -596,10 +596,17 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
     if rad.shape[1] > 1:  # columns: ext, m·B, m, m·B·N (3), m·N (3)
         facing_b = -(rad[:, 3:6] * d).sum(-1)
         facing = -(rad[:, 6:9] * d).sum(-1)
-        ok_f = facing > 1e-3
+        # The facing-weighted mean is exact wherever the nodes share a normal, however small
+        # N·d (walls seen edge-on).  Where normals of opposite sides mix (a thin quad's edge)
+        # the weights change sign and the ratio can explode: detect that by the interpolated
+        # normal's length collapsing, fall back to the plain masked mean there, and keep the
+        # result within the radiosity's range.
         ok_m = rad[:, 2] > 1e-3
+        coherent = (rad[:, 6:9] ** 2).sum(-1) >= 0.25 * rad[:, 2] ** 2
+        ok_f = (facing > 1e-3) & coherent
         b_mask = jnp.where(ok_m, rad[:, 1] / jnp.where(ok_m, rad[:, 2], 1.0), b_hit)
         b_hit = jnp.where(ok_f, facing_b / jnp.where(ok_f, facing, 1.0), b_mask)
+        b_hit = jnp.clip(b_hit, 0.0, jnp.max(fields.radiosity_ext))
     escaped = ~hit & reached & (d[:, 2] > 0)
     sky = jnp.asarray(fields.sky, dtype)
     radiance = L + jnp.where(hit, T * b_hit, 0.0) + jnp.where(escaped, T * sky, 0.0)
