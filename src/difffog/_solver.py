@@ -402,26 +402,14 @@ class SweepSolver(AbstractLightSolver):
 
 
 def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2):
-    """Net radiative flux Σ_L w_L L̂_axis R(x, L) at every node (W/m², + along the axis).
+    """Net radiative flux Σ_L w_L L̂_axis R(x, L) at every non-SOLID node (W/m², + along the axis).
 
-    Runs one more set of sweeps with the converged sources, accumulating the first angular
-    moment instead of Λ (diagnostic: slab reflectance/transmittance, energy balance).
+    One more set of sweeps with the converged sources, accumulating the first angular moment
+    instead of Λ (a diagnostic: energy balance, fluxes through a plane).
     """
-    consts = []
-    for f, c in enumerate(geom.consts):
-        world = np.asarray(direction_set(geom.M).vectors[f][:, axis])
-        consts.append(eqx.tree_at(lambda k: k.weight, c, c.weight * world))
-    geom_m = eqx.tree_at(lambda g: g.consts, geom, tuple(consts))
-    pb_m = eqx.tree_at(lambda p: p.geom, pb, geom_m)
-    q = light.source
-    b = light.radiosity
-    g = geom_m
-    out = jnp.zeros_like(q)
-    for f, (ax, sign) in enumerate(FACE_AXES):
-        lf, _, _ = sweep_face(
-            to_face(q, ax, sign), to_face(b, ax, sign), pb_m.tau_half[f],
-            pb_m.sky * g.sky_frac[f], g.faces[f], g.consts[f], M=g.M, periodic=g.periodic(f),
-            warmup=g.warmup, surfaces=g.has_surfaces,
-        )
-        out = out + from_face(lf, ax, sign)
-    return out
+    world = direction_set(geom.M).vectors[..., axis]
+    consts = tuple(eqx.tree_at(lambda k: k.weight, c, c.weight * jnp.asarray(world[f], c.weight.dtype))
+                   for f, c in enumerate(geom.consts))
+    pb_m = eqx.tree_at(lambda p: p.geom.consts, pb, consts)
+    flux, _ = _sweep_all(light.source, light.radiosity, pb_m)
+    return flux
