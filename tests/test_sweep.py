@@ -194,3 +194,79 @@ def test_gradients_match_finite_differences(x64):
         fd = (f(set_param(p0, scene, path, v + eps)) - f(set_param(p0, scene, path, v - eps)))
         fd = float(fd) / (2 * eps)
         assert float(get_param(g, scene, path)) == pytest.approx(fd, rel=1e-6), path
+
+
+# ---------------------------------------------------------------- kernels and devices
+@pytest.mark.parametrize("surfaces", [False, True])
+@pytest.mark.parametrize("shape", [(9, 8, 10), (7, 1, 5)])  # a plane thinner than M wraps twice
+def test_loop_kernel_matches_batched_kernel(shape, surfaces):
+    """The direction-loop sweep (values) against the batched sweep (its derivatives), every
+    combination of periodic sides."""
+    import itertools
+
+    from difffog._directions import direction_set
+    from difffog._sweep import FaceGeometry, _sweep_face_batched, _sweep_face_loop, face_consts
+
+    M = 2
+    D = (2 * M + 1) ** 2
+    rng = np.random.default_rng(1)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    Q, B, tau = f32(rng.random(shape)), f32(rng.random(shape)), f32(0.4 * rng.random(shape))
+    bc = f32(rng.random(D))
+    free = rng.random(shape) > 0.2
+    geo = FaceGeometry(
+        free=jnp.asarray(free), surf=jnp.asarray(~free & (rng.random(shape) > 0.5)),
+        normal=f32(rng.standard_normal(shape + (3,))),
+        blocked=jnp.asarray(rng.integers(0, 256, shape + ((D + 7) // 8,)), jnp.uint8))
+    consts = face_consts(direction_set(M), 0)
+    for periodic in itertools.product([False, True], repeat=3):
+        kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=surfaces)
+        a = _sweep_face_loop(Q, B, tau, bc, geo, consts, **kw)
+        b = _sweep_face_batched(Q, B, tau, bc, geo, consts, **kw)
+        for x, y in zip(a, b):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-6, atol=2e-6,
+                                       err_msg=str(periodic))
+
+
+def test_two_devices_need_two_devices():
+    from difffog import SolverError
+
+    if len(jax.devices()) >= 2:
+        pytest.skip("this process has two devices")
+    scene = load_scene("furnace")
+    solver = SweepSolver(M=2, devices=2)
+    geom = solver.prepare(scene, voxelize(scene, 16, 2))
+    with pytest.raises(SolverError, match="xla_force_host_platform_device_count=2"):
+        solver.solve(geom, Params.from_scene(scene, jnp.float32))
+
+
+def test_two_devices_match_one_device():
+    """SweepSolver(devices=2) (± faces on two host devices) gives the same light field and
+    gradient as one device; run in a subprocess, since the device count is fixed at start-up."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from difffog import Params, SweepSolver, load_scene, voxelize
+scene = load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+lat = voxelize(scene, 12, 2)
+out = []
+for dev in (1, 2):
+    solver = SweepSolver(M=2, tol=1e-10, adjoint_rtol=1e-10, devices=dev)
+    geom = solver.prepare(scene, lat)
+    loss = lambda p: jnp.sum(solver.solve(geom, p).fluence ** 2)
+    p = Params.from_scene(scene, jnp.float64)
+    light = jax.jit(solver.solve)(geom, p)
+    out.append((light.fluence, light.radiosity, jax.jit(jax.grad(loss))(p).scattering))
+for a, b in zip(*out):
+    a, b = np.asarray(a), np.asarray(b)
+    assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a)), np.max(np.abs(a - b))
+print("ok")
+"""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
