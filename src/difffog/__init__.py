@@ -6,6 +6,12 @@ it all with one light solve for every camera, :class:`Renderer` keeps the host-s
 repeated, differentiable renders.
 """
 
+from ._batch import (
+    map_batch as map_batch,
+    render_batch as render_batch,
+    stack_params as stack_params,
+    unstack_params as unstack_params,
+)
 from ._directions import DirectionSet as DirectionSet, direction_set as direction_set
 from ._errors import DifffogError as DifffogError, SceneError as SceneError, SolverError as SolverError
 from ._lattice import Lattice as Lattice, voxelize as voxelize

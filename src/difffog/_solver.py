@@ -34,6 +34,7 @@ from ._sweep import (
     from_face,
     sky_boundary,
     sweep_face,
+    sweep_face_mesh,
     to_face,
 )
 
@@ -168,7 +169,7 @@ class _Problem(eqx.Module):
     max_iterations: int = eqx.field(static=True)
     tol: float = eqx.field(static=True)
     progress: bool = eqx.field(static=True, default=False)
-    devices: int = eqx.field(static=True, default=1)  # 2: ± faces on two devices (_sweep_all)
+    mesh_shape: tuple[int, int, int] = eqx.field(static=True, default=(1, 1, 1))  # _sweep_all
 
 
 def _report_progress(k, change, err):
@@ -220,38 +221,50 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                 pb.sky * g.sky_frac[f], g.faces[f], g.consts[f])
 
     kw = dict(M=g.M, warmup=g.warmup, surfaces=g.has_surfaces)
-    if pb.devices == 1:
+    nf, npu, npv = pb.mesh_shape
+    if nf * npu * npv == 1:
         for f, (axis, sign) in enumerate(FACE_AXES):
             lf, ef, exits[f] = sweep_face(*face_args(f), periodic=g.periodic(f), **kw)
             lam = lam + from_face(lf, axis, sign)
             irr = irr + from_face(ef, axis, sign)
     else:
-        # The + and − sweeps of an axis are independent and have the same shapes: stack them
-        # and let each of two devices run one (shard_map); XLA on a CPU runs one fused loop
-        # at a time per device, so this is what puts the second core to work.
-        mesh = _face_mesh(pb.devices)
+        mesh = _device_mesh(pb.mesh_shape)
         for axis in range(3):
             fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
-            pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
-
-            def one(*args, f=fp):
-                lf, ef, ex = sweep_face(*jax.tree.map(lambda x: x[0], args),
-                                        periodic=g.periodic(f), **kw)
-                return lf[None], ef[None], ex[None]
-
-            spec = jax.sharding.PartitionSpec("face")
-            lf, ef, ex = jax.shard_map(one, mesh=mesh, in_specs=spec, out_specs=spec,
-                                       check_vma=False)(*pair)
-            lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
-            irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
-            exits[fp], exits[fm] = ex[0], ex[1]
+            if nf == 2:
+                # The + and − sweeps of an axis are independent and have the same shapes: stack
+                # them and let each half of the mesh run one; XLA on a CPU runs one fused loop
+                # at a time per device, so this is what puts a second core to work.
+                pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+                lf, ef, ex = sweep_face_mesh(pair, mesh, stacked=True,
+                                             periodic=g.periodic(fp), **kw)
+                lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
+                irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
+                exits[fp], exits[fm] = ex[0], ex[1]
+            else:
+                for f, sign in ((fp, 1), (fm, -1)):
+                    lf, ef, exits[f] = sweep_face_mesh(face_args(f), mesh, stacked=False,
+                                                       periodic=g.periodic(f), **kw)
+                    lam = lam + from_face(lf, axis, sign)
+                    irr = irr + from_face(ef, axis, sign)
     lam = jnp.where(g.solid, 0.0, lam)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
 
 
-def _face_mesh(n: int) -> jax.sharding.Mesh:
-    """A 1-D mesh ("face") of the first ``n`` devices of the default backend."""
+def mesh_shape_for(devices: int) -> tuple[int, int, int]:
+    """The default (faces, u, v) layout of ``devices`` devices: the ± faces of an axis on two
+    halves when the count is even (no communication), the rest splitting the sweep plane as
+    squarely as possible (halo exchange of M rows/columns per slab)."""
+    nf = 2 if devices % 2 == 0 else 1
+    rest = devices // nf
+    nu = max(d for d in range(1, int(math.isqrt(rest)) + 1) if rest % d == 0)
+    return (nf, rest // nu, nu)
+
+
+def _device_mesh(shape: tuple[int, int, int]) -> jax.sharding.Mesh:
+    """A ("face", "u", "v") mesh of the first prod(shape) devices of the default backend."""
+    n = int(np.prod(shape))
     devs = jax.devices()
     if len(devs) < n:
         raise SolverError(
@@ -259,7 +272,7 @@ def _face_mesh(n: int) -> jax.sharding.Mesh:
             f"({devs[0].platform}); on a CPU set "
             f"XLA_FLAGS=--xla_force_host_platform_device_count={n} before JAX is imported"
         )
-    return jax.sharding.Mesh(np.array(devs[:n]), ("face",))
+    return jax.sharding.Mesh(np.array(devs[:n]).reshape(shape), ("face", "u", "v"))
 
 
 def _jacobi(state, pb: _Problem):
@@ -333,12 +346,15 @@ class SweepSolver(AbstractLightSolver):
     None (default) picks (8, 16) for open domains and (0, 0) for laterally periodic ones, where
     horizontal lattice rays never leave and the missing horizontal sky offsets that (measured on
     thin slabs: R within 0.4-5.6% at M = 2 against 4-10% with the first-collision sky).
-    devices: 1 (default) or 2.  With 2, the + and − face sweeps of each axis run at the same
-    time on the first two JAX devices (``shard_map``); results are identical.  On a CPU this
-    needs two host devices, i.e. ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` set
-    before JAX is imported (it splits nothing else); measured 1.3-2x faster per iteration on
-    a 2-core machine (benchmarks/bench_sweep.py), where XLA otherwise runs the sweeps' fused
-    loops on one core.
+    devices: how many JAX devices run the sweeps (default 1).  They form a ("face", "u", "v")
+    mesh (``mesh``, default ``mesh_shape_for(devices)``): with faces = 2 the + and − sweeps of
+    each axis run at the same time on the two halves; u × v devices split each sweep's plane
+    into blocks that exchange M-wide halos every slab (``ppermute``, toroidal on periodic
+    sides), the MasPar's local communication; between faces the lattice is resharded.  Results
+    equal the single-device ones.  On a CPU, N host devices need
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` set before JAX is imported; with 2 on
+    a 2-core machine, 1.3-2x faster per iteration (benchmarks/bench_sweep.py), where XLA
+    otherwise runs the sweeps' fused loops on one core.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -348,6 +364,11 @@ class SweepSolver(AbstractLightSolver):
     sky_quadrature: tuple[int, int] | None = eqx.field(static=True, default=None)
     progress: bool = eqx.field(static=True, default=False)  # print each iteration to stderr
     devices: int = eqx.field(static=True, default=1)
+    mesh: tuple[int, int, int] | None = eqx.field(static=True, default=None)
+
+    def layout(self) -> tuple[int, int, int]:
+        """The (faces, u, v) device mesh the sweeps run on."""
+        return tuple(self.mesh) if self.mesh is not None else mesh_shape_for(self.devices)
 
     def __check_init__(self):
         if not isinstance(self.M, int) or self.M < 1:
@@ -358,8 +379,16 @@ class SweepSolver(AbstractLightSolver):
             )
         if not (self.tol >= 0):
             raise SceneError(f"SweepSolver: tol must be >= 0, got {self.tol!r}")
-        if self.devices not in (1, 2) or isinstance(self.devices, bool):
-            raise SceneError(f"SweepSolver: devices must be 1 or 2, got {self.devices!r}")
+        if isinstance(self.devices, bool) or not isinstance(self.devices, int) or self.devices < 1:
+            raise SceneError(f"SweepSolver: devices must be an integer >= 1, got {self.devices!r}")
+        if self.mesh is not None:
+            ok = (len(self.mesh) == 3 and all(isinstance(n, int) and n >= 1 for n in self.mesh)
+                  and self.mesh[0] in (1, 2))
+            if not ok or int(np.prod(self.mesh)) != self.devices:
+                raise SceneError(
+                    f"SweepSolver: mesh must be (faces, u, v) with faces 1 or 2 and "
+                    f"faces*u*v = devices = {self.devices}, got {self.mesh!r}"
+                )
 
     def prepare(self, scene, lattice) -> SweepGeometry:
         return prepare_sweep(scene, lattice, self.M)
@@ -417,7 +446,7 @@ class SweepSolver(AbstractLightSolver):
             max_iterations=self.max_iterations,
             tol=self.tol,
             progress=self.progress,
-            devices=self.devices,
+            mesh_shape=self.layout(),
         )
 
     def solve(self, geom: SweepGeometry, params: Params) -> LightField:

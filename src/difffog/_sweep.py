@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._directions import FACE_AXES, DirectionSet, direction_set, face_plane_axes
+from ._errors import SolverError
 
 FOUR_PI = 4.0 * math.pi
 _SOLID = -1.0  # sentinel radiance leaving a SOLID node (real radiance is never negative)
@@ -94,12 +95,58 @@ def _wrap_border(x, axis: int, n: int, M: int):
     return jax.lax.dynamic_update_slice_in_dim(x, hi, n + M, axis=axis)
 
 
+class Halo(eqx.Module):
+    """The plane's border exchange when (u, v) is split over a device mesh (inside ``shard_map``).
+
+    Each device holds a (nu, nv) block of the plane; a slab's radiance is kept padded by M on
+    both sides of u and v.  After a slab the M border rows/columns are rewritten from the
+    neighbouring devices' interiors (``ppermute``: the MasPar's local communication), toroidally
+    on periodic sides; on an open side the devices at the domain's edge keep the entering
+    boundary radiance that the padding put there.  With one device along an axis this is the
+    single-device wrap (periodic) or nothing (open).  ``None`` names an axis that is not split.
+    """
+
+    u_axis: str | None = eqx.field(static=True)
+    v_axis: str | None = eqx.field(static=True)
+    nu_dev: int = eqx.field(static=True)  # devices along u
+    nv_dev: int = eqx.field(static=True)
+
+    def refresh(self, xp, M: int, periodic_u: bool, periodic_v: bool):
+        """Rewrite the M border planes of the last two axes of the padded array ``xp``."""
+        xp = self._axis(xp, xp.ndim - 2, M, self.u_axis, self.nu_dev, periodic_u)
+        return self._axis(xp, xp.ndim - 1, M, self.v_axis, self.nv_dev, periodic_v)
+
+    def pad(self, x, M: int, periodic_u: bool, periodic_v: bool, fill):
+        """Pad the last two axes by M with ``fill``, then fill the borders from the neighbours."""
+        return self.refresh(_pad_plane(x, M, False, False, fill), M, periodic_u, periodic_v)
+
+    @staticmethod
+    def _axis(xp, axis: int, M: int, name, ndev: int, periodic: bool):
+        n = xp.shape[axis] - 2 * M
+        if ndev == 1:
+            return _wrap_border(xp, axis, n, M) if periodic else xp
+        if n < M:
+            raise ValueError(f"a device's block ({n} nodes) is thinner than M = {M}")
+        first = jax.lax.slice_in_dim(xp, M, 2 * M, axis=axis)  # → the previous device's top
+        last = jax.lax.slice_in_dim(xp, n, n + M, axis=axis)  # → the next device's bottom
+        up = [(i, i + 1) for i in range(ndev - 1)] + ([(ndev - 1, 0)] if periodic else [])
+        down = [(i + 1, i) for i in range(ndev - 1)] + ([(0, ndev - 1)] if periodic else [])
+        lo = jax.lax.ppermute(last, name, up)
+        hi = jax.lax.ppermute(first, name, down)
+        if not periodic:  # the domain's edge keeps the boundary radiance
+            i = jax.lax.axis_index(name)
+            lo = jnp.where(i == 0, jax.lax.slice_in_dim(xp, 0, M, axis=axis), lo)
+            hi = jnp.where(i == ndev - 1, jax.lax.slice_in_dim(xp, n + M, n + 2 * M, axis=axis), hi)
+        xp = jax.lax.dynamic_update_slice_in_dim(xp, lo, 0, axis=axis)
+        return jax.lax.dynamic_update_slice_in_dim(xp, hi, n + M, axis=axis)
+
+
 def _tile_rows(nu: int, target: int = _TILE_ROWS) -> int:
     """Rows per tile of the plane: the largest divisor of nu that is <= target."""
     return max(t for t in range(1, min(nu, target) + 1) if nu % t == 0)
 
 
-def _shift_plane(x, bc, pq, M: int, periodic_u: bool, periodic_v: bool):
+def _shift_plane(x, bc, pq, M: int, periodic_u: bool, periodic_v: bool, halo=None):
     """y[m, d, u, v] = x[m, d, u − p_d, v − q_d]: the plane-to-plane step of every direction.
 
     x: (m, D, nu, nv); bc: (D,) radiance entering from outside the plane on open sides;
@@ -109,7 +156,9 @@ def _shift_plane(x, bc, pq, M: int, periodic_u: bool, periodic_v: bool):
     """
     m, D, nu, nv = x.shape
     widths = ((0, 0), (0, 0), (M, M), (M, M))
-    if periodic_u and periodic_v:
+    if halo is not None:
+        xp = halo.pad(x, M, periodic_u, periodic_v, bc[None, :, None, None].astype(x.dtype))
+    elif periodic_u and periodic_v:
         xp = jnp.pad(x, widths, mode="wrap")
     else:
         if periodic_u:
@@ -136,7 +185,7 @@ class FaceGeometry(eqx.Module):
     free: jax.Array  # bool
     surf: jax.Array  # bool
     normal: jax.Array  # (nw, nu, nv, 3) normal in the face frame (u, v, w)
-    blocked: jax.Array  # (nw, ceil(D/8), nu, nv) uint8: bit d set if the segment of direction d
+    blocked: jax.Array  # (nw, nu, nv, ceil(D/8)) uint8: bit d set if the segment of direction d
     #                     arriving at this node crosses a SOLID node (SURFACE nodes only)
 
 
@@ -150,7 +199,8 @@ class SweepConsts(eqx.Module):
 
 
 def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
-               periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool):
+               periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
+               halo: Halo | None = None):
     """One sweep over a face.  All arrays are in the face frame (nw, nu, nv).
 
     Q: source radiance at FREE nodes; B: radiosity at SURFACE nodes; tau_half_unit: σ_t·h/2 (the
@@ -162,28 +212,32 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
     derivatives (JVPs, and through them the transposes the implicit adjoint needs) from
     ``_sweep_face_batched``, the same arithmetic with all directions batched, whose transpose
     stays compact (the loop's would scatter every direction's block into a full-size carry).
+
+    halo: inside ``shard_map`` over a device mesh that splits the plane, the border exchange
+    (see ``Halo``); the arrays are then this device's block of the plane.
     """
-    return _sweep_face(M, tuple(periodic), int(warmup), bool(surfaces), Q, B, tau_half_unit, bc,
-                       geo, consts)
+    return _sweep_face(M, tuple(periodic), int(warmup), bool(surfaces), halo, Q, B,
+                       tau_half_unit, bc, geo, consts)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
-def _sweep_face(M, periodic, warmup, surfaces, Q, B, tau_half_unit, bc, geo, consts):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4))
+def _sweep_face(M, periodic, warmup, surfaces, halo, Q, B, tau_half_unit, bc, geo, consts):
     return _sweep_face_loop(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
-                            warmup=warmup, surfaces=surfaces)
+                            warmup=warmup, surfaces=surfaces, halo=halo)
 
 
 @_sweep_face.defjvp
-def _sweep_face_jvp(M, periodic, warmup, surfaces, primals, tangents):
-    out = _sweep_face(M, periodic, warmup, surfaces, *primals)
+def _sweep_face_jvp(M, periodic, warmup, surfaces, halo, primals, tangents):
+    out = _sweep_face(M, periodic, warmup, surfaces, halo, *primals)
     batched = functools.partial(_sweep_face_batched, M=M, periodic=periodic, warmup=warmup,
-                                surfaces=surfaces)
+                                surfaces=surfaces, halo=halo)
     _, t_out = jax.jvp(batched, primals, tangents)
     return out, t_out
 
 
 def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
-                     M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool):
+                     M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
+                     halo: Halo | None = None):
     """``sweep_face`` (same arguments and results) as loops that keep the work in cache.
 
     Loop structure (what makes it fast on a CPU; the arithmetic is the module's step update):
@@ -298,10 +352,13 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
         zs = jnp.zeros((M, nu, nv), dt)
         dst, lam, irr = jax.lax.fori_loop(0, nu // tu, tile, (dst, zs, zs))
-        if per_u:  # refresh the wrapped border rows, then columns (corners included)
-            dst = _wrap_border(dst, 2, nu, M)
-        if per_v:
-            dst = _wrap_border(dst, 3, nv, M)
+        if halo is not None:  # border rows, then columns (corners included), from neighbours
+            dst = halo.refresh(dst, M, per_u, per_v)
+        else:  # refresh the wrapped border rows, then columns (corners included)
+            if per_u:
+                dst = _wrap_border(dst, 2, nu, M)
+            if per_v:
+                dst = _wrap_border(dst, 3, nv, M)
         return (dst, src), (lam, irr)
 
     bc4 = bc_d[:, None, None, None]
@@ -309,7 +366,10 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         init = jnp.broadcast_to(Qs[0][None], (D, M, nu, nv)).astype(dt)
     else:
         init = jnp.broadcast_to(bc4, (D, M, nu, nv))
-    init = _pad_plane(init, M, per_u, per_v, bc4)
+    if halo is not None:
+        init = halo.pad(init, M, per_u, per_v, bc4)
+    else:
+        init = _pad_plane(init, M, per_u, per_v, bc4)
     # unroll=2: the two carry buffers swap roles every slab; unrolled, they keep their buffers
     # (no copy of the carry per slab).
     (last, _), (lam, irr) = jax.lax.scan(step, (init, init),
@@ -325,7 +385,8 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
 
 def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
-                        M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool):
+                        M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
+                        halo: Halo | None = None):
     """``sweep_face`` with every direction of a slab in one batched array: the shift is one
     vmapped ``dynamic_slice`` over the padded carry (M, D, nu, nv).  Slower forward than
     ``_sweep_face_loop`` but its linearization transposes into an equally compact program, so
@@ -371,7 +432,7 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
 
     def step(carry, slab):
         Qs, Bs, ts, fs, ss, ns, bits = slab  # (M, nu, nv); normal (3, M, nu, nv)
-        r_mid = _shift_plane(carry, bc_d, pq, M, per_u, per_v)
+        r_mid = _shift_plane(carry, bc_d, pq, M, per_u, per_v, halo)
         # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off the fog.
         # (Written with broadcasts rather than einsum: XLA on CPU then fuses each reduction
         # with the elementwise work, 2-3x faster than dot_general here.)
@@ -428,3 +489,76 @@ def sky_boundary(dirs: DirectionSet, face: int) -> np.ndarray:
     lz = dirs.vectors[face][:, 2]
     return np.where(lz < -1e-12, 1.0, np.where(lz > 1e-12, 0.0, 0.5))
 
+
+
+def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, bool, bool],
+                    warmup: int, surfaces: bool):
+    """``sweep_face`` on a ("face", "u", "v") device mesh (``shard_map``).
+
+    args: ``(Q, B, tau_half_unit, bc, geo, consts)`` as for ``sweep_face``, each with a leading
+    axis of 2 (the + and − faces of one axis) when ``stacked`` — split over "face" — or without
+    it.  The plane (u, v) is split over the mesh's "u" and "v" axes; each device sweeps its block
+    and exchanges M-wide borders with its neighbours after every slab (``Halo``).  A plane whose
+    size is not a multiple of the devices along an open side is padded with vacuum (FREE nodes,
+    no fog, no source: radiance crosses them unchanged, so the padding changes nothing) and the
+    results cropped; a periodic side must divide evenly.
+    """
+    from jax.sharding import PartitionSpec as P
+
+    Q, B, tau, bc, geo, consts = args
+    nfd, npu, npv = (mesh.shape[a] for a in ("face", "u", "v"))
+    lead = 1 if stacked else 0
+    nw, nu, nv = Q.shape[lead:]
+    _, per_u, per_v = periodic
+    pads = []
+    for n, nd, per, name in ((nu, npu, per_u, "u"), (nv, npv, per_v, "v")):
+        extra = -n % nd
+        if extra and per:
+            raise SolverError(
+                f"the periodic {name} side of the sweep plane ({n} nodes) does not split evenly "
+                f"over {nd} devices; choose a resolution or device mesh that divides it"
+            )
+        if (n + extra) // nd < M:
+            raise SolverError(
+                f"the sweep plane's {name} side ({n} nodes) over {nd} devices leaves blocks "
+                f"thinner than M = {M}; use fewer devices along {name}"
+            )
+        pads.append(extra)
+    pu, pv = pads
+
+    def pad(x, fill, u_ax):  # u_ax: position of u in x (v follows)
+        if not (pu or pv):
+            return x
+        w = [(0, 0)] * x.ndim
+        w[u_ax], w[u_ax + 1] = (0, pu), (0, pv)
+        return jnp.pad(x, w, constant_values=fill)
+
+    a = lead + 1  # u position in (lead, nw, nu, nv, ...)
+    Q, B, tau = pad(Q, 0, a), pad(B, 0, a), pad(tau, 0, a)
+    geo = FaceGeometry(free=pad(geo.free, True, a), surf=pad(geo.surf, False, a),
+                       normal=pad(geo.normal, 0, a), blocked=pad(geo.blocked, 0, a))
+    f = ("face",) if stacked else ()
+    plane = P(*f, None, "u", "v")
+    specs_in = (plane, plane, plane, P(*f), FaceGeometry(free=plane, surf=plane,
+                                                         normal=P(*f, None, "u", "v", None),
+                                                         blocked=P(*f, None, "u", "v", None)),
+                jax.tree.map(lambda _: P(*f), consts))
+    specs_out = (plane, plane, P(*f, None, None, "u", "v"))
+    halo = Halo(u_axis="u", v_axis="v", nu_dev=npu, nv_dev=npv)
+
+    def local(Q, B, tau, bc, geo, consts):
+        if stacked:
+            Q, B, tau, bc, geo, consts = jax.tree.map(lambda x: x[0],
+                                                      (Q, B, tau, bc, geo, consts))
+        out = sweep_face(Q, B, tau, bc, geo, consts, M=M, periodic=periodic, warmup=warmup,
+                         surfaces=surfaces, halo=halo)
+        return jax.tree.map(lambda x: x[None], out) if stacked else out
+
+    if not stacked and nfd > 1:
+        raise SolverError("a mesh with a 'face' axis of 2 needs stacked ± face arguments")
+    lam, irr, ex = jax.shard_map(local, mesh=mesh, in_specs=specs_in, out_specs=specs_out,
+                                 check_vma=False)(Q, B, tau, bc, geo, consts)
+    if pu or pv:
+        lam, irr = lam[..., :nu, :nv], irr[..., :nu, :nv]
+        ex = ex[..., :nu, :nv]
+    return lam, irr, ex

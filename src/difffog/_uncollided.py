@@ -37,7 +37,7 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy):
     """
     sun_dir = np.asarray(sun_dir, dtype=np.float64)
     axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
-    along = abs(sun_dir[axis])
+    along = float(abs(sun_dir[axis]))  # Python floats below: weak-typed, keep σ's dtype
     if along < 1e-9:  # sun exactly on the horizon of a periodic domain: no direct light
         return jnp.zeros_like(sigma_t)
     u, v = face_plane_axes(axis)
@@ -48,7 +48,7 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy):
         s, o = s[::-1], o[::-1]
     # Light moves by -sun_dir; per sheet the lateral displacement is d = -sun_dir[u,v]/along.
     # The light at (u, v) came from (u - du, v - dv) in the previous sheet.
-    src = [-(-sun_dir[u] / along), -(-sun_dir[v] / along)]  # offsets to sample, in voxels
+    src = [float(sun_dir[u]) / along, float(sun_dir[v]) / along]  # offsets to sample, in voxels
     ipart = [math.floor(x) for x in src]
     frac = [x - i for x, i in zip(src, ipart)]
     lateral_periodic = (periodic_xy and u in (0, 1), periodic_xy and v in (0, 1))

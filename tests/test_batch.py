@@ -1,0 +1,77 @@
+"""Batches of parameter sets: vmap over Params, sharded over devices."""
+
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import difffog as df
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    scene = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+    return df.Renderer(scene, resolution=12, solver=df.SweepSolver(M=2, tol=1e-6),
+                       supersample=1)
+
+
+def _sets(r):
+    p0 = r.params()
+    return [df.set_param(df.set_param(p0, r.scene, "fog.scattering", z), r.scene,
+                         "shape.walls.albedo", a) for z, a in ((0.5, 0.2), (2.0, 0.5), (4.0, 0.9))]
+
+
+def test_batch_equals_one_by_one(renderer):
+    sets = _sets(renderer)
+    batch = df.render_batch(renderer, sets)
+    for i, p in enumerate(sets):
+        one = renderer(p)
+        for cam, img in one.items():
+            np.testing.assert_allclose(np.asarray(batch[cam][i]), np.asarray(img),
+                                       rtol=1e-5, atol=1e-7 * float(img.max()))
+    # the batch really varies: more scattering, different images
+    assert float(jnp.abs(batch["top"][0] - batch["top"][2]).max()) > 0.05 * float(
+        batch["top"].max())
+
+
+def test_stack_and_unstack_round_trip(renderer):
+    sets = _sets(renderer)
+    back = df.unstack_params(df.stack_params(sets))
+    for a, b in zip(sets, back):
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_batch_errors(renderer):
+    with pytest.raises(df.SolverError, match="empty"):
+        df.stack_params([])
+    with pytest.raises(df.SolverError, match="stack_params"):
+        df.render_batch(renderer, renderer.params())  # not stacked
+    with pytest.raises(df.SolverError, match="xla_force_host_platform_device_count"):
+        df.render_batch(renderer, _sets(renderer), devices=len(jax.devices()) + 1)
+
+
+def test_batch_over_two_devices_matches_one():
+    """3 parameter sets over 2 host devices (padded to 4) give the one-device images."""
+    code = """
+import jax, numpy as np, difffog as df
+scene = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+r = df.Renderer(scene, resolution=12, solver=df.SweepSolver(M=2, tol=1e-6), supersample=1)
+p0 = r.params()
+sets = [df.set_param(p0, scene, "fog.scattering", z) for z in (0.5, 2.0, 4.0)]
+a = df.render_batch(r, sets, devices=1)
+b = df.render_batch(r, sets, devices=2)
+for k in a:
+    assert a[k].shape == b[k].shape == (3,) + a[k].shape[1:], (a[k].shape, b[k].shape)
+    err = float(np.max(np.abs(np.asarray(a[k]) - np.asarray(b[k]))) / np.max(np.asarray(a[k])))
+    assert err <= 1e-6, (k, err)
+print("ok")
+"""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
