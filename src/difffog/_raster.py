@@ -105,7 +105,7 @@ def scene_triangles(scene: Scene, *, sphere_subdivisions: int = 4,
 
 
 def cast_rays(tris: Triangles, origins, directions, *, t_min: float = 0.0,
-              max_pairs: int = 1 << 21):
+              max_pairs: int = 1 << 18):
     """First hit of each ray o + t·d (t > t_min) against the triangles (Möller–Trumbore).
 
     origins, directions: (R, 3).  Returns ``t`` (R,) (inf: no hit), ``face`` (R,) (-1: none) and
@@ -121,23 +121,22 @@ def cast_rays(tris: Triangles, origins, directions, *, t_min: float = 0.0,
     F = len(tris)
     if F == 0 or R == 0:
         return t_out, f_out, b1_out, b2_out
-    v0 = tris.corners[:, 0]
-    e1 = tris.corners[:, 1] - v0
-    e2 = tris.corners[:, 2] - v0
-    # cull triangles per chunk of rays by their bounding spheres would help big meshes; the shared
-    # scenes have a few thousand faces, so plain chunks over rays suffice
+    v0 = tris.corners[:, 0].T  # (3, F) components, so that every product below is a plain
+    e1 = (tris.corners[:, 1] - tris.corners[:, 0]).T  # (R, F) broadcast (np.cross is slow)
+    e2 = (tris.corners[:, 2] - tris.corners[:, 0]).T
     step = max(1, max_pairs // F)
     for r0 in range(0, R, step):
-        oo, dd = o[r0:r0 + step, None, :], d[r0:r0 + step, None, :]
-        p = np.cross(dd, e2[None])
-        det = np.einsum("rfk,fk->rf", p, e1)
+        ox, oy, oz = (o[r0:r0 + step, c, None] for c in range(3))
+        dx, dy, dz = (d[r0:r0 + step, c, None] for c in range(3))
+        px, py, pz = dy * e2[2] - dz * e2[1], dz * e2[0] - dx * e2[2], dx * e2[1] - dy * e2[0]
+        det = px * e1[0] + py * e1[1] + pz * e1[2]
         ok = np.abs(det) > 1e-14
         inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        tv = oo - v0[None]
-        u = np.einsum("rfk,rfk->rf", tv, p) * inv
-        q = np.cross(tv, e1[None])
-        v = np.einsum("rfk,rfk->rf", np.broadcast_to(dd, q.shape), q) * inv
-        t = np.einsum("fk,rfk->rf", e2, q) * inv
+        tx, ty, tz = ox - v0[0], oy - v0[1], oz - v0[2]
+        u = (tx * px + ty * py + tz * pz) * inv
+        qx, qy, qz = ty * e1[2] - tz * e1[1], tz * e1[0] - tx * e1[2], tx * e1[1] - ty * e1[0]
+        v = (dx * qx + dy * qy + dz * qz) * inv
+        t = (e2[0] * qx + e2[1] * qy + e2[2] * qz) * inv
         good = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > t_min)
         t = np.where(good, t, np.inf)
         j = np.argmin(t, axis=1)

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -100,6 +101,11 @@ def _plane_basis(s):
     ref = np.array([0.0, 0.0, 1.0]) if abs(s[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
     a = _unit(np.cross(ref, s))
     return a, np.cross(s, a)
+
+
+@jax.jit
+def _trilinear_jit(vol, origin, h, pts):
+    return _trilinear_np_jax(vol, origin, h, pts)
 
 
 def _trilinear_np_jax(vol, origin, h, pts):
@@ -395,7 +401,7 @@ def splat_plan(scene: Scene, lattice, tris, camera, *, sheets: int | None, super
     ksh = np.floor((zh - z_lo) / dz)
     hit_sheet = np.where(hit, np.clip(ksh, -1, K), K + 1).astype(np.int32)
     hit_frac = np.where(hit, np.clip((zh - z_lo) / dz - ksh, 0, 1), 0.0)
-    hit_up = np.asarray(_trilinear_np_jax(dupj, org, h, jnp.asarray(xh, jnp.float32)))
+    hit_up = np.asarray(_trilinear_jit(dupj, org, h, jnp.asarray(xh, jnp.float32)))
 
     # eye footprints per slab, clipped to [0, t_hit]
     o_j, d_j = jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32)
@@ -425,6 +431,11 @@ def splat_plan(scene: Scene, lattice, tris, camera, *, sheets: int | None, super
         "regions": {"front": int((hit_sheet == -1).sum()), "inside": int(
             ((hit_sheet >= 0) & (hit_sheet < K)).sum()), "behind": int((hit_sheet == K).sum())},
         "plan_s": time.perf_counter() - t_start,
+        # the geometry, for light_at: sheet k spans s·x ∈ z_lo + [k, k+1]·dz; a point's texel
+        # coordinates are those of its projection along L onto the plane s·x = 0
+        "geometry": {"s": s.tolist(), "a": a.tolist(), "b": b.tolist(), "L": L.tolist(),
+                     "z_lo": float(z_lo), "dz": float(dz), "u_min": float(u_min),
+                     "v_min": float(v_min)},
     }
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     return SplatPlan(
@@ -715,14 +726,14 @@ class SplatRenderer:
                  shadow_texel: float | None = None, quadrature: int = 2, kernel_radius: int = 3,
                  occluder_thickness: str = "paper", thickness_scale: float = 4.0,
                  scattered_phase: str = "hg", similarity: bool = False):
-        if scene.sun is None:
-            raise SceneError(f"scene '{scene.title}' has no [sun]: the splat solver propagates "
-                             "one directional light (Zhang & Crawfis); add a [sun] or use "
-                             "--solver sweep")
         if scene.domain.boundary != "open":
             raise SceneError(f"scene '{scene.title}': boundary '{scene.domain.boundary}' is not "
                              "supported by the splat solver (its sheets are finite); use "
                              "boundary = \"open\" or --solver sweep")
+        if scene.sun is None:
+            raise SceneError(f"scene '{scene.title}' has no [sun]: the splat solver propagates "
+                             "one directional light (Zhang & Crawfis); add a [sun] or use "
+                             "--solver sweep")
         for name, v, lo in (("resolution", resolution, 2), ("supersample", supersample, 1),
                             ("quadrature", quadrature, 1), ("kernel_radius", kernel_radius, 1),
                             ("back_window", back_window, 1)):
@@ -752,7 +763,11 @@ class SplatRenderer:
         self.cameras = [scene.camera(n) for n in names]
         self.timings: dict[str, float] = {}
         t = time.perf_counter()
-        self.lattice = voxelize(scene, self.resolution, 1, margin=1)
+        with warnings.catch_warnings():
+            # the lattice only carries the fog density here (fog minus solids); the polygons are
+            # rasterized, so the voxelizer's "shape thinner than a voxel" warning does not apply
+            warnings.filterwarnings("ignore", message="shape .* thick, less than one voxel")
+            self.lattice = voxelize(scene, self.resolution, 1, margin=1)
         self.triangles = scene_triangles(scene)
         self.timings["voxelize_s"] = time.perf_counter() - t
         t = time.perf_counter()
@@ -796,6 +811,42 @@ class SplatRenderer:
         _, ys = jax.jit(lambda p, q: splat_pass(p, q, return_light=True,
                                                 **self._pass_options()))(plan, params)
         return ys, plan, self.plan_info[name]
+
+    def light_at(self, points, params: Params | None = None, camera: str | None = None):
+        """The 3-D light export: (direct, forward-scattered, back) light intensity at world
+        points (N, 3), read from one camera pass's sheet buffers (each camera's pass has its own
+        sheets; the light is the same up to their discretization).  Points before the first
+        sheet read it unattenuated, points past the last read the last slab's exit.  Returns
+        three (N,) NumPy arrays (units of the sun's irradiance)."""
+        params = self.params() if params is None else params
+        (Fd, Fs, B), plan, info = self.light_buffers(params, camera)
+        gm = info["geometry"]
+        s, a, b, L = (np.asarray(gm[k]) for k in ("s", "a", "b", "L"))
+        x = np.asarray(points, np.float64).reshape(-1, 3)
+        z = (x @ s - gm["z_lo"]) / gm["dz"]
+        k = np.clip(np.floor(z), 0, plan.K - 1).astype(np.int32)
+        fr = np.clip(z - k, 0.0, 1.0)
+        xp = x - (x @ s / float(s @ L))[:, None] * L
+        uv = np.stack([(xp @ a - gm["u_min"]) / info["texel"] - 0.5,
+                       (xp @ b - gm["v_min"]) / info["texel"] - 0.5], -1)
+        sig = float(params.scattering + params.absorption)
+        if self.options["similarity"]:
+            sig = float(params.scattering * (1 - params.g) + params.absorption)
+        tau = sig * plan.light_D[:plan.K]
+        hs, ws = plan.buffer_hw
+        u = np.clip(uv[:, 0], 0.0, hs - 1.0)
+        v = np.clip(uv[:, 1], 0.0, ws - 1.0)
+        i0 = np.clip(np.floor(u), 0, hs - 2).astype(np.int64)
+        j0 = np.clip(np.floor(v), 0, ws - 2).astype(np.int64)
+        fu, fv = u - i0, v - j0
+
+        def at(buf):
+            buf = np.asarray(buf, np.float64)
+            return ((1 - fu) * (1 - fv) * buf[k, i0, j0] + fu * (1 - fv) * buf[k, i0 + 1, j0]
+                    + (1 - fu) * fv * buf[k, i0, j0 + 1] + fu * fv * buf[k, i0 + 1, j0 + 1])
+
+        t = at(tau)
+        return (at(Fd) * np.exp(-t * fr), at(Fs) * np.exp(-t * fr), at(B) * np.exp(-t * (1 - fr)))
 
     def render(self, params: Params | None = None) -> Rendered:
         """Render every camera, timing compilation and the warm run apart."""
