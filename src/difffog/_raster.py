@@ -87,8 +87,8 @@ def _shape_meshes(s, sphere_subdivisions: int, torus_sections: tuple[int, int]):
     raise TypeError(f"unknown shape kind {type(s).__name__}")
 
 
-def scene_triangles(scene: Scene, *, sphere_subdivisions: int = 4,
-                    torus_sections: tuple[int, int] = (96, 32)) -> Triangles:
+def scene_triangles(scene: Scene, *, sphere_subdivisions: int = 3,
+                    torus_sections: tuple[int, int] = (64, 24)) -> Triangles:
     """Every shape of ``scene`` as triangles (world space)."""
     corners, owner, vnorm = [], [], []
     for i, s in enumerate(scene.shapes):

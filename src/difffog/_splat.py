@@ -715,8 +715,9 @@ class SplatRenderer:
     of (2R+1)² texels; occluder_thickness: "paper" (∝ 1/|∇z_light|, §5, scaled by
     ``thickness_scale`` texels) or "exact" (the occluder's own extent along the light);
     scattered_phase: "hg" (the paper: scattered light seen through the fog's phase about the
-    light direction) or "isotropic"; similarity: propagate the sheets with ζ(1−g) and isotropic
-    kernels (see :func:`splat_pass`) instead of the paper's HG kernels.
+    light direction) or "isotropic"; similarity (default): propagate the sheets with ζ(1−g) and
+    isotropic kernels (see :func:`splat_pass`); False: the paper's HG kernels (cloud-plane vs
+    Mitsuba: 13% / 37% error with it, 26% / 57% without).
     """
 
     def __init__(self, scene: Scene, *, resolution: int = 64, sheets: int | None = None,
@@ -725,7 +726,7 @@ class SplatRenderer:
                  soft_shadows: bool = True, back_window: int = 6,
                  shadow_texel: float | None = None, quadrature: int = 2, kernel_radius: int = 3,
                  occluder_thickness: str = "paper", thickness_scale: float = 4.0,
-                 scattered_phase: str = "hg", similarity: bool = False):
+                 scattered_phase: str = "hg", similarity: bool = True):
         if scene.domain.boundary != "open":
             raise SceneError(f"scene '{scene.title}': boundary '{scene.domain.boundary}' is not "
                              "supported by the splat solver (its sheets are finite); use "
