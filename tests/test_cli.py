@@ -78,3 +78,35 @@ def test_console_script_entry_point():
     r = subprocess.run([sys.executable, "-m", "difffog._cli", "info", "slab", "-N", "8", "-M", "1"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "slab" in r.stdout
+
+
+def test_render_with_the_splat_solver(tmp_path):
+    out = tmp_path / "splat"
+    assert main(["render", "translucent-cube", "--solver", "splat", "-N", "12", "--sheets", "10",
+                 "--camera", "top", "-q", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["report.json", "top.npy", "top.png"]
+    img = np.load(out / "top.npy")
+    assert img.dtype == np.float32 and img.shape == (128, 128) and np.isfinite(img).all()
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["settings"]["solver"] == "splat" and rep["passes"]["top"]["sheets"] == 10
+    assert "iterations" not in rep and rep["settings"]["supersample"] == 1
+    # the lit ground in the top-left corner: ρ/π·(E·cos 40° + π·sky), no fog above it
+    assert float(img[0, 0]) == pytest.approx(0.6 / np.pi * (3.0 * np.cos(np.radians(40.0))
+                                                             + np.pi * 0.2), rel=1e-3)
+
+
+@pytest.mark.parametrize(
+    "argv,needle",
+    [
+        (["render", "furnace", "--solver", "splat", "--out", "OUT"], "no [sun]"),
+        (["render", "fog-balls", "--sheets", "8", "--out", "OUT"], "--sheets applies to"),
+        (["render", "fog-balls", "--solver", "splat", "--sheets", "0", "--out", "OUT"],
+         "--sheets must be a positive"),
+    ],
+)
+def test_splat_errors_are_one_line(argv, needle, capsys, tmp_path):
+    argv = [str(tmp_path / "o") if a == "OUT" else a for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
+    assert not (tmp_path / "o").exists()

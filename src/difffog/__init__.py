@@ -3,7 +3,8 @@
 Pipeline: ``load_scene`` (scene file → :class:`Scene`) → ``voxelize`` (→ :class:`Lattice`) →
 a light solver (``SweepSolver``) → :class:`LightField` → cameras → images; :func:`render` runs
 it all with one light solve for every camera, :class:`Renderer` keeps the host-side work for
-repeated, differentiable renders.
+repeated, differentiable renders.  :class:`SplatRenderer` is the fast, approximate alternative
+(Zhang & Crawfis' sheet-based splatting) for forward-scattering clouds and polygon meshes.
 """
 
 from ._batch import (
@@ -31,5 +32,6 @@ from ._scene_io import (
     scalar_paths as scalar_paths,
 )
 from ._solver import AbstractLightSolver as AbstractLightSolver, SweepSolver as SweepSolver
+from ._splat import SplatRenderer as SplatRenderer
 
 __version__ = "0.1.0"

@@ -63,8 +63,12 @@ def cmd_render(args) -> int:
     from ._scene_io import load_scene
     from ._solver import SweepSolver
 
-    if args.solver != "sweep":
-        raise DifffogError(f"--solver {args.solver}: only 'sweep' is available in this version")
+    splat = args.solver == "splat"
+    if args.sheets is not None:
+        _positive_int("--sheets", args.sheets)
+        if not splat:
+            raise DifffogError("--sheets applies to --solver splat only; the sweep's knobs are "
+                               "--directions and --tol")
     _positive_int("--resolution", args.resolution)
     _positive_int("--directions", args.directions)
     if args.iterations is not None:
@@ -94,14 +98,24 @@ def cmd_render(args) -> int:
             print(f"  {msg}", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
-    say(f"voxelizing '{scene.title}' at resolution {args.resolution} (M = {args.directions})…")
-    renderer = Renderer(scene, resolution=args.resolution, solver=solver, cameras=cameras,
-                        supersample=args.supersample)
-    say("solving the light (compiling first)…")
-    result = renderer.render()
-    if progress:
-        print(file=sys.stderr)
-    say(f"done: {int(result.light.iterations)} iterations, writing {out}/")
+    if splat:
+        from ._splat import SplatRenderer
+
+        say(f"splatting '{scene.title}' at resolution {args.resolution}…")
+        renderer = SplatRenderer(scene, resolution=args.resolution, sheets=args.sheets,
+                                 cameras=cameras, supersample=args.supersample or 1)
+        say("rendering the sheets (compiling first)…")
+        result = renderer.render()
+        say(f"done, writing {out}/")
+    else:
+        say(f"voxelizing '{scene.title}' at resolution {args.resolution} (M = {args.directions})…")
+        renderer = Renderer(scene, resolution=args.resolution, solver=solver, cameras=cameras,
+                            supersample=args.supersample or 2)
+        say("solving the light (compiling first)…")
+        result = renderer.render()
+        if progress:
+            print(file=sys.stderr)
+        say(f"done: {int(result.light.iterations)} iterations, writing {out}/")
     # write everything into a temporary folder beside the target, then move into place
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".difffog-", dir=out.parent))
@@ -110,7 +124,7 @@ def cmd_render(args) -> int:
             np.save(tmp / f"{name}.npy", img.astype(np.float32))
             skio.imsave(tmp / f"{name}.png", _tonemap(img), check_contrast=False)
         light = result.light
-        k = int(light.iterations)
+        k = 0 if splat else int(light.iterations)
         report = {
             "scene": scene.title,
             "source": str(scene.source) if scene.source else None,
@@ -118,9 +132,10 @@ def cmd_render(args) -> int:
             "settings": result.settings,
             "timings_s": {k2: round(v, 4) for k2, v in result.timings.items()},
             "total_s": round(time.perf_counter() - t0, 4),
-            "iterations": k,
-            "residuals": [float(x) for x in np.asarray(light.residuals)[:k]],
-            "error_estimate": float(light.error_estimate),
+            **({"passes": light} if splat else {
+                "iterations": k,
+                "residuals": [float(x) for x in np.asarray(light.residuals)[:k]],
+                "error_estimate": float(light.error_estimate)}),
             "peak_memory_mb": _peak_memory_mb(),
             "images": {
                 n: {"shape": list(v.shape), "mean": float(v.mean()), "max": float(v.max())}
@@ -136,7 +151,8 @@ def cmd_render(args) -> int:
     if not args.quiet:
         for n, v in result.images.items():
             print(f"{out / (n + '.npy')}: {v.shape[1]}x{v.shape[0]}, mean radiance {v.mean():.4g}")
-        print(f"{out / 'report.json'}: {k} iterations, {report['total_s']:.1f} s")
+        what = "splat" if splat else f"{k} iterations"
+        print(f"{out / 'report.json'}: {what}, {report['total_s']:.1f} s")
     return 0
 
 
@@ -159,13 +175,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scene_args(p, 64)
     p.add_argument("--camera", action="append", metavar="NAME",
                    help="render only this camera (repeatable; default: all)")
-    p.add_argument("--solver", default="sweep", choices=["sweep"], help="light solver")
+    p.add_argument("--solver", default="sweep", choices=["sweep", "splat"],
+                   help="light solver: sweep (discrete ordinates, accurate) or splat (sheet-based "
+                        "splatting, fast and approximate; needs a [sun])")
+    p.add_argument("--sheets", type=int, metavar="K",
+                   help="splat: sheets per camera pass (default: one per voxel)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--iterations", type=int, help="run exactly this many Jacobi iterations")
     g.add_argument("--tol", type=float,
                    help="stop when the estimated remaining relative error is below (default 1e-4)")
-    p.add_argument("--supersample", type=int, default=2,
-                   help="s×s rays per pixel, averaged (box filter; default 2)")
+    p.add_argument("--supersample", type=int, default=None,
+                   help="s×s rays per pixel, averaged (box filter; default 2, splat 1)")
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=cmd_render)

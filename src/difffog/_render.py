@@ -104,10 +104,14 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
 
 @dataclass
 class Rendered:
-    """Images (H, W) keyed by camera name, the light field and what it took."""
+    """Images (H, W) keyed by camera name, the light field and what it took.
+
+    ``light`` is the solver's light: a :class:`LightField` for the sweep; for the splat solver
+    (which needs no 3-D light volume) a summary of each camera's pass (sheets, buffer, order).
+    """
 
     images: dict[str, np.ndarray]
-    light: LightField
+    light: LightField | dict | None = None
     timings: dict[str, float] = field(default_factory=dict)
     settings: dict = field(default_factory=dict)
 
