@@ -27,3 +27,12 @@ from ._scene_io import (
 from ._solver import AbstractLightSolver as AbstractLightSolver, SweepSolver as SweepSolver
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # ``difffog.plot`` (matplotlib) loads on first use, so ``import difffog`` stays free of it
+    if name == "plot":
+        import importlib
+
+        return importlib.import_module(".plot", __name__)
+    raise AttributeError(f"module 'difffog' has no attribute {name!r}")
