@@ -110,6 +110,8 @@ def test_image_grid_uses_one_tone_map_and_labels_everything():
     assert axes[0].get_ylabel() == "row (pixels)"
     colorbars = [ax for ax in fig.axes if not ax.images]
     assert len(colorbars) == 1 and plot.RADIANCE_UNIT in colorbars[0].get_ylabel()
+    # Jupyter shows it without pyplot
+    assert isinstance(fig, plot.PlotFigure) and fig._repr_png_()[:4] == b"\x89PNG"
     # the grey level shown is the tone map's
     out, _ = plot.tonemap(images, dtype="float")
     np.testing.assert_allclose(axes[1].images[0].norm(images["dim"]), out["dim"], atol=1e-12)

@@ -2,9 +2,9 @@
 
 Every function returns a :class:`matplotlib.figure.Figure` (or draws into the ``ax=`` /
 ``axes=`` it is given and returns their figure), labels its axes with units, and never touches
-pyplot's global figure list: the figures are plain ``Figure`` objects, so nothing is left open
-and nothing is shown twice in Jupyter (a returned figure displays itself; ``fig.savefig``
-writes it).  ``import difffog`` does not import matplotlib; ``import difffog.plot`` does.
+pyplot's global figure list: new figures are :class:`PlotFigure` (a ``Figure`` that Jupyter
+shows as PNG), so nothing is left open and nothing is shown twice in a notebook (a returned
+figure displays itself; ``display(fig)`` in a loop; ``fig.savefig`` writes it).  ``import difffog`` does not import matplotlib; ``import difffog.plot`` does.
 
 Units.  Images are linear radiance.  A scene file gives ``sun.irradiance`` and
 ``sky.radiance`` without units; in SI (irradiance in W m⁻²) image radiance is in
@@ -33,6 +33,7 @@ from ._errors import DifffogError
 
 __all__ = [
     "RADIANCE_UNIT",
+    "PlotFigure",
     "convergence",
     "error_map",
     "exposure",
@@ -127,10 +128,23 @@ def tonemap(images, *, scale: float | None = None, percentile: float = PERCENTIL
     return one(images), scale
 
 
+class PlotFigure(Figure):
+    """A matplotlib Figure that Jupyter displays by itself (as PNG) without pyplot: the
+    figures of this module are never registered with pyplot, so nothing is left open and a
+    figure returned by a cell is shown exactly once."""
+
+    def _repr_png_(self) -> bytes:
+        import io
+
+        buf = io.BytesIO()
+        self.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+        return buf.getvalue()
+
+
 def _new_figure(nrows: int, ncols: int, size: tuple[float, float], layout: str = "constrained",
                 **kw):
     # "compressed" is matplotlib's layout for grids of fixed-aspect images
-    fig = Figure(figsize=(size[0] * ncols, size[1] * nrows), layout=layout)
+    fig = PlotFigure(figsize=(size[0] * ncols, size[1] * nrows), layout=layout)
     axes = fig.subplots(nrows, ncols, squeeze=False, **kw)
     return fig, axes
 
