@@ -1,4 +1,8 @@
-"""Write the notebooks in this folder from the cell sources below: ``python notebooks/make_notebooks.py``.
+"""Write the notebooks in this folder from the cell sources below.
+
+    python notebooks/make_notebooks.py            # (re)write the .ipynb files
+    python notebooks/make_notebooks.py --check    # exit 1 if a committed notebook is stale
+
 
 The ``.ipynb`` files are generated, committed without outputs, and executed by
 ``tests/test_notebooks.py`` at the small size; edit the cells here, not in Jupyter, and
@@ -36,7 +40,8 @@ print(f"size {SIZE}: N = {N}, M = {M}, tol = {TOL:g}")'''
 REFERENCES = '''\
 # The Mitsuba 3 references live next to the repository (../shared/references) when the
 # project's shared folder is there; DIFFFOG_REFERENCES points elsewhere.
-REFS = Path(os.environ.get("DIFFFOG_REFERENCES", Path.cwd().parent.parent / "shared" / "references"))
+REFS = Path(os.environ.get("DIFFFOG_REFERENCES",
+                           Path.cwd().parent.parent / "shared" / "references"))
 print("references:", REFS if REFS.exists() else "not found (the comparison cells skip)")'''
 
 
@@ -82,7 +87,8 @@ d, fog, sun = scene.domain, scene.fog, scene.sun
 print(f"{scene.title}: domain {d.min} .. {d.max}, boundary {d.boundary}")
 print(f"fog: ζ = {fog.scattering}, γ = {fog.absorption} per unit length, "
       f"single-scattering albedo {fog.single_scattering_albedo:.2f}")
-print(f"sun: {sun.irradiance} W m⁻² from zenith {sun.zenith_deg}°, azimuth {sun.azimuth_deg}°; "
+print(f"sun: {sun.irradiance} W m⁻² from zenith {sun.zenith_deg}°, "
+      f"azimuth {sun.azimuth_deg}°; "
       f"sky {scene.sky.radiance} W m⁻² sr⁻¹")
 for s in scene.shapes:
     print(f"  shape {s.name:10s} {s.kind:9s} albedo {s.albedo}")
@@ -130,7 +136,8 @@ out = renderer.render()
 t = out.timings
 print(f"solve {t['solve_s']:.2f} s (+ {t['solve_compile_s']:.1f} s compile), "
       f"render {t['render_s']:.2f} s (+ {t['render_compile_s']:.1f} s compile), "
-      f"{int(out.light.iterations)} iterations, estimated error {float(out.light.error_estimate):.1e}")
+      f"{int(out.light.iterations)} iterations, "
+      f"estimated error {float(out.light.error_estimate):.1e}")
 plot.image_grid(out.images, suptitle=f"fog-balls, sweep solver, N = {N}, M = {M}")"""),
     code("""\
 plot.convergence(out.light, tol=TOL, label="fog-balls")"""),
@@ -212,8 +219,8 @@ first = draft_images(fog.scattering, fog.absorption, 0.8, sun.irradiance, scene.
 scale = plot.exposure(first)  # fixed from here on
 print(f"draft renderer compiled and ran in {time.perf_counter() - t0:.1f} s")"""),
     code("""\
-slider = dict(continuous_update=False, style={"description_width": "9em"},
-              layout=widgets.Layout(width="26em"))
+slider = {"continuous_update": False, "style": {"description_width": "9em"},
+          "layout": widgets.Layout(width="26em")}
 sliders = {
     "zeta": widgets.FloatSlider(fog.scattering, min=0.0, max=10.0, step=0.1,
                                 description="ζ scattering (1/unit)", **slider),
@@ -246,14 +253,16 @@ update()
 widgets.VBox([widgets.HBox([widgets.VBox(list(sliders.values())[:3]),
                             widgets.VBox(list(sliders.values())[3:] + [status])]), view])"""),
     md("""\
-Setting a slider from code does what dragging it does. Thinner fog lets more of the sun
-reach the floor through the open roof:"""),
+Setting a slider from code does what dragging it does. Here ζ drops from 2 to 0.5 per unit:
+more sunlight reaches the floor, but the thinner fog scatters less of it towards the camera,
+and the fog's glow is most of what both cameras see, so both views get darker on average:"""),
     code("""\
 before = {k: float(v.mean()) for k, v in last.items()}
 sliders["zeta"].value = 0.5
 after = {k: float(v.mean()) for k, v in last.items()}
-for k in before:
-    print(f"{k:8s} mean radiance {before[k]:.4f} -> {after[k]:.4f} W m⁻² sr⁻¹ ({status.value})")
+for k, b in before.items():
+    print(f"{k:8s} mean radiance {b:.4f} -> {after[k]:.4f} W m⁻² sr⁻¹")
+print(status.value)
 assert before != after, "the slider did not re-render"
 sliders["zeta"].value = fog.scattering"""),
 ]
@@ -298,20 +307,21 @@ The light source had two components, ambient and directed, both of which entered
 through the open roof. The ambient component was a uniform hemispheric sky, and the directed
 component was oblique, from the left. Twelve iterations were used."*
 
-The shared `ring-box` scene is that set-up (sky 1 W m⁻² sr⁻¹, sun 2 W m⁻² at zenith 35° from
-−x). Four orthographic cameras replace its own: tilted 25° from the vertical, from the four
-sides, all looking at the ring through the open roof."""),
+The shared `ring-box` scene is that set-up (sky 1 W m⁻² sr⁻¹, sun 2 W m⁻² at zenith 35°
+from −x). Four orthographic cameras replace its own: tilted 20° from the vertical, from the four
+sides, all aimed at the middle of the open roof, so each sees the ring through it (and the
+outside of the nearest wall below the roof's edge)."""),
     code("""\
 ring_scene = df.load_scene("ring-box")
-centre = np.array([0.5, 0.5, 0.45])
+roof = np.array([0.5, 0.5, 1.0])  # the middle of the open roof
 
 
-def roof_camera(name, azimuth_deg, tilt_deg=25.0):
-    \"\"\"An orthographic camera 1.5 units from the ring, tilted from the vertical.\"\"\"
+def roof_camera(name, azimuth_deg, tilt_deg=20.0):
+    \"\"\"An orthographic camera above the roof, tilted from the vertical towards azimuth.\"\"\"
     a, t = math.radians(azimuth_deg), math.radians(tilt_deg)
     toward = np.array([math.sin(t) * math.cos(a), math.sin(t) * math.sin(a), math.cos(t)])
-    return df.Camera(name=name, kind="orthographic", position=tuple(centre + 1.5 * toward),
-                     look_at=tuple(centre), up=(0.0, 0.0, 1.0), extent=(1.25, 1.25),
+    return df.Camera(name=name, kind="orthographic", position=tuple(roof + 0.5 * toward),
+                     look_at=tuple(roof), up=(0.0, 0.0, 1.0), extent=(1.2, 1.2),
                      resolution=(RES, RES))
 
 
@@ -343,10 +353,11 @@ ring_r, ring = paper_and_converged(ring_scene, 12)  # the paper used twelve iter
 plot.image_grid(ring["paper"][1], ncols=4,
                 suptitle=f"Langer et al. Fig. 4 with difffog: 12 iterations, N = {N}, M = {M}")"""),
     md("""\
-How far are twelve iterations from the converged light? With albedo 0.9 everywhere the
-interreflections converge slowly (a contraction of about 0.9 per iteration), so twelve
-iterations leave the box's inside visibly too dark, most of all where light arrives only
-after several bounces."""),
+How far are twelve iterations from the converged light? With albedo 0.9 everywhere each
+bounce keeps most of the light, so the Jacobi iteration contracts slowly (about 0.8 per
+iteration at N = 64: the slope below) and twelve iterations leave the inside of the box a few
+per cent too dark, most of all on the floor and low on the walls, where light arrives after
+several bounces. The paper's images were not converged either."""),
     code("""\
 light, images = ring["converged"]
 display(plot.image_grid(images, ncols=4, suptitle="converged"))
@@ -371,8 +382,12 @@ paper's five iterations and converged."""),
     code("""\
 balls_scene = df.load_scene("fog-balls")
 balls_r, balls = paper_and_converged(balls_scene, 5)  # the paper used five iterations
-plot.image_grid({f"5 iterations / {k}": v for k, v in balls["paper"][1].items()}
-                | {f"converged / {k}": v for k, v in balls["converged"][1].items()}, ncols=2)"""),
+display(plot.image_grid({f"5 iterations / {k}": v for k, v in balls["paper"][1].items()}
+                        | {f"converged / {k}": v for k, v in balls["converged"][1].items()},
+                        ncols=2))
+# fog of albedo 0.8 converges faster than the ring's box: five iterations are closer
+plot.error_map(balls["paper"][1]["oblique"], balls["converged"][1]["oblique"],
+               title="5 iterations against converged, oblique view")"""),
     md("""\
 The tubes: the uncollided sunlight in vertical slices through each ball's centre. Each ball
 casts a shadow tube slanted along the sun; the lower balls sit in the upper ones' fog, and
@@ -408,9 +423,9 @@ figures when `difffog.SplatRenderer` exists and says so otherwise."""),
     code("""\
 if hasattr(df, "SplatRenderer"):
     cloud = df.load_scene("cloud-plane")
-    shots = {"Fig. 1-like: no multiple scattering": dict(forward=False, back=False),
-             "Fig. 2-like: forward": dict(forward=True, back=False),
-             "Fig. 4-like: forward and back": dict(forward=True, back=True)}
+    shots = {"Fig. 1-like: no multiple scattering": {"forward": False, "back": False},
+             "Fig. 2-like: forward": {"forward": True, "back": False},
+             "Fig. 4-like: forward and back": {"forward": True, "back": True}}
     imgs = {}
     for title, opts in shots.items():
         out = df.SplatRenderer(cloud, resolution=N, **opts).render()
