@@ -36,6 +36,13 @@ def main():
         if ref is not None:
             column["Mitsuba 3 (4096 spp)"] = ref
         plot.image_grid(column, axes=axes[:, j], ncols=1, scale=scale, colorbar=False)
+    for ax in axes.ravel():  # a gallery of pictures: no pixel rulers
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+    fig.supxlabel("Tone map per column: radiance / (99.5th percentile of the reference), "
+                  "gamma 2.2", fontsize=9)
     out = HERE / "gallery.png"
     fig.savefig(out, dpi=72)
     print(f"wrote {out}")

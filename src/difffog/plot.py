@@ -194,8 +194,9 @@ def image_grid(images: Mapping[str, np.ndarray], *, ncols: int | None = None,
     im = None
     for i, (title, a) in enumerate(arrays.items()):
         ax = flat[i]
-        im = ax.imshow(np.nan_to_num(a, nan=0.0), cmap="gray", norm=norm,
-                       interpolation="nearest")
+        # matplotlib's default interpolation: anti-aliased where a panel shows fewer screen
+        # pixels than the image has
+        im = ax.imshow(np.nan_to_num(a, nan=0.0), cmap="gray", norm=norm)
         ax.set_title(str(title), fontsize=9)
         _pixel_labels(ax, bottom=True, left=(i % ncols == 0))
     for ax in flat[n:]:
