@@ -150,6 +150,12 @@ def test_error_map_shows_signed_relative_error_where_the_reference_is_bright():
     assert lo == -hi and hi > 0 and ax.images[0].get_cmap().name.startswith("RdBu")
     cbar = fig.axes[1]
     assert "(image − reference) / reference (%)" == cbar.get_ylabel()
+    # the scale is the 99.5th percentile of |error|: the largest errors are clipped, and
+    # the colour bar says so; a wide enough scale clips nothing
+    assert np.nanmax(np.abs(data.filled(np.nan))) > hi
+    assert ax.images[0].colorbar.extend == "both"
+    wide = plot.error_map(img, ref, vmax=10.0)
+    assert wide.axes[0].images[0].colorbar.extend == "neither"
     stats = plot.image_errors(img, ref, noise=0.02)
     rmse = np.sqrt(np.mean((img - ref) ** 2))
     assert stats["rel_rmse"] == pytest.approx(rmse / ref.mean())

@@ -268,11 +268,14 @@ def error_map(image, reference, *, noise: float | None = None, relative: bool = 
     cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="#9a9a9a")
     im = ax.imshow(np.ma.masked_invalid(err), cmap=cmap, vmin=-vmax, vmax=vmax,
                    interpolation="nearest")
+    # arrow ends on the colour bar where the colour scale clips larger errors
+    extend = "both" if finite.size and finite.max() > vmax else "neither"
     if relative:
         cb = fig.colorbar(im, ax=ax, shrink=0.9, format=PercentFormatter(xmax=1.0, decimals=None),
-                          label="(image − reference) / reference (%)")
+                          label="(image − reference) / reference (%)", extend=extend)
     else:
-        cb = fig.colorbar(im, ax=ax, shrink=0.9, label=f"image − reference ({unit})")
+        cb = fig.colorbar(im, ax=ax, shrink=0.9, label=f"image − reference ({unit})",
+                          extend=extend)
     cb.ax.tick_params(labelsize=8)
     _pixel_labels(ax)
     line = f"rel. RMSE {100 * stats['rel_rmse']:.1f}%"
