@@ -117,32 +117,19 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
 
 
 def save_png(path: Path, scene: str, camera: str, ours: np.ndarray, ref: np.ndarray,
-             label: str, m: dict):
-    import matplotlib
+             label: str, m: dict, noise: float):
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from difffog import plot
 
-    vmax = float(np.percentile(np.concatenate([ours.ravel(), ref.ravel()]), 99.7))
-    err = ours - ref
-    emax = float(np.percentile(np.abs(err), 99.5)) or 1e-6
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.9), dpi=72, constrained_layout=True)
-    im0 = axes[0].imshow(ours, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
-    axes[0].set_title(f"difffog ({label})")
-    axes[1].imshow(ref, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
-    axes[1].set_title("Mitsuba 3 reference")
-    im2 = axes[2].imshow(err, cmap="RdBu_r", vmin=-emax, vmax=emax, interpolation="nearest")
-    axes[2].set_title("signed error: difffog − Mitsuba")
-    axes[2].set_xlabel(f"bias {100 * m['bias']:+.1f}%, rel. RMSE {100 * m['rel_rmse_corr']:.1f}% "
-                       f"(noise removed), {100 * m['rel_rmse_s3']:.1f}% smoothed 3×3")
-    for a in axes:
-        a.set_xticks([])
-        a.set_yticks([])
-    fig.colorbar(im0, ax=axes[:2], label="radiance", shrink=0.9)
-    fig.colorbar(im2, ax=axes[2], label="radiance (signed error)", shrink=0.9)
+    fig = Figure(figsize=(13, 3.9), layout="compressed")
+    axes = fig.subplots(1, 3)
+    # difffog and Mitsuba under one tone map (the command line's, shared by both images)
+    plot.image_grid({f"difffog ({label})": ours, "Mitsuba 3 reference": ref}, axes=axes[:2])
+    plot.error_map(ours, ref, noise=noise, ax=axes[2],
+                   title=f"difffog vs Mitsuba; {100 * m['rel_rmse_s3']:.1f}% smoothed 3×3")
     fig.suptitle(f"{scene} / {camera}")
     fig.savefig(path, dpi=72)
-    plt.close(fig)
 
 
 def fmt_pct(x: float) -> str:
@@ -249,7 +236,7 @@ def main(argv=None):
         for (s, c), r in best_rows(rows).items():
             img, ref = kept[(s, c, r["N"], r["M"])]
             save_png(args.out / f"references_{s}_{c}.png", s, c, img, ref,
-                     f"N={r['N']}, M={r['M']}", r)
+                     f"N={r['N']}, M={r['M']}", r, load_reference(s, c)[1])
     print()
     print(write_markdown(args.out / "references.md", rows, settings, args.tol))
 

@@ -7,13 +7,10 @@ docs/gallery.png: difffog (top row) beside the Mitsuba 3 references (bottom row)
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from difffog import Renderer, SweepSolver, load_scene  # noqa: E402
+from difffog import Renderer, SweepSolver, load_scene, plot
 
 HERE = Path(__file__).resolve().parent
 REFS = HERE.parents[1] / "shared" / "references"
@@ -23,8 +20,8 @@ SHOTS = [("fog-balls", "oblique"), ("fog-balls", "top"), ("ring-box", "oblique")
 
 def main():
     rows = 2 if REFS.exists() else 1
-    fig, axes = plt.subplots(rows, len(SHOTS), figsize=(3.2 * len(SHOTS), 2.9 * rows),
-                             squeeze=False)
+    fig = Figure(figsize=(3.4 * len(SHOTS), 2.9 * rows), layout="compressed")
+    axes = fig.subplots(rows, len(SHOTS), squeeze=False)
     cache = {}
     for j, (scene, cam) in enumerate(SHOTS):
         if scene not in cache:
@@ -33,14 +30,19 @@ def main():
         img = cache[scene][cam]
         ref_path = REFS / scene / f"{cam}.npy"
         ref = np.load(ref_path) if ref_path.exists() else None
-        vmax = float(np.percentile(ref if ref is not None else img, 99.5))
-        for i, (im, who) in enumerate([(img, "difffog"), (ref, "Mitsuba 3 (4096 spp)")][:rows]):
-            ax = axes[i, j]
-            ax.imshow(np.clip(im / vmax, 0, 1) ** (1 / 2.2), cmap="gray", vmin=0, vmax=1)
-            ax.set_title(f"{scene} / {cam}\n{who}", fontsize=9)
-            ax.set_xticks([])
-            ax.set_yticks([])
-    fig.tight_layout()
+        # one tone map per column: the reference's exposure when there is one
+        scale = plot.exposure(ref if ref is not None else img)
+        column = {f"{scene} / {cam}\ndifffog": img}
+        if ref is not None:
+            column["Mitsuba 3 (4096 spp)"] = ref
+        plot.image_grid(column, axes=axes[:, j], ncols=1, scale=scale, colorbar=False)
+    for ax in axes.ravel():  # a gallery of pictures: no pixel rulers
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+    fig.supxlabel("Tone map per column: radiance / (99.5th percentile of the reference), "
+                  "gamma 2.2", fontsize=9)
     out = HERE / "gallery.png"
     fig.savefig(out, dpi=72)
     print(f"wrote {out}")

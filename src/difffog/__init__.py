@@ -35,3 +35,12 @@ from ._solver import AbstractLightSolver as AbstractLightSolver, SweepSolver as 
 from ._splat import SplatRenderer as SplatRenderer
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # ``difffog.plot`` (matplotlib) loads on first use, so ``import difffog`` stays free of it
+    if name == "plot":
+        import importlib
+
+        return importlib.import_module(".plot", __name__)
+    raise AttributeError(f"module 'difffog' has no attribute {name!r}")
