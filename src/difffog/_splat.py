@@ -354,7 +354,7 @@ def splat_plan(scene: Scene, lattice, tris, camera, *, sheets: int | None, super
         start = P0.reshape(-1, 3) + ((z_lo - far) / sL) * L
         tl, fl, _, _ = cast_rays(tris, start, np.broadcast_to(L, start.shape))
         hitl = np.isfinite(tl)
-        xl = start + tl[:, None] * L
+        xl = start + np.where(hitl, tl, 0.0)[:, None] * L  # no inf·0 where a ray misses
         zl = xl @ s
         first = np.where(hitl, np.floor((zl - z_lo) / dz), never).astype(np.int64)
         occ_first = np.clip(first, -1, never).astype(np.int32).reshape(hs, ws)
