@@ -59,7 +59,8 @@ def test_notebook_runs_at_the_small_size(path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
     src = str(Path(difffog.__file__).resolve().parents[1])  # the difffog under test
     monkeypatch.setenv("DIFFFOG_NOTEBOOK_SIZE", "small")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([src, os.environ.get("PYTHONPATH", "")]))
+    path_entries = [src] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(path_entries))
     nb.cells.append(nbformat.v4.new_code_cell("import difffog; print(difffog.__file__)"))
     client = NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
                             resources={"metadata": {"path": str(NB_DIR)}})
