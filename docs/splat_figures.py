@@ -1,14 +1,15 @@
 """The splat paper's figure set, reproduced with difffog's splat solver (Zhang & Crawfis):
 
-* ``splat_clouds.png``: cloud-plane's cloud (the airplane removed) seen with the light from
-  behind it: no multiple scattering (Fig. 1), multiple forward scattering (Fig. 2), forward and
-  back scattering (Fig. 4);
+* ``splat_clouds.png``: cloud-plane's cloud (the airplane removed) lit from behind it and from
+  behind the viewer: no multiple scattering (Fig. 1), multiple forward scattering (Fig. 2),
+  forward and back scattering (Fig. 4), with the paper's kernels;
 * ``splat_soft_shadows.png``: hard vs soft shadows (a sun of angular radius 0 vs 4°) of the
   airplane on the cloud and ground (Figs. 13, 16-18) and of the ring in the translucent cube
-  (Fig. 11).
+  (Fig. 11), with a profile across the row where they differ most.
 
     python docs/splat_figures.py            # N = 48, writes docs/splat_*.png
     python docs/splat_figures.py --smoke    # N = 16, quick check
+    python docs/splat_figures.py --figures shadows
 """
 
 from __future__ import annotations
@@ -23,7 +24,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from difffog import SplatRenderer, load_scene  # noqa: E402
+from difffog import SplatRenderer, load_scene, set_param  # noqa: E402
+from difffog._camera import camera_rays  # noqa: E402
+from difffog._raster import cast_rays, scene_triangles  # noqa: E402
 from difffog._scene import Camera  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -41,31 +44,76 @@ def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--smoke", action="store_true")
     ap.add_argument("--out", type=Path, default=HERE)
+    ap.add_argument("--figures", nargs="+", choices=("clouds", "shadows"),
+                    default=["clouds", "shadows"])
     args = ap.parse_args(argv)
     N = 16 if args.smoke else 48
     px = 48 if args.smoke else 160
 
-    # --- clouds with the light behind them (back-to-front order, the paper's Figs. 1, 2, 4) ---
-    sc = load_scene("cloud-plane", ["sun.zenith_deg=60", "sun.azimuth_deg=90"])
+    if "clouds" in args.figures:
+        clouds(args.out, N, px)
+    if "shadows" in args.figures:
+        shadows(args.out, N, px)
+
+
+def clouds(out: Path, N: int, px: int):
+    # the cloud lit from behind it (back-to-front sheets) and from behind the viewer
+    # (front-to-back), the paper's Figs. 1, 2, 4; with the paper's kernels (similarity off: the
+    # scattered light keeps the HG phase of g = 0.85, which sends 3.6% of it backwards)
     cam = Camera(name="side", kind="perspective", position=(0.5, -0.9, 0.45),
                  look_at=(0.5, 0.5, 0.45), up=(0.0, 0.0, 1.0), fov_deg=45.0,
                  resolution=(px, int(px * 0.75)))
-    sc = sc.replace(shapes=(), cameras=(cam,))
     configs = [("no multiple scattering (Fig. 1)", dict(forward_scatter=False, back_scatter=False)),
                ("multiple forward scattering (Fig. 2)", dict(back_scatter=False)),
                ("forward + back scattering (Fig. 4)", dict())]
-    imgs = [np.asarray(SplatRenderer(sc, resolution=N, **kw)()["side"]) for _, kw in configs]
-    vmax = max(float(np.percentile(i, 99.5)) for i in imgs)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.3), constrained_layout=True)
-    for ax, (title, _), img in zip(axes, configs, imgs):
-        show(ax, img, title, vmax)
-    fig.savefig(args.out / "splat_clouds.png", dpi=80)
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.6), constrained_layout=True)
+    for row, (light, azimuth) in zip(axes, (("sun behind the cloud", 90),
+                                            ("sun behind the viewer", -90))):
+        sc = load_scene("cloud-plane", ["sun.zenith_deg=60", f"sun.azimuth_deg={azimuth}"])
+        sc = sc.replace(shapes=(), cameras=(cam,))
+        imgs, clear = [], None
+        for _, kw in configs:
+            r = SplatRenderer(sc, resolution=N, similarity=False, **kw)
+            p = r.params()
+            imgs.append(np.asarray(r(p)["side"]))
+            if clear is None:  # the same view without the cloud: which pixels see it
+                p0 = set_param(set_param(p, sc, "fog.scattering", 0.0), sc, "fog.absorption", 0.0)
+                clear = np.asarray(r(p0)["side"])
+        cloud = np.abs(imgs[0] - clear) > 0.02 * float(clear.max())
+        vmax = max(float(np.percentile(i, 99.5)) for i in imgs)
+        for ax, (title, _), img in zip(row, configs, imgs):
+            ratio = float(img[cloud].mean() / imgs[0][cloud].mean())
+            show(ax, img, f"{light}: {title}\ncloud pixels {ratio:.3f}× as bright as with none",
+                 vmax)
+    fig.savefig(out / "splat_clouds.png", dpi=80)
     plt.close(fig)
+    print(f"wrote {out / 'splat_clouds.png'}")
 
+
+
+def shadow_centre(scene, camera, occluder: str) -> tuple[int, int]:
+    """(row, column) of the centre of the pixels that see the ground in ``occluder``'s shadow."""
+    tris = scene_triangles(scene)
+    names = [sh.name for sh in scene.shapes]
+    o, d = camera_rays(camera, 1)
+    H, W = o.shape[:2]
+    t, f, _, _ = cast_rays(tris, o.reshape(-1, 3), d.reshape(-1, 3))
+    ground = (f >= 0) & (tris.shape[np.maximum(f, 0)] == names.index("ground"))
+    x = o.reshape(-1, 3)[ground] + t[ground, None] * d.reshape(-1, 3)[ground]
+    sun = np.broadcast_to(scene.sun.direction, x.shape)
+    _, fs, _, _ = cast_rays(tris, x + 1e-6 * sun, sun)
+    mask = np.zeros(H * W, bool)
+    mask[np.flatnonzero(ground)] = (fs >= 0) & (tris.shape[np.maximum(fs, 0)]
+                                                == names.index(occluder))
+    ys, xs = np.nonzero(mask.reshape(H, W))
+    return int(round(ys.mean())), int(round(xs.mean()))
+
+
+def shadows(out: Path, N: int, px: int):
     # --- hard vs soft shadows ---------------------------------------------------------------
     rows = []
-    for name, over in (("cloud-plane", []), ("translucent-cube", [])):
-        base = load_scene(name, over)
+    for name, occluder in (("cloud-plane", "airplane"), ("translucent-cube", "ring")):
+        base = load_scene(name)
         cam = dataclasses.replace(base.camera("oblique"), resolution=(px, int(px * 0.75)))
         pair = []
         for radius in (0.0, 4.0):
@@ -73,15 +121,34 @@ def main(argv=None):
                              cameras=(cam,))
             pair.append(np.asarray(SplatRenderer(s, resolution=N, similarity=True,
                                                  soft_shadows=radius > 0)()["oblique"]))
-        rows.append((name, pair))
-    fig, axes = plt.subplots(2, 2, figsize=(9, 6.5), constrained_layout=True)
-    for (name, pair), ax_row in zip(rows, axes):
+        rows.append((name, occluder, s, cam, pair))
+    fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), constrained_layout=True,
+                             gridspec_kw={"width_ratios": [1, 1, 0.9]})
+    for (name, occluder, s, cam, pair), ax_row in zip(rows, axes):
         vmax = float(np.percentile(pair[0], 99.5))
         show(ax_row[0], pair[0], f"{name}: hard shadows (point sun)", vmax)
         show(ax_row[1], pair[1], f"{name}: soft shadows (sun radius 4°)", vmax)
-    fig.savefig(args.out / "splat_soft_shadows.png", dpi=80)
+        # a profile through the occluder's shadow on the ground (found by ray casting), along
+        # the row or the column through its centre, whichever shows the two differ more
+        y, x = shadow_centre(s, cam, occluder)
+        diff = np.abs(pair[0] - pair[1])
+        if diff[y].sum() >= diff[:, x].sum():
+            i, what, cut = int(y), "row", lambda a, i: a[i]
+            for a in ax_row[:2]:
+                a.axhline(i, color="tab:red", lw=0.6, ls="--")
+        else:
+            i, what, cut = int(x), "column", lambda a, i: a[:, i]
+            for a in ax_row[:2]:
+                a.axvline(i, color="tab:red", lw=0.6, ls="--")
+        ax_row[2].plot(cut(pair[0], i), color="k", lw=1, label="hard")
+        ax_row[2].plot(cut(pair[1], i), color="tab:orange", lw=1, label="soft")
+        ax_row[2].set_title(f"radiance along the dashed {what} {i}", fontsize=9)
+        ax_row[2].set_xlabel("pixel", fontsize=8)
+        ax_row[2].tick_params(labelsize=7)
+        ax_row[2].legend(fontsize=8)
+    fig.savefig(out / "splat_soft_shadows.png", dpi=80)
     plt.close(fig)
-    print(f"wrote {args.out / 'splat_clouds.png'} and {args.out / 'splat_soft_shadows.png'}")
+    print(f"wrote {out / 'splat_soft_shadows.png'}")
 
 
 if __name__ == "__main__":
