@@ -10,7 +10,11 @@ Node cases for the node z = y − L a ray left before arriving at y (the paper's
   FREE or SURFACE z → the arriving radiance, attenuated through the fog (shell nodes hold fog too);
   blocked segment   → if the segment z → y crosses a SOLID node (``segment_blocking``, computed
                       once on the host), the ray was emitted by the surface between them: it
-                      arrives at y with y's radiosity B(y).  (A SOLID z always blocks.)
+                      arrives at y with y's radiosity B(y).  (A SOLID z always blocks: the segment's
+                      samples include z.  SOLID nodes send 0, which no node reads unblocked —
+                      FREE nodes lie more than M nodes from any solid — so the sweep is linear
+                      in (Q, B, boundary radiance) also for signed inputs, as a Krylov solver
+                      needs; an earlier −1 sentinel tested by sign was not.)
 The paper's rule (SURFACE z emits B(z) if L·N(z) > 0, else 0) makes the M-node shell opaque:
 nodes deep in the shell are shadowed by shallower ones (the innermost, which a camera sees, get
 ~70% of their irradiance) and the geometry grows by up to M nodes.  Tangent-plane tests at z or
@@ -43,7 +47,6 @@ import numpy as np
 from ._directions import FACE_AXES, DirectionSet, direction_set, face_plane_axes
 
 FOUR_PI = 4.0 * math.pi
-_SOLID = -1.0  # sentinel radiance leaving a SOLID node (real radiance is never negative)
 # Rows of the plane processed per tile (see sweep_face): a tile's per-node data and expm1 table
 # (~(K + 12)·M·16·nv floats) then stay in L2 while the loop runs over all directions.
 _TILE_ROWS = 16
@@ -248,7 +251,6 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     else:
         ns_ = jnp.zeros((ns, 1), dt)
         bits = jnp.zeros((ns, 1), jnp.uint8)
-    solid_val = _SOLID if surfaces else 0.0
     tu = _tile_rows(nu)
 
     def step(carry, slab):
@@ -279,14 +281,14 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 if surfaces:
                     byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
                     blocked = (byte >> bit_of[d]) & 1
-                    r_arr = jnp.where((blocked > 0) | (r_mid < 0), Bt, r_arr)
+                    r_arr = jnp.where(blocked > 0, Bt, r_arr)
                     ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
                     cos_w = jnp.maximum(-ldotn, 0.0) * w
                     acc = acc + r_arr * jax.lax.complex(jnp.broadcast_to(w, cos_w.shape), cos_w)
                 else:
                     acc = acc + r_arr * w
                 r_through = r_arr + em * (r_arr - Qt)  # second half-segment
-                r_out = jnp.where(pt, r_through, solid_val)
+                r_out = jnp.where(pt, r_through, 0.0)
                 dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
                 return dst, acc
 
@@ -380,13 +382,13 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         r_arr = r_mid + em * (r_mid - q4)
         if surfaces:
             blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
-            r_arr = jnp.where((blocked > 0) | (r_mid < 0), Bs[:, None], r_arr)
+            r_arr = jnp.where(blocked > 0, Bs[:, None], r_arr)
         lam = (r_arr * w4).sum(1)
         r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:
             ldotn = ns[0][:, None] * u4[0] + ns[1][:, None] * u4[1] + ns[2][:, None] * u4[2]
             irr = (r_arr * jnp.maximum(-ldotn, 0.0) * w4).sum(1)
-            r_out = jnp.where(fs[:, None] | ss[:, None], r_through, _SOLID)
+            r_out = jnp.where(fs[:, None] | ss[:, None], r_through, 0.0)
         else:
             irr = jnp.zeros_like(lam)
             r_out = jnp.where(fs[:, None], r_through, 0.0)
