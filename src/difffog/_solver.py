@@ -23,6 +23,7 @@ import optimistix as optx
 from ._blocking import segment_blocking
 from ._directions import FACE_AXES, cosine_normalization, direction_set, face_plane_axes
 from ._errors import SceneError, SolverError
+from ._krylov import gmres
 from ._lightfield import LightField
 from ._params import Params
 from ._uncollided import sky_quadrature, sky_uncollided, sun_transmittance
@@ -38,6 +39,7 @@ from ._sweep import (
 )
 
 FREE, SURFACE, SOLID = 0, 1, 2
+METHODS = ("auto", "jacobi", "gmres")
 
 
 def _safe_div(a, b):
@@ -169,6 +171,8 @@ class _Problem(eqx.Module):
     tol: float = eqx.field(static=True)
     progress: bool = eqx.field(static=True, default=False)
     devices: int = eqx.field(static=True, default=1)  # 2: ± faces on two devices (_sweep_all)
+    method: str = eqx.field(static=True, default="jacobi")  # "jacobi" | "gmres" (resolved)
+    restart: int = eqx.field(static=True, default=30)
 
 
 def _report_progress(k, change, err):
@@ -302,6 +306,47 @@ def _iterate(pb: _Problem):
     return state, (hist, k, err)
 
 
+def _homogeneous(pb: _Problem) -> _Problem:
+    """The same problem without its sources (emission, sun, sky): its Jacobi map is the linear
+    one-bounce operator K of x = Kx + b."""
+    z = jnp.zeros_like
+    return eqx.tree_at(
+        lambda p: (p.sun_fluence, p.sky_fluence, p.emission, p.direct, p.sky),
+        pb, (z(pb.sun_fluence), z(pb.sky_fluence), z(pb.emission), z(pb.direct), z(pb.sky)))
+
+
+def _iterate_gmres(pb: _Problem):
+    """(I − K)x = b by restarted GMRES (``_krylov.gmres``), b = one Jacobi step from zero.
+
+    The state vector holds Λ, and E only where the scene has surfaces; every application of K
+    is one Jacobi iteration's six sweeps, so ``iterations`` counts the same work as Jacobi's.
+    """
+    dt = pb.sigma_t.dtype
+    shape = pb.geom.shape
+    n = math.prod(shape)
+    zero = jnp.zeros(shape, dt)
+    surfaces = pb.geom.has_surfaces
+    pb0 = _homogeneous(pb)
+
+    def flat(state):
+        lam, irr = state
+        return jnp.concatenate([lam.ravel(), irr.ravel()]) if surfaces else lam.ravel()
+
+    def unflat(v):
+        return (v[:n].reshape(shape), v[n:].reshape(shape) if surfaces else zero)
+
+    b = flat(_jacobi((zero, zero), pb))
+    hist = jnp.full((pb.max_iterations,), jnp.nan, dt).at[0].set(1.0)
+    x, hist, k, err = gmres(lambda v: flat(_jacobi(unflat(v), pb0)), b, restart=pb.restart,
+                            max_matvecs=pb.max_iterations, tol=pb.tol, used=1, hist=hist,
+                            progress=_report_progress if pb.progress else None)
+    return unflat(x), (hist, k, err)
+
+
+def _solve_fixed_point(pb: _Problem):
+    return _iterate_gmres(pb) if pb.method == "gmres" else _iterate(pb)
+
+
 def _rewrite(root, aux, inputs):
     del aux
     new = _jacobi(root, inputs)
@@ -348,6 +393,8 @@ class SweepSolver(AbstractLightSolver):
     sky_quadrature: tuple[int, int] | None = eqx.field(static=True, default=None)
     progress: bool = eqx.field(static=True, default=False)  # print each iteration to stderr
     devices: int = eqx.field(static=True, default=1)
+    method: str = eqx.field(static=True, default="auto")
+    restart: int = eqx.field(static=True, default=30)
 
     def __check_init__(self):
         if not isinstance(self.M, int) or self.M < 1:
@@ -360,6 +407,15 @@ class SweepSolver(AbstractLightSolver):
             raise SceneError(f"SweepSolver: tol must be >= 0, got {self.tol!r}")
         if self.devices not in (1, 2) or isinstance(self.devices, bool):
             raise SceneError(f"SweepSolver: devices must be 1 or 2, got {self.devices!r}")
+        if self.method not in METHODS:
+            raise SceneError(f"SweepSolver: method must be one of {', '.join(METHODS)}, "
+                             f"got {self.method!r}")
+        if not isinstance(self.restart, int) or self.restart < 2:
+            raise SceneError(f"SweepSolver: restart must be an integer >= 2, got {self.restart!r}")
+
+    def resolved_method(self, geom: "SweepGeometry | None" = None) -> str:
+        """The iteration ``method`` stands for ("auto" → the measured faster one)."""
+        return "gmres" if self.method == "auto" else self.method
 
     def prepare(self, scene, lattice) -> SweepGeometry:
         return prepare_sweep(scene, lattice, self.M)
@@ -418,6 +474,8 @@ class SweepSolver(AbstractLightSolver):
             tol=self.tol,
             progress=self.progress,
             devices=self.devices,
+            method=self.resolved_method(geom),
+            restart=self.restart,
         )
 
     def solve(self, geom: SweepGeometry, params: Params) -> LightField:
@@ -425,7 +483,7 @@ class SweepSolver(AbstractLightSolver):
         linear_solver = lx.GMRES(rtol=self.adjoint_rtol, atol=self.adjoint_rtol, restart=40,
                                  max_steps=400)
         root, (hist, k, err) = optx.internal.implicit_jvp(
-            _iterate, _rewrite, pb, frozenset(), linear_solver
+            _solve_fixed_point, _rewrite, pb, frozenset(), linear_solver
         )
         q, b = _sources(root, pb)
         return LightField(
