@@ -33,104 +33,131 @@ def _safe_div(a, b):
     return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
 
 
-def gmres(apply_k: Callable, b, *, restart: int, max_matvecs: int, tol: float, used: int = 1,
-          hist=None, progress: Callable | None = None):
-    """Solve (I − K)x = b for a flat vector b; K = ``apply_k`` (linear).
+def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, tol: float,
+          progress: Callable | None = None):
+    """Solve (I − K)x = b for flat vectors, with every application of the operator at one site.
 
-    restart: Krylov steps per cycle; max_matvecs: cap on applications of K, counting ``used``
-    already spent by the caller (computing b); tol: stop once the estimated relative error
-    ≤ tol (0: run to the cap).  hist: (max_matvecs,) array recording the relative residual
-    ‖r‖/‖x‖ (the change one more Jacobi step would make) after every application.
-    Returns (x, hist, applications, error estimate).
+    ``apply_k(u, with_sources)`` returns Ku + b if ``with_sources`` (a traced bool) else Ku: the
+    right-hand side b is ``apply_k(0, True)``.  One call site (rather than separate ones for b,
+    the Arnoldi steps and the residuals at restarts) keeps a single copy of the six sweeps in
+    the compiled program.  The iteration starts from x₀ = b (Jacobi's first iterate, so that one
+    application gives what one Jacobi iteration gives); each restart spends one application on
+    the true residual.
+
+    restart: Krylov steps per cycle; max_matvecs: cap on applications of K (b included); tol:
+    stop once the estimated relative error ≤ tol (0: run to the cap).
+    Returns (x, hist, applications, error estimate); ``hist[k]`` is the relative residual
+    ‖r‖/‖x‖ after application k + 1 (the change one more Jacobi step would make; 1 for b).
     """
-    dt = b.dtype
+    dt = dtype
     m = int(restart)
-    n = b.shape[0]
+    (n,) = b_shape
     idx = jnp.arange(m)
+    idx1 = jnp.arange(m + 1)
     tiny = jnp.finfo(dt).tiny
-    if hist is None:
-        hist = jnp.full((max_matvecs,), jnp.nan, dt)
+    zn = jnp.zeros((n,), dt)
 
-    def matvec(v):
-        return v - apply_k(v)
+    def solve_y(R, g, j):  # y of the current cycle (entries > j zero)
+        live = idx <= j
+        Rp = jnp.where(live[None, :] & live[:, None], R, jnp.eye(m, dtype=dt))
+        return jax.scipy.linalg.solve_triangular(Rp, jnp.where(live, g[:m], 0.0), lower=False)
 
-    def cycle_cond(c):
-        _, _, k, _, err, _, stop = c
-        return (k < max_matvecs) & ~stop
+    def cond(c):
+        return ~c["stop"] & (c["k"] < max_matvecs)
 
-    def cycle(c):
-        x0, r0, k, sig, err, hist, _ = c
-        beta = jnp.linalg.norm(r0)
-        V = jnp.zeros((m + 1, n), dt).at[0].set(_safe_div(r0, beta))
-        H = jnp.zeros((m + 1, m), dt)  # Hessenberg (unrotated), for σ_min
-        R = jnp.zeros((m, m), dt)  # rotated: upper triangular
-        cs = jnp.zeros((m,), dt)
-        sn = jnp.zeros((m,), dt)
-        g = jnp.zeros((m + 1,), dt).at[0].set(beta)
+    def body(c):
+        phase, j, x, b, V = c["phase"], c["j"], c["x"], c["b"], c["V"]
+        is0, is1, is2 = phase == 0, phase == 1, phase == 2
+        u = jnp.where(is1, V[j], x)
+        u = jnp.where(is0, zn, u)
+        y = apply_k(u, is0)
+        k = c["k"] + 1
+        Au = u - y  # (I − K)u
 
-        def solve_y(R, g, j):
-            live = idx <= j
-            Rp = jnp.where(live[None, :] & live[:, None], R, jnp.eye(m, dtype=dt))
-            return jax.scipy.linalg.solve_triangular(Rp, jnp.where(live, g[:m], 0.0), lower=False)
+        # -- phase 1: one Arnoldi step (CGS2) and its Givens rotation
+        live = idx1 <= j
+        h1 = jnp.where(live, V @ Au, 0.0)
+        w = Au - h1 @ V
+        h2 = jnp.where(live, V @ w, 0.0)
+        w = w - h2 @ V
+        hn = jnp.linalg.norm(w)
+        h = (h1 + h2).at[j + 1].set(hn)
+        H = c["H"].at[:, j].set(h)
+        cs, sn = c["cs"], c["sn"]
 
-        def step_cond(s):
-            _, _, _, _, _, _, j, k, _, _, _, stop = s
-            return (j < m) & (k < max_matvecs) & ~stop
+        def rot(i, h):
+            a, b_ = h[i], h[i + 1]
+            return h.at[i].set(cs[i] * a + sn[i] * b_).at[i + 1].set(-sn[i] * a + cs[i] * b_)
 
-        def step(s):
-            V, H, R, cs, sn, g, j, k, sig, err, hist, _ = s
-            w = matvec(V[j])
-            h1 = V @ w  # rows > j of V are zero
-            w = w - h1 @ V
-            h2 = V @ w
-            w = w - h2 @ V
-            h = (h1 + h2)
-            hn = jnp.linalg.norm(w)
-            V = V.at[j + 1].set(_safe_div(w, hn))
-            h = h.at[j + 1].set(hn)
-            H = H.at[:, j].set(h)
+        h = jax.lax.fori_loop(0, j, rot, h)
+        a, b_ = h[j], h[j + 1]
+        den = jnp.hypot(a, b_)
+        c_ = jnp.where(den > tiny, _safe_div(a, den), 1.0)
+        s_ = jnp.where(den > tiny, _safe_div(b_, den), 0.0)
+        cs1, sn1 = cs.at[j].set(c_), sn.at[j].set(s_)
+        R1 = c["R"].at[:, j].set(h[:m].at[j].set(den))
+        g = c["g"]
+        g1 = g.at[j + 1].set(-s_ * g[j]).at[j].set(c_ * g[j])
+        resid = jnp.abs(g1[j + 1])
+        live_c = idx <= j
+        pad = jnp.linalg.norm(H) + 1.0
+        Hp = jnp.where(live_c[None, :], H, 0.0) + jnp.where(
+            (idx1[:, None] == idx[None, :]) & ~live_c[None, :], pad, 0.0)
+        sig1 = jnp.minimum(c["sig"], jnp.linalg.svd(Hp, compute_uv=False)[-1])
+        yv = solve_y(R1, g1, j)
+        vnew = _safe_div(w, hn)
+        cx = c["cx"].at[j + 1].set(vnew @ x)  # V·x₀, for ‖x₀ + Vy‖ without another pass
+        xn1 = jnp.sqrt(jnp.maximum(c["x0n2"] + 2.0 * (cx[:m] @ yv) + yv @ yv, 0.0))
+        rel1 = _safe_div(resid, xn1)
+        err1 = _safe_div(rel1, sig1)
+        stop1 = ((err1 <= tol) & (k >= 2)) | (resid == 0)
+        finish = stop1 | (j + 1 == m) | (k >= max_matvecs)
 
-            def rot(i, h):  # apply the earlier rotations to the new column
-                a, b_ = h[i], h[i + 1]
-                return h.at[i].set(cs[i] * a + sn[i] * b_).at[i + 1].set(-sn[i] * a + cs[i] * b_)
+        # -- phase 2: true residual at x, start a cycle from it
+        r = b - Au
+        beta = jnp.linalg.norm(r)
+        v0 = _safe_div(r, beta)
+        x0n2 = x @ x
+        rel2 = _safe_div(beta, jnp.sqrt(x0n2))
+        err2 = jnp.where(jnp.isfinite(c["sig"]), _safe_div(rel2, c["sig"]), jnp.inf)
+        stop2 = (beta == 0) | (err2 <= tol)
 
-            h = jax.lax.fori_loop(0, j, rot, h)
-            a, b_ = h[j], h[j + 1]
-            den = jnp.hypot(a, b_)
-            c_ = jnp.where(den > tiny, _safe_div(a, den), 1.0)
-            s_ = jnp.where(den > tiny, _safe_div(b_, den), 0.0)
-            cs, sn = cs.at[j].set(c_), sn.at[j].set(s_)
-            R = R.at[:, j].set(h[:m].at[j].set(den))
-            g = g.at[j + 1].set(-s_ * g[j]).at[j].set(c_ * g[j])
-            resid = jnp.abs(g[j + 1])
-            # σ_min of the active (j+2) × (j+1) block; unused columns padded beyond its norm
-            live_c = idx <= j
-            pad = jnp.linalg.norm(H) + 1.0
-            Hp = jnp.where(live_c[None, :], H, 0.0) + jnp.where(
-                (jnp.arange(m + 1)[:, None] == idx[None, :]) & ~live_c[None, :], pad, 0.0)
-            sig = jnp.minimum(sig, jnp.linalg.svd(Hp, compute_uv=False)[-1])
-            xn = jnp.linalg.norm(x0 + solve_y(R, g, j) @ V[:m])
-            rel = _safe_div(resid, xn)
-            err = _safe_div(rel, sig)
-            k = k + 1
-            hist = hist.at[k - 1].set(rel)
-            if progress is not None:
-                jax.debug.callback(progress, k, rel, err)
-            stop = ((err <= tol) & (k >= 2)) | (resid == 0)
-            return V, H, R, cs, sn, g, j + 1, k, sig, err, hist, stop
+        # -- assemble by phase (phase 0: b = x = Kb·0 + b, then a residual)
+        row = jnp.where(is1, j + 1, 0)
+        V = V.at[row].set(jnp.where(is1, vnew, v0))
+        x_new = jax.lax.cond(is1 & finish, lambda: x + yv @ V[:m], lambda: x)
+        x_new = jnp.where(is0, y, x_new)
+        out = dict(
+            phase=jnp.where(is1, jnp.where(finish, 2, 1), jnp.where(is0, 2, 1)),
+            j=jnp.where(is1, j + 1, 0),
+            x=x_new,
+            b=jnp.where(is0, y, b),
+            V=V,
+            H=jnp.where(is1, H, 0.0),
+            R=jnp.where(is1, R1, 0.0),
+            cs=jnp.where(is1, cs1, 0.0),
+            sn=jnp.where(is1, sn1, 0.0),
+            g=jnp.where(is1, g1, jnp.zeros_like(g).at[0].set(beta)),
+            cx=jnp.where(is1, cx, jnp.zeros_like(cx).at[0].set(v0 @ x)),
+            x0n2=jnp.where(is1, c["x0n2"], x0n2),
+            sig=jnp.where(is1, sig1, c["sig"]),
+            k=k,
+        )
+        rel = jnp.where(is0, 1.0, jnp.where(is1, rel1, rel2)).astype(dt)
+        out["err"] = jnp.where(is0, jnp.inf, jnp.where(is1, err1, err2)).astype(dt)
+        out["stop"] = jnp.where(is0, False, jnp.where(is1, stop1, stop2))
+        out["hist"] = c["hist"].at[k - 1].set(rel)
+        if progress is not None:
+            jax.debug.callback(progress, k, rel, out["err"])
+        return out
 
-        s = (V, H, R, cs, sn, g, jnp.asarray(0), k, sig, err, hist, jnp.asarray(False))
-        V, H, R, cs, sn, g, j, k, sig, err, hist, stop = jax.lax.while_loop(step_cond, step, s)
-        x = x0 + solve_y(R, g, j - 1) @ V[:m]
-        # restart: the true residual (one more application) unless done
-        done = stop | (k >= max_matvecs)
-        r = jax.lax.cond(done, lambda: r0 * 0, lambda: b - matvec(x))
-        hist = jnp.where(done, hist, hist.at[k].set(_safe_div(jnp.linalg.norm(r),
-                                                               jnp.linalg.norm(x))))
-        k = jnp.where(done, k, k + 1)
-        return x, r, k, sig, err, hist, stop
-
-    init = (jnp.zeros_like(b), b, jnp.asarray(used), jnp.asarray(jnp.inf, dt),
-            jnp.asarray(jnp.inf, dt), hist, jnp.asarray(False))
-    x, _, k, _, err, hist, _ = jax.lax.while_loop(cycle_cond, cycle, init)
-    return x, hist, k, err
+    init = dict(
+        phase=jnp.asarray(0), j=jnp.asarray(0), x=zn, b=zn, V=jnp.zeros((m + 1, n), dt),
+        H=jnp.zeros((m + 1, m), dt), R=jnp.zeros((m, m), dt), cs=jnp.zeros((m,), dt),
+        sn=jnp.zeros((m,), dt), g=jnp.zeros((m + 1,), dt), cx=jnp.zeros((m + 1,), dt),
+        x0n2=jnp.zeros((), dt), sig=jnp.asarray(jnp.inf, dt), k=jnp.asarray(0),
+        err=jnp.asarray(jnp.inf, dt), stop=jnp.asarray(False),
+        hist=jnp.full((max_matvecs,), jnp.nan, dt),
+    )
+    c = jax.lax.while_loop(cond, body, init)
+    return c["x"], c["hist"], c["k"], c["err"]

@@ -306,13 +306,15 @@ def _iterate(pb: _Problem):
     return state, (hist, k, err)
 
 
-def _homogeneous(pb: _Problem) -> _Problem:
-    """The same problem without its sources (emission, sun, sky): its Jacobi map is the linear
-    one-bounce operator K of x = Kx + b."""
-    z = jnp.zeros_like
-    return eqx.tree_at(
-        lambda p: (p.sun_fluence, p.sky_fluence, p.emission, p.direct, p.sky),
-        pb, (z(pb.sun_fluence), z(pb.sky_fluence), z(pb.emission), z(pb.direct), z(pb.sky)))
+_SOURCE_FIELDS = ("sun_fluence", "sky_fluence", "emission", "direct", "sky")
+
+
+def _with_sources(pb: _Problem, on) -> _Problem:
+    """The same problem with its sources (emission, sun, sky) kept where ``on`` (a traced bool)
+    and zeroed elsewhere: without them the Jacobi map is the linear one-bounce operator K of
+    x = Kx + b."""
+    return eqx.tree_at(lambda p: tuple(getattr(p, f) for f in _SOURCE_FIELDS), pb,
+                       tuple(jnp.where(on, getattr(pb, f), 0.0) for f in _SOURCE_FIELDS))
 
 
 def _iterate_gmres(pb: _Problem):
@@ -326,7 +328,6 @@ def _iterate_gmres(pb: _Problem):
     n = math.prod(shape)
     zero = jnp.zeros(shape, dt)
     surfaces = pb.geom.has_surfaces
-    pb0 = _homogeneous(pb)
 
     def flat(state):
         lam, irr = state
@@ -335,10 +336,11 @@ def _iterate_gmres(pb: _Problem):
     def unflat(v):
         return (v[:n].reshape(shape), v[n:].reshape(shape) if surfaces else zero)
 
-    b = flat(_jacobi((zero, zero), pb))
-    hist = jnp.full((pb.max_iterations,), jnp.nan, dt).at[0].set(1.0)
-    x, hist, k, err = gmres(lambda v: flat(_jacobi(unflat(v), pb0)), b, restart=pb.restart,
-                            max_matvecs=pb.max_iterations, tol=pb.tol, used=1, hist=hist,
+    def apply_k(v, with_sources):
+        return flat(_jacobi(unflat(v), _with_sources(pb, with_sources)))
+
+    x, hist, k, err = gmres(apply_k, (n * (2 if surfaces else 1),), dt, restart=pb.restart,
+                            max_matvecs=pb.max_iterations, tol=pb.tol,
                             progress=_report_progress if pb.progress else None)
     return unflat(x), (hist, k, err)
 
