@@ -22,6 +22,7 @@ from ._errors import SceneError
 from ._lattice import FREE, SOLID, SURFACE, voxelize
 from ._lightfield import LightField
 from ._params import Params
+from ._plan import check_params
 from ._scene import Scene
 from ._solver import AbstractLightSolver, SweepSolver
 
@@ -148,7 +149,15 @@ class Renderer:
     def params(self, dtype=None) -> Params:
         return Params.from_scene(self.scene, dtype)
 
+    def _check(self, params: Params) -> None:
+        """Concrete parameters against the solver's plan: a SolverError (one line) here rather
+        than a runtime error from inside the compiled solve."""
+        plan = getattr(self.geometry, "plan", None)
+        if plan is not None:
+            check_params(plan, params)
+
     def solve(self, params: Params) -> LightField:
+        self._check(params)
         return self._solve(self.geometry, params)
 
     def _images_impl(self, light: LightField, params: Params):
@@ -163,11 +172,14 @@ class Renderer:
 
     def __call__(self, params: Params | None = None) -> dict[str, jax.Array]:
         """Differentiable (and jitted): images of every camera for these parameters."""
-        return self._forward(self.params() if params is None else params)
+        params = self.params() if params is None else params
+        self._check(params)
+        return self._forward(params)
 
     def render(self, params: Params | None = None) -> Rendered:
         """Solve and render every camera, timing each stage (compile included, reported apart)."""
         params = self.params() if params is None else params
+        self._check(params)
         timings = dict(self.timings)
         t = time.perf_counter()
         compiled = self._solve.lower(self.geometry, params).compile()
@@ -194,7 +206,7 @@ class Renderer:
             "solver": type(self.solver).__name__,
             "solver_options": {
                 k: getattr(self.solver, k)
-                for k in ("M", "max_iterations", "tol", "sky_quadrature")
+                for k in ("M", "method", "max_iterations", "tol", "sky_quadrature", "terms")
                 if hasattr(self.solver, k)
             },
             "resolution": self.resolution,
@@ -204,6 +216,8 @@ class Renderer:
             "supersample": self.supersample,
             "cameras": [c.name for c in self.cameras],
             "dtype": str(jnp.result_type(float)),
+            "plan": ([] if getattr(self.geometry, "plan", None) is None
+                     else self.geometry.plan.lines(lat.shape)),
         }
 
 
