@@ -38,7 +38,6 @@ SWEEP_SETTINGS = [
     dict(resolution=32, M=2, tol=1e-3),
     dict(resolution=48, M=3, tol=1e-3),
     dict(resolution=64, M=3, tol=1e-4),
-    dict(resolution=96, M=3, tol=1e-4),
     dict(resolution=96, M=4, tol=1e-4),
 ]
 SPLAT_SETTINGS = [
@@ -133,7 +132,7 @@ def measure(solver: str, scene, setting: dict, refdir: Path, repeat: int = 2) ->
         warm.append(time.perf_counter() - t)
     time_s = min(warm)
     if solver == "sweep":
-        mib = _xla_mib(r._forward, params)
+        mib = _xla_mib(r._forward, r.geometry, r.cam_geometry, r.density, params)
         iters = int(r.solve(params).iterations)
     else:
         mib = _xla_mib(r._forward, r.plans, params)
