@@ -106,7 +106,11 @@ def cmd_render(args) -> int:
     if not scene.cameras:
         raise DifffogError(f"scene '{scene.title}' has no [[camera]]: add one to render images")
     progress = sys.stderr.isatty() and not args.quiet
+    _positive_int("--devices", args.devices)
+    if splat and args.devices > 1:
+        raise DifffogError("--devices applies to --solver sweep (the splat renders on one device)")
     solver = SweepSolver(
+        devices=args.devices,
         M=args.directions,
         max_iterations=args.iterations or 500,
         tol=0.0 if args.iterations else (args.tol if args.tol is not None else 1e-4),
@@ -210,6 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop when the estimated remaining relative error is below (default 1e-4)")
     p.add_argument("--supersample", type=int, default=None,
                    help="s×s rays per pixel, averaged (box filter; default 2, splat 1)")
+    p.add_argument("--devices", type=int, default=1, metavar="N",
+                   help="run the sweeps on N devices (faces and plane blocks; on a CPU, N host "
+                        "devices sharing its cores; default 1)")
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=cmd_render)
@@ -242,9 +249,25 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _host_devices(n: int) -> None:
+    """Ask XLA for n host (CPU) devices if JAX has not started yet and nobody chose a count;
+    on a GPU machine the flag only concerns the host platform, so it is harmless."""
+    try:  # XLA reads the flag when the first backend starts, not at ``import jax``
+        from jax._src import xla_bridge
+
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        started = "jax" in sys.modules
+    if n > 1 and not started:
+        flags = os.environ.get("XLA_FLAGS", "")
+        if "xla_force_host_platform_device_count" not in flags:
+            os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _host_devices(getattr(args, "devices", 1) or 1)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
