@@ -75,3 +75,21 @@ print("ok")
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
+
+
+def test_cli_render_devices_gives_the_same_images(tmp_path):
+    """`difffog render --devices 2` (two host devices, asked for by the CLI itself) writes the
+    images of one device."""
+    src = os.path.join(os.path.dirname(__file__), "..", "src")
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(src) + os.pathsep
+               + os.environ.get("PYTHONPATH", ""))
+    env.pop("XLA_FLAGS", None)
+    for n in (1, 2):
+        r = subprocess.run([sys.executable, "-m", "difffog", "render", "fog-balls", "-N", "12",
+                            "-M", "2", "--set", "shape.walls.thickness=0.1", "--iterations", "4",
+                            "--camera", "top", "--supersample", "1", "--devices", str(n), "-q",
+                            "--out", str(tmp_path / f"d{n}")], env=env, capture_output=True,
+                           text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+    a, b = (np.load(tmp_path / f"d{n}" / "top.npy") for n in (1, 2))
+    assert a.max() > 0 and np.max(np.abs(a - b)) <= 1e-6 * a.max()

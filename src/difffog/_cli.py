@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from ._errors import DifffogError
+from ._presets import LEVELS, PRESETS, preset
 
 DEFAULT_SCENE = "fog-balls"
 
@@ -25,10 +26,30 @@ def _add_scene_args(p: argparse.ArgumentParser, default_resolution: int) -> None
                    help=f"a scene file (.toml) or a built-in scene name (default: {DEFAULT_SCENE})")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
                    help="override a scalar of the scene, e.g. fog.scattering=2.5 (repeatable)")
-    p.add_argument("--resolution", "-N", type=int, default=default_resolution,
-                   help=f"lattice nodes along the longest domain axis (default {default_resolution})")
-    p.add_argument("--directions", "-M", type=int, default=3,
-                   help="direction half-width M: (2M+1)^2 directions per cube face (default 3)")
+    p.add_argument("--accuracy", choices=LEVELS, default="default",
+                   help="preset of resolution, directions, tolerance and sheets, chosen from "
+                        "the measured speed-accuracy study (default: default); the options "
+                        "below override single settings")
+    p.add_argument("--resolution", "-N", type=int, default=None,
+                   help="lattice nodes along the longest domain axis (default: from --accuracy, "
+                        f"{PRESETS['sweep']['default']['resolution']} at default)")
+    p.add_argument("--directions", "-M", type=int, default=None,
+                   help="direction half-width M: (2M+1)^2 directions per cube face (default: "
+                        f"from --accuracy, {PRESETS['sweep']['default']['M']} at default)")
+
+
+def _apply_accuracy(args, solver: str = "sweep") -> None:
+    """Fill the settings the user did not give from the --accuracy preset of ``solver``."""
+    s = preset(solver, getattr(args, "accuracy", "default"))
+    if getattr(args, "resolution", None) is None:
+        args.resolution = s["resolution"]
+    if getattr(args, "directions", None) is None:
+        args.directions = PRESETS["sweep"][args.accuracy]["M"]
+    if solver == "sweep" and getattr(args, "tol", None) is None and hasattr(args, "tol"):
+        if getattr(args, "iterations", None) is None:
+            args.tol = s["tol"]
+    if solver == "splat" and getattr(args, "sheets", None) is None and hasattr(args, "sheets"):
+        args.sheets = s["sheets"]
 
 
 def _positive_int(name: str, value: int) -> int:
@@ -42,6 +63,7 @@ def cmd_info(args) -> int:
 
     from ._scene_io import load_scene
 
+    _apply_accuracy(args)
     scene = load_scene(args.scene, args.overrides)
     print(scene_info(scene, resolution=args.resolution, M=args.directions))
     return 0
@@ -64,6 +86,7 @@ def cmd_render(args) -> int:
     from ._solver import SweepSolver
 
     splat = args.solver == "splat"
+    _apply_accuracy(args, args.solver)
     if args.sheets is not None:
         _positive_int("--sheets", args.sheets)
         if not splat:
@@ -83,7 +106,11 @@ def cmd_render(args) -> int:
     if not scene.cameras:
         raise DifffogError(f"scene '{scene.title}' has no [[camera]]: add one to render images")
     progress = sys.stderr.isatty() and not args.quiet
+    _positive_int("--devices", args.devices)
+    if splat and args.devices > 1:
+        raise DifffogError("--devices applies to --solver sweep (the splat renders on one device)")
     solver = SweepSolver(
+        devices=args.devices,
         M=args.directions,
         max_iterations=args.iterations or 500,
         tol=0.0 if args.iterations else (args.tol if args.tol is not None else 1e-4),
@@ -129,6 +156,7 @@ def cmd_render(args) -> int:
             "scene": scene.title,
             "source": str(scene.source) if scene.source else None,
             "overrides": args.overrides,
+            "accuracy": args.accuracy,
             "settings": result.settings,
             "timings_s": {k2: round(v, 4) for k2, v in result.timings.items()},
             "total_s": round(time.perf_counter() - t0, 4),
@@ -186,15 +214,60 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop when the estimated remaining relative error is below (default 1e-4)")
     p.add_argument("--supersample", type=int, default=None,
                    help="s×s rays per pixel, averaged (box filter; default 2, splat 1)")
+    p.add_argument("--devices", type=int, default=1, metavar="N",
+                   help="run the sweeps on N devices (faces and plane blocks; on a CPU, N host "
+                        "devices sharing its cores; default 1)")
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=cmd_render)
+    p = sub.add_parser("bench", help="the speed-accuracy study: both solvers over their knobs "
+                                      "against the Monte Carlo references; CSV + Pareto plot")
+    p.add_argument("--scenes", nargs="+", default=["fog-balls", "ring-box", "translucent-cube",
+                                                   "cloud-plane"],
+                   help="scenes with reference images (default: the four benchmark scenes)")
+    p.add_argument("--solvers", nargs="+", default=["sweep", "splat"], choices=["sweep", "splat"])
+    p.add_argument("--references", default=None, metavar="DIR",
+                   help="reference images (<scene>/<camera>.npy, convergence.csv); default: "
+                        "../shared/references beside the repository")
+    p.add_argument("--quick", action="store_true", help="one small setting per solver (a smoke test)")
+    p.add_argument("--out", default="bench", help="output folder (default: bench)")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
+    p.set_defaults(func=cmd_bench)
     return parser
+
+
+def cmd_bench(args) -> int:
+    from ._bench import run_bench
+
+    progress = sys.stderr.isatty() and not args.quiet
+    res = run_bench(scenes=args.scenes, solvers=args.solvers, out=Path(args.out),
+                    references=Path(args.references) if args.references else None,
+                    quick=args.quick, progress=progress)
+    if not args.quiet:
+        print(res.summary_path.read_text())
+        print(f"{res.csv_path}, {res.plot_path}: {len(res.rows)} rows")
+    return 0
+
+
+def _host_devices(n: int) -> None:
+    """Ask XLA for n host (CPU) devices if JAX has not started yet and nobody chose a count;
+    on a GPU machine the flag only concerns the host platform, so it is harmless."""
+    try:  # XLA reads the flag when the first backend starts, not at ``import jax``
+        from jax._src import xla_bridge
+
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        started = "jax" in sys.modules
+    if n > 1 and not started:
+        flags = os.environ.get("XLA_FLAGS", "")
+        if "xla_force_host_platform_device_count" not in flags:
+            os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _host_devices(getattr(args, "devices", 1) or 1)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 from ._lattice import voxelize
+from ._plan import plan
 from ._scene import Scene
 
 
@@ -79,4 +80,6 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
         lines.append(f"camera     {cam.name}: {cam.kind} {cam.width}x{cam.height}, {what}")
     needs = physics_needed(scene)
     lines.append("needs      " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in needs.items()))
+    lines.append("plan       (what the sweep solver builds; SweepSolver(terms='all') keeps every term)")
+    lines += ["  " + ln for ln in plan(scene, lat).lines(lat.shape)]
     return "\n".join(lines)

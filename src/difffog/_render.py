@@ -22,6 +22,7 @@ from ._errors import SceneError
 from ._lattice import FREE, SOLID, SURFACE, voxelize
 from ._lightfield import LightField
 from ._params import Params
+from ._plan import check_params
 from ._scene import Scene
 from ._solver import AbstractLightSolver, SweepSolver
 
@@ -142,32 +143,53 @@ class Renderer:
         self.density = jnp.asarray(self.lattice.density, jnp.float32)
         self.timings["prepare_s"] = time.perf_counter() - t
         self._solve = jax.jit(self.solver.solve)
-        self._images = jax.jit(self._images_impl)
-        self._forward = jax.jit(self._forward_impl)
+        # The static arrays (solver geometry, camera maps, density) go in as arguments, not as
+        # closed-over constants: XLA would otherwise constant-fold them at every compile
+        # (seconds at N = 64, the "slow constant folding" alarm).
+        self._images = jax.jit(self._images_with)
+        self._forward = jax.jit(self._forward_with)
 
     def params(self, dtype=None) -> Params:
         return Params.from_scene(self.scene, dtype)
 
+    def _check(self, params: Params) -> None:
+        """Concrete parameters against the solver's plan: a SolverError (one line) here rather
+        than a runtime error from inside the compiled solve."""
+        plan = getattr(self.geometry, "plan", None)
+        if plan is not None:
+            check_params(plan, params)
+
     def solve(self, params: Params) -> LightField:
+        self._check(params)
         return self._solve(self.geometry, params)
 
-    def _images_impl(self, light: LightField, params: Params):
-        f = camera_fields(self.cam_geometry, self.density, light, params)
+    def _images_with(self, cam_geometry, density, light: LightField, params: Params):
+        f = camera_fields(cam_geometry, density, light, params)
         return {c.name: render_camera(f, c, supersample=self.supersample) for c in self.cameras}
 
+    def _forward_with(self, geometry, cam_geometry, density, params: Params):
+        return self._images_with(cam_geometry, density, self.solver.solve(geometry, params),
+                                 params)
+
+    def _images_impl(self, light: LightField, params: Params):
+        return self._images_with(self.cam_geometry, self.density, light, params)
+
     def images(self, light: LightField, params: Params) -> dict[str, jax.Array]:
-        return self._images(light, params)
+        return self._images(self.cam_geometry, self.density, light, params)
 
     def _forward_impl(self, params: Params):
-        return self._images_impl(self.solver.solve(self.geometry, params), params)
+        return self._forward_with(self.geometry, self.cam_geometry, self.density, params)
 
     def __call__(self, params: Params | None = None) -> dict[str, jax.Array]:
         """Differentiable (and jitted): images of every camera for these parameters."""
-        return self._forward(self.params() if params is None else params)
+        params = self.params() if params is None else params
+        self._check(params)
+        return self._forward(self.geometry, self.cam_geometry, self.density, params)
 
     def render(self, params: Params | None = None) -> Rendered:
         """Solve and render every camera, timing each stage (compile included, reported apart)."""
         params = self.params() if params is None else params
+        self._check(params)
         timings = dict(self.timings)
         t = time.perf_counter()
         compiled = self._solve.lower(self.geometry, params).compile()
@@ -176,10 +198,11 @@ class Renderer:
         light = jax.block_until_ready(compiled(self.geometry, params))
         timings["solve_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        compiled_img = self._images.lower(light, params).compile()
+        static = (self.cam_geometry, self.density)
+        compiled_img = self._images.lower(*static, light, params).compile()
         timings["render_compile_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        imgs = jax.block_until_ready(compiled_img(light, params))
+        imgs = jax.block_until_ready(compiled_img(*static, light, params))
         timings["render_s"] = time.perf_counter() - t
         images = {k: np.asarray(v, np.float32) for k, v in imgs.items()}
         for k, v in images.items():
@@ -194,7 +217,7 @@ class Renderer:
             "solver": type(self.solver).__name__,
             "solver_options": {
                 k: getattr(self.solver, k)
-                for k in ("M", "max_iterations", "tol", "sky_quadrature")
+                for k in ("M", "method", "max_iterations", "tol", "sky_quadrature", "terms")
                 if hasattr(self.solver, k)
             },
             "resolution": self.resolution,
@@ -204,6 +227,8 @@ class Renderer:
             "supersample": self.supersample,
             "cameras": [c.name for c in self.cameras],
             "dtype": str(jnp.result_type(float)),
+            "plan": ([] if getattr(self.geometry, "plan", None) is None
+                     else self.geometry.plan.lines(lat.shape)),
         }
 
 

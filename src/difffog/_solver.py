@@ -11,6 +11,7 @@ memory of a gradient does not grow with the number of iterations.
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
 
 import equinox as eqx
@@ -23,8 +24,10 @@ import optimistix as optx
 from ._blocking import segment_blocking
 from ._directions import FACE_AXES, cosine_normalization, direction_set, face_plane_axes
 from ._errors import SceneError, SolverError
+from ._krylov import BoundedAdjoint, gmres
 from ._lightfield import LightField
 from ._params import Params
+from ._plan import Plan, TERMS, plan, plan_violation
 from ._uncollided import sky_quadrature, sky_uncollided, sun_transmittance
 from ._sweep import (
     FOUR_PI,
@@ -39,6 +42,7 @@ from ._sweep import (
 )
 
 FREE, SURFACE, SOLID = 0, 1, 2
+METHODS = ("auto", "jacobi", "gmres")
 
 
 def _safe_div(a, b):
@@ -78,6 +82,18 @@ class SweepGeometry(eqx.Module):
     sun_dir: tuple[float, float, float] | None = eqx.field(static=True)
     has_surfaces: bool = eqx.field(static=True)
     warmup: int = eqx.field(static=True)
+    plan: Plan = eqx.field(static=True, default=None)
+
+    def vol_range(self, face: int) -> tuple[int, int] | None:
+        """Planes [lo, hi) along a face's sweep (face frame) where the fog step is needed: the
+        fog's node range widened by M//2 (``segment_depth`` averages σ_t over M planes)."""
+        if self.plan is None or self.plan.fog_slabs is None:
+            return None
+        axis, sign = FACE_AXES[face]
+        n = self.shape[axis]
+        lo, hi = self.plan.fog_slabs[axis]
+        lo, hi = max(0, lo - self.M // 2), min(n, hi + self.M // 2)
+        return (lo, hi) if sign > 0 else (n - hi, n - lo)
 
     @property
     def shape(self):
@@ -90,7 +106,7 @@ class SweepGeometry(eqx.Module):
         return per(axis), per(u), per(v)
 
 
-def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
+def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto") -> SweepGeometry:
     """Host-side preparation of the static geometry (once per scene and lattice)."""
     M = int(M or lattice.M)
     if M > lattice.M:
@@ -150,6 +166,7 @@ def prepare_sweep(scene, lattice, M: int | None = None) -> SweepGeometry:
         sun_dir=sun_dir,
         has_surfaces=bool(surf.any()),
         warmup=warmup,
+        plan=plan(scene, lattice, terms=terms),
     )
 
 
@@ -170,6 +187,8 @@ class _Problem(eqx.Module):
     tol: float = eqx.field(static=True)
     progress: bool = eqx.field(static=True, default=False)
     mesh_shape: tuple[int, int, int] = eqx.field(static=True, default=(1, 1, 1))  # _sweep_all
+    method: str = eqx.field(static=True, default="jacobi")  # "jacobi" | "gmres" (resolved)
+    restart: int = eqx.field(static=True, default=30)
 
 
 def _report_progress(k, change, err):
@@ -220,11 +239,15 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
         return (to_face(q, axis, sign), to_face(b, axis, sign), pb.tau_half[f],
                 pb.sky * g.sky_frac[f], g.faces[f], g.consts[f])
 
-    kw = dict(M=g.M, warmup=g.warmup, surfaces=g.has_surfaces)
+    pl = g.plan
+    kw = dict(M=g.M, warmup=g.warmup, surfaces=g.has_surfaces,
+              attenuate=True if pl is None else pl.fog,
+              fluence=True if pl is None else pl.volume_source)
     nf, npu, npv = pb.mesh_shape
     if nf * npu * npv == 1:
         for f, (axis, sign) in enumerate(FACE_AXES):
-            lf, ef, exits[f] = sweep_face(*face_args(f), periodic=g.periodic(f), **kw)
+            lf, ef, exits[f] = sweep_face(*face_args(f), periodic=g.periodic(f),
+                                          vol_range=g.vol_range(f), **kw)
             lam = lam + from_face(lf, axis, sign)
             irr = irr + from_face(ef, axis, sign)
     else:
@@ -234,7 +257,8 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
             if nf == 2:
                 # The + and − sweeps of an axis are independent and have the same shapes: stack
                 # them and let each half of the mesh run one; XLA on a CPU runs one fused loop
-                # at a time per device, so this is what puts a second core to work.
+                # at a time per device, so this is what puts a second core to work.  (No
+                # vol_range: the two faces share one program, and their fog ranges differ.)
                 pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
                 lf, ef, ex = sweep_face_mesh(pair, mesh, stacked=True,
                                              periodic=g.periodic(fp), **kw)
@@ -315,6 +339,58 @@ def _iterate(pb: _Problem):
     return state, (hist, k, err)
 
 
+_SOURCE_FIELDS = ("sun_fluence", "sky_fluence", "emission", "direct", "sky")
+
+
+def _with_sources(pb: _Problem, on) -> _Problem:
+    """The same problem with its sources (emission, sun, sky) kept where ``on`` (a traced bool)
+    and zeroed elsewhere: without them the Jacobi map is the linear one-bounce operator K of
+    x = Kx + b."""
+    return eqx.tree_at(lambda p: tuple(getattr(p, f) for f in _SOURCE_FIELDS), pb,
+                       tuple(jnp.where(on, getattr(pb, f), 0.0) for f in _SOURCE_FIELDS))
+
+
+def _iterate_gmres(pb: _Problem):
+    """(I − K)x = b by restarted GMRES (``_krylov.gmres``), b = one Jacobi step from zero.
+
+    The state vector holds Λ, and E only where the scene has surfaces; every application of K
+    is one Jacobi iteration's six sweeps, so ``iterations`` counts the same work as Jacobi's.
+    """
+    dt = pb.sigma_t.dtype
+    shape = pb.geom.shape
+    n = math.prod(shape)
+    zero = jnp.zeros(shape, dt)
+    surfaces = pb.geom.has_surfaces
+
+    def flat(state):
+        lam, irr = state
+        return jnp.concatenate([lam.ravel(), irr.ravel()]) if surfaces else lam.ravel()
+
+    def unflat(v):
+        return (v[:n].reshape(shape), v[n:].reshape(shape) if surfaces else zero)
+
+    def apply_k(v, with_sources):
+        return flat(_jacobi(unflat(v), _with_sources(pb, with_sources)))
+
+    x, hist, k, err = gmres(apply_k, (n * (2 if surfaces else 1),), dt, restart=pb.restart,
+                            max_matvecs=pb.max_iterations, tol=pb.tol,
+                            progress=_report_progress if pb.progress else None)
+    return unflat(x), (hist, k, err)
+
+
+def _single_pass(pb: _Problem):
+    """Nothing scatters or reflects (the plan): K = 0 and one pass is the solution."""
+    zero = jnp.zeros(pb.geom.shape, pb.sigma_t.dtype)
+    hist = jnp.full((pb.max_iterations,), jnp.nan, zero.dtype).at[0].set(1.0)
+    return _jacobi((zero, zero), pb), (hist, jnp.asarray(1), jnp.asarray(0.0, zero.dtype))
+
+
+def _solve_fixed_point(pb: _Problem):
+    if pb.geom.plan is not None and not pb.geom.plan.iterate:
+        return _single_pass(pb)
+    return _iterate_gmres(pb) if pb.method == "gmres" else _iterate(pb)
+
+
 def _rewrite(root, aux, inputs):
     del aux
     new = _jacobi(root, inputs)
@@ -365,6 +441,9 @@ class SweepSolver(AbstractLightSolver):
     progress: bool = eqx.field(static=True, default=False)  # print each iteration to stderr
     devices: int = eqx.field(static=True, default=1)
     mesh: tuple[int, int, int] | None = eqx.field(static=True, default=None)
+    method: str = eqx.field(static=True, default="auto")
+    restart: int = eqx.field(static=True, default=30)
+    terms: str = eqx.field(static=True, default="auto")
 
     def layout(self) -> tuple[int, int, int]:
         """The (faces, u, v) device mesh the sweeps run on."""
@@ -389,9 +468,21 @@ class SweepSolver(AbstractLightSolver):
                     f"SweepSolver: mesh must be (faces, u, v) with faces 1 or 2 and "
                     f"faces*u*v = devices = {self.devices}, got {self.mesh!r}"
                 )
+        if self.method not in METHODS:
+            raise SceneError(f"SweepSolver: method must be one of {', '.join(METHODS)}, "
+                             f"got {self.method!r}")
+        if self.terms not in TERMS:
+            raise SceneError(f"SweepSolver: terms must be one of {', '.join(TERMS)}, "
+                             f"got {self.terms!r}")
+        if not isinstance(self.restart, int) or self.restart < 2:
+            raise SceneError(f"SweepSolver: restart must be an integer >= 2, got {self.restart!r}")
+
+    def resolved_method(self, geom: "SweepGeometry | None" = None) -> str:
+        """The iteration ``method`` stands for ("auto" → the measured faster one)."""
+        return "gmres" if self.method == "auto" else self.method
 
     def prepare(self, scene, lattice) -> SweepGeometry:
-        return prepare_sweep(scene, lattice, self.M)
+        return prepare_sweep(scene, lattice, self.M, self.terms)
 
     def problem(self, geom: SweepGeometry, params: Params) -> _Problem:
         dt = params.scattering.dtype
@@ -405,7 +496,12 @@ class SweepSolver(AbstractLightSolver):
         else:
             sun_fluence = jnp.zeros(geom.shape, dt)
         n_mu, n_phi = self.sky_quadrature or ((0, 0) if geom.periodic_xy else (8, 16))
-        if n_mu > 0 and n_phi > 0:
+        no_sky = geom.plan is not None and geom.plan.sky == "none"
+        if no_sky:  # the plan: no [sky], no sky pass
+            sky_fluence = jnp.zeros(geom.shape, dt)
+            sky_direct = jnp.zeros(geom.shape, dt)
+            lattice_sky = jnp.zeros_like(params.sky_radiance)
+        elif n_mu > 0 and n_phi > 0:
             sdirs, swts = sky_quadrature(n_mu, n_phi)
             flu, irr = sky_uncollided(sigma_t, geom.solid, geom.normal, sdirs, swts, geom.h,
                                       geom.periodic_xy)
@@ -447,14 +543,21 @@ class SweepSolver(AbstractLightSolver):
             tol=self.tol,
             progress=self.progress,
             mesh_shape=self.layout(),
+            method=self.resolved_method(geom),
+            restart=self.restart,
         )
 
     def solve(self, geom: SweepGeometry, params: Params) -> LightField:
+        if geom.plan is not None:
+            params = _check_plan(geom.plan, params)
         pb = self.problem(geom, params)
-        linear_solver = lx.GMRES(rtol=self.adjoint_rtol, atol=self.adjoint_rtol, restart=40,
-                                 max_steps=400)
+        # the adjoint has the forward's spectrum: budget it like the forward (max_steps counts
+        # restart cycles of 40 applications), and return its best effort rather than raise
+        linear_solver = BoundedAdjoint(lx.GMRES(
+            rtol=self.adjoint_rtol, atol=self.adjoint_rtol, restart=40,
+            max_steps=max(4, -(-2 * self.max_iterations // 40))))
         root, (hist, k, err) = optx.internal.implicit_jvp(
-            _iterate, _rewrite, pb, frozenset(), linear_solver
+            _solve_fixed_point, _rewrite, pb, frozenset(), linear_solver
         )
         q, b = _sources(root, pb)
         return LightField(
@@ -467,6 +570,24 @@ class SweepSolver(AbstractLightSolver):
             iterations=k,
             error_estimate=err,
         )
+
+
+def _check_plan(p: Plan, params: Params) -> Params:
+    """Parameters that need a term the plan dropped, or a cavity with no steady state: a
+    SolverError for concrete values; inside a trace, ``eqx.error_if`` at run time."""
+    v = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(params)):
+        msg = plan_violation(p, {k: np.asarray(a) for k, a in v.items()})
+        if msg:
+            raise SolverError(msg)
+        return params
+    conds = plan_violation(p, v, xp=jnp)
+    if not conds:
+        return params
+    x = params.scattering
+    for cond, msg in conds:
+        x = eqx.error_if(x, cond, msg)
+    return eqx.tree_at(lambda q: q.scattering, params, x)
 
 
 def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2):

@@ -10,7 +10,11 @@ Node cases for the node z = y − L a ray left before arriving at y (the paper's
   FREE or SURFACE z → the arriving radiance, attenuated through the fog (shell nodes hold fog too);
   blocked segment   → if the segment z → y crosses a SOLID node (``segment_blocking``, computed
                       once on the host), the ray was emitted by the surface between them: it
-                      arrives at y with y's radiosity B(y).  (A SOLID z always blocks.)
+                      arrives at y with y's radiosity B(y).  (A SOLID z always blocks: the segment's
+                      samples include z.  SOLID nodes send 0, which no node reads unblocked —
+                      FREE nodes lie more than M nodes from any solid — so the sweep is linear
+                      in (Q, B, boundary radiance) also for signed inputs, as a Krylov solver
+                      needs; an earlier −1 sentinel tested by sign was not.)
 The paper's rule (SURFACE z emits B(z) if L·N(z) > 0, else 0) makes the M-node shell opaque:
 nodes deep in the shell are shadowed by shallower ones (the innermost, which a camera sees, get
 ~70% of their irradiance) and the geometry grows by up to M nodes.  Tangent-plane tests at z or
@@ -44,7 +48,6 @@ from ._directions import FACE_AXES, DirectionSet, direction_set, face_plane_axes
 from ._errors import SolverError
 
 FOUR_PI = 4.0 * math.pi
-_SOLID = -1.0  # sentinel radiance leaving a SOLID node (real radiance is never negative)
 # Rows of the plane processed per tile (see sweep_face): a tile's per-node data and expm1 table
 # (~(K + 12)·M·16·nv floats) then stay in L2 while the loop runs over all directions.
 _TILE_ROWS = 16
@@ -200,7 +203,8 @@ class SweepConsts(eqx.Module):
 
 def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
                periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-               halo: Halo | None = None):
+               attenuate: bool = True, fluence: bool = True,
+               vol_range: tuple[int, int] | None = None, halo: Halo | None = None):
     """One sweep over a face.  All arrays are in the face frame (nw, nu, nv).
 
     Q: source radiance at FREE nodes; B: radiosity at SURFACE nodes; tau_half_unit: σ_t·h/2 (the
@@ -213,31 +217,38 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
     ``_sweep_face_batched``, the same arithmetic with all directions batched, whose transpose
     stays compact (the loop's would scatter every direction's block into a full-size carry).
 
+    The plan's switches (``_plan.py``): ``attenuate`` False (no fog) skips the fog step (rays
+    just move), ``fluence`` False (no fog scattering) skips the Λ accumulation (Λ is returned
+    as 0), and ``vol_range`` = [lo, hi) planes along the sweep restricts the fog work to the
+    slabs that hold fog (outside, σ_t = 0 and Λ is not needed).  Derivatives honour
+    ``fluence``; they compute the fog step everywhere (same values).
+
     halo: inside ``shard_map`` over a device mesh that splits the plane, the border exchange
     (see ``Halo``); the arrays are then this device's block of the plane.
     """
-    return _sweep_face(M, tuple(periodic), int(warmup), bool(surfaces), halo, Q, B,
+    vol = (bool(attenuate), bool(fluence), None if vol_range is None else tuple(vol_range))
+    return _sweep_face(M, tuple(periodic), int(warmup), bool(surfaces), vol, halo, Q, B,
                        tau_half_unit, bc, geo, consts)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4))
-def _sweep_face(M, periodic, warmup, surfaces, halo, Q, B, tau_half_unit, bc, geo, consts):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5))
+def _sweep_face(M, periodic, warmup, surfaces, vol, halo, Q, B, tau_half_unit, bc, geo, consts):
     return _sweep_face_loop(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
-                            warmup=warmup, surfaces=surfaces, halo=halo)
+                            warmup=warmup, surfaces=surfaces, vol=vol, halo=halo)
 
 
 @_sweep_face.defjvp
-def _sweep_face_jvp(M, periodic, warmup, surfaces, halo, primals, tangents):
-    out = _sweep_face(M, periodic, warmup, surfaces, halo, *primals)
+def _sweep_face_jvp(M, periodic, warmup, surfaces, vol, halo, primals, tangents):
+    out = _sweep_face(M, periodic, warmup, surfaces, vol, halo, *primals)
     batched = functools.partial(_sweep_face_batched, M=M, periodic=periodic, warmup=warmup,
-                                surfaces=surfaces, halo=halo)
+                                surfaces=surfaces, fluence=vol[1], halo=halo)
     _, t_out = jax.jvp(batched, primals, tangents)
     return out, t_out
 
 
 def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                      M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-                     halo: Halo | None = None):
+                     vol=(True, True, None), halo: Halo | None = None):
     """``sweep_face`` (same arguments and results) as loops that keep the work in cache.
 
     Loop structure (what makes it fast on a CPU; the arithmetic is the module's step update):
@@ -302,12 +313,14 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     else:
         ns_ = jnp.zeros((ns, 1), dt)
         bits = jnp.zeros((ns, 1), jnp.uint8)
-    solid_val = _SOLID if surfaces else 0.0
     tu = _tile_rows(nu)
 
-    def step(carry, slab):
+    attenuate, fluence, vol_range = vol
+
+    def step(carry, slab, attenuate=attenuate, fluence=fluence):
         src, dst = carry  # (D, M, nu + 2M, nv + 2M): previous slab's radiance / next slab's
         Qs_, Bs_, ts_, ns_s, bits_s, pass_s = slab
+        both = fluence and surfaces  # Λ + iE in one complex accumulator
 
         def tile(t, c):
             dst, lam_s, irr_s = c
@@ -315,37 +328,49 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
             rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
             Qt, Bt, pt = rows(Qs_), rows(Bs_), rows(pass_s)
             # half-segment factor expm1(-τ|L|) for each distinct |L|: (K, M, tu, nv)
-            em_k = jnp.expm1(-rows(ts_)[None] * length_k[:, None, None, None])
+            if attenuate:
+                em_k = jnp.expm1(-rows(ts_)[None] * length_k[:, None, None, None])
             if surfaces:
                 nt, bt = rows(ns_s), rows(bits_s)
             zero = jnp.zeros((M, tu, nv), dt)
-            acc0 = jax.lax.complex(zero, zero) if surfaces else zero
+            acc0 = jax.lax.complex(zero, zero) if both else zero
 
             def direction(d, c):
                 dst, acc = c
                 d = jnp.asarray(d, jnp.int32)
                 r_mid = jax.lax.dynamic_slice(src, (d, _I0, u0 + start[d, 0], start[d, 1]),
                                               (1, M, tu, nv))[0]
-                em = jax.lax.dynamic_index_in_dim(em_k, kidx[d], 0, keepdims=False)
-                # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off the fog
-                r_arr = r_mid + em * (r_mid - Qt)
+                if attenuate:
+                    em = jax.lax.dynamic_index_in_dim(em_k, kidx[d], 0, keepdims=False)
+                    # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off fog
+                    r_arr = r_mid + em * (r_mid - Qt)
+                else:
+                    r_arr = r_mid
                 w = weight[d]
                 if surfaces:
                     byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
                     blocked = (byte >> bit_of[d]) & 1
-                    r_arr = jnp.where((blocked > 0) | (r_mid < 0), Bt, r_arr)
+                    r_arr = jnp.where(blocked > 0, Bt, r_arr)
                     ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
                     cos_w = jnp.maximum(-ldotn, 0.0) * w
-                    acc = acc + r_arr * jax.lax.complex(jnp.broadcast_to(w, cos_w.shape), cos_w)
-                else:
+                    if both:
+                        acc = acc + r_arr * jax.lax.complex(jnp.broadcast_to(w, cos_w.shape),
+                                                            cos_w)
+                    else:
+                        acc = acc + r_arr * cos_w
+                elif fluence:
                     acc = acc + r_arr * w
-                r_through = r_arr + em * (r_arr - Qt)  # second half-segment
-                r_out = jnp.where(pt, r_through, solid_val)
+                # second half-segment
+                r_through = r_arr + em * (r_arr - Qt) if attenuate else r_arr
+                r_out = jnp.where(pt, r_through, 0.0)
                 dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
                 return dst, acc
 
             dst, acc = jax.lax.fori_loop(0, D, direction, (dst, acc0))
-            lam, irr = (jnp.real(acc), jnp.imag(acc)) if surfaces else (acc, zero)
+            if both:
+                lam, irr = jnp.real(acc), jnp.imag(acc)
+            else:
+                lam, irr = (zero, acc) if surfaces else ((acc, zero) if fluence else (zero, zero))
             lam_s = jax.lax.dynamic_update_slice_in_dim(lam_s, lam, u0, axis=1)
             irr_s = jax.lax.dynamic_update_slice_in_dim(irr_s, irr, u0, axis=1)
             return dst, lam_s, irr_s
@@ -372,8 +397,21 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         init = _pad_plane(init, M, per_u, per_v, bc4)
     # unroll=2: the two carry buffers swap roles every slab; unrolled, they keep their buffers
     # (no copy of the carry per slab).
-    (last, _), (lam, irr) = jax.lax.scan(step, (init, init),
-                                         (Qs, Bs, ts, ns_, bits, passes), unroll=2)
+    xs = (Qs, Bs, ts, ns_, bits, passes)
+    if vol_range is None or per_w or not attenuate:
+        segments = [(0, ns, attenuate)]
+    else:  # fog only in planes [lo, hi): the fog step only in the slabs that hold them
+        s0, s1 = vol_range[0] // M, min(ns, -(-vol_range[1] // M))
+        segments = [(a, b, on) for a, b, on in ((0, s0, False), (s0, s1, True), (s1, ns, False))
+                    if b > a]
+    carry, outs = (init, init), []
+    for a, b, on in segments:
+        fn = functools.partial(step, attenuate=on, fluence=fluence and on)
+        carry, out = jax.lax.scan(fn, carry, jax.tree.map(lambda x: x[a:b], xs), unroll=2)
+        outs.append(out)
+    last = carry[0]
+    lam = jnp.concatenate([o[0] for o in outs]) if len(outs) > 1 else outs[0][0]
+    irr = jnp.concatenate([o[1] for o in outs]) if len(outs) > 1 else outs[0][1]
     exit_ = jnp.swapaxes(last[..., M : M + nu, M : M + nv], 0, 1)
     lam = lam.reshape((total,) + lam.shape[2:])
     irr = irr.reshape((total,) + irr.shape[2:])
@@ -386,7 +424,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
 def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                         M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-                        halo: Halo | None = None):
+                        fluence: bool = True, halo: Halo | None = None):
     """``sweep_face`` with every direction of a slab in one batched array: the shift is one
     vmapped ``dynamic_slice`` over the padded carry (M, D, nu, nv).  Slower forward than
     ``_sweep_face_loop`` but its linearization transposes into an equally compact program, so
@@ -441,13 +479,13 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         r_arr = r_mid + em * (r_mid - q4)
         if surfaces:
             blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
-            r_arr = jnp.where((blocked > 0) | (r_mid < 0), Bs[:, None], r_arr)
-        lam = (r_arr * w4).sum(1)
+            r_arr = jnp.where(blocked > 0, Bs[:, None], r_arr)
+        lam = (r_arr * w4).sum(1) if fluence else jnp.zeros_like(Qs)
         r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:
             ldotn = ns[0][:, None] * u4[0] + ns[1][:, None] * u4[1] + ns[2][:, None] * u4[2]
             irr = (r_arr * jnp.maximum(-ldotn, 0.0) * w4).sum(1)
-            r_out = jnp.where(fs[:, None] | ss[:, None], r_through, _SOLID)
+            r_out = jnp.where(fs[:, None] | ss[:, None], r_through, 0.0)
         else:
             irr = jnp.zeros_like(lam)
             r_out = jnp.where(fs[:, None], r_through, 0.0)
@@ -492,7 +530,7 @@ def sky_boundary(dirs: DirectionSet, face: int) -> np.ndarray:
 
 
 def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, bool, bool],
-                    warmup: int, surfaces: bool):
+                    warmup: int, surfaces: bool, attenuate: bool = True, fluence: bool = True):
     """``sweep_face`` on a ("face", "u", "v") device mesh (``shard_map``).
 
     args: ``(Q, B, tau_half_unit, bc, geo, consts)`` as for ``sweep_face``, each with a leading
@@ -551,7 +589,7 @@ def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, 
             Q, B, tau, bc, geo, consts = jax.tree.map(lambda x: x[0],
                                                       (Q, B, tau, bc, geo, consts))
         out = sweep_face(Q, B, tau, bc, geo, consts, M=M, periodic=periodic, warmup=warmup,
-                         surfaces=surfaces, halo=halo)
+                         surfaces=surfaces, attenuate=attenuate, fluence=fluence, halo=halo)
         return jax.tree.map(lambda x: x[None], out) if stacked else out
 
     if not stacked and nfd > 1:
