@@ -362,7 +362,9 @@ def _iterate_gmres(pb: _Problem):
     x, hist, k, err = gmres(apply_k, (n * (2 if surfaces else 1),), dt, restart=pb.restart,
                             max_matvecs=pb.max_iterations, tol=pb.tol,
                             progress=_report_progress if pb.progress else None)
-    return unflat(x), (hist, k, err)
+    # Λ and E are non-negative; GMRES's iterate can dip below 0 by its residual.  Projecting
+    # onto x ≥ 0 only moves it closer to the (non-negative) solution.
+    return unflat(jnp.maximum(x, 0.0)), (hist, k, err)
 
 
 def _single_pass(pb: _Problem):
@@ -571,5 +573,8 @@ def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2
     consts = tuple(eqx.tree_at(lambda k: k.weight, c, c.weight * jnp.asarray(world[f], c.weight.dtype))
                    for f, c in enumerate(geom.consts))
     pb_m = eqx.tree_at(lambda p: p.geom.consts, pb, consts)
+    if geom.plan is not None and not geom.plan.volume_source:  # the moment needs accumulating
+        full = dataclasses.replace(geom.plan, volume_source=True, fog_slabs=None)
+        pb_m = eqx.tree_at(lambda p: p.geom, pb_m, dataclasses.replace(pb_m.geom, plan=full))
     flux, _ = _sweep_all(light.source, light.radiosity, pb_m)
     return flux
