@@ -188,6 +188,7 @@ class _Problem(eqx.Module):
     devices: int = eqx.field(static=True, default=1)  # 2: ± faces on two devices (_sweep_all)
     method: str = eqx.field(static=True, default="jacobi")  # "jacobi" | "gmres" (resolved)
     restart: int = eqx.field(static=True, default=30)
+    fog_mask: jax.Array | None = None  # plan restricts the fog work: nodes whose Λ is kept
 
 
 def _report_progress(k, change, err):
@@ -270,6 +271,10 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
             irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
             exits[fp], exits[fm] = ex[0], ex[1]
     lam = jnp.where(g.solid, 0.0, lam)
+    if pb.fog_mask is not None:
+        # Λ only where some segment has fog (τ > 0): the restricted sweeps skip the rest, and
+        # it is never used there (the source is multiplied by τ; the camera by the density)
+        lam = jnp.where(pb.fog_mask, lam, 0.0)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
 
@@ -489,21 +494,19 @@ class SweepSolver(AbstractLightSolver):
             jnp.zeros(geom.shape, dt))
         emis = jnp.where(geom.surf, params.emission[geom.material], 0.0) if params.emission.size \
             else jnp.zeros(geom.shape, dt)
+        tau_world = [
+            jnp.where(geom.solid, 0.0,
+                      segment_depth(sigma_t, geom.M, axis, geom.periodic_xy and axis < 2))
+            * (geom.h / 2.0)
+            for axis, _ in FACE_AXES
+        ]
+        fog_mask = None
+        if geom.plan is not None and geom.plan.fog_slabs is not None:
+            fog_mask = sum(tau_world) > 0
         return _Problem(
             geom=geom,
-            tau_half=tuple(
-                to_face(
-                    jnp.where(
-                        geom.solid,
-                        0.0,
-                        segment_depth(sigma_t, geom.M, axis, geom.periodic_xy and axis < 2),
-                    )
-                    * (geom.h / 2.0),
-                    axis,
-                    sign,
-                )
-                for axis, sign in FACE_AXES
-            ),
+            tau_half=tuple(to_face(t, axis, sign) for t, (axis, sign) in zip(tau_world, FACE_AXES)),
+            fog_mask=fog_mask,
             sigma_t=sigma_t,
             ssa=_safe_div(zeta, ext),
             sun_fluence=jnp.where(geom.solid, 0.0, sun_fluence),
