@@ -64,14 +64,19 @@ def test_render_writes_images_and_report(tmp_path, capsys):
 
 def test_render_fixed_iterations_and_override(tmp_path):
     out = tmp_path / "o"
-    assert main(["render", "furnace", "-N", "12", "-M", "2", "--iterations", "3", "-q",
-                 "--set", "shape.walls.albedo=0.5", "--set", "fog.scattering=0",
-                 "--out", str(out), "--supersample", "1"]) == 0
+    args = ["render", "furnace", "-N", "12", "-M", "2", "--iterations", "3", "-q",
+            "--set", "shape.walls.albedo=0.5", "--set", "fog.scattering=0", "--supersample", "1"]
+    assert main(args + ["--method", "jacobi", "--out", str(out)]) == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["iterations"] == 3
     assert rep["overrides"] == ["shape.walls.albedo=0.5", "fog.scattering=0"]
+    assert rep["settings"]["solver_options"]["method"] == "jacobi"
+    assert any("volume" in line for line in rep["settings"]["plan"])
     # an empty furnace of albedo 0.5 after 3 Jacobi iterations: B = 1 + 0.5·(1 + 0.5·(1 + 0.5))
     assert float(np.load(out / "inside.npy").mean()) == pytest.approx(1.875, rel=0.02)
+    # GMRES (the default) has the exact 1/(1 - 0.5) = 2 after the same 3 applications
+    assert main(args + ["--out", str(tmp_path / "g")]) == 0
+    assert float(np.load(tmp_path / "g" / "inside.npy").mean()) == pytest.approx(2.0, rel=1e-3)
 
 
 def test_console_script_entry_point():

@@ -23,6 +23,7 @@ from ._params import (
     param_paths as param_paths,
     set_param as set_param,
 )
+from ._plan import Plan as Plan, plan as plan
 from ._render import Rendered as Rendered, Renderer as Renderer, render as render
 from ._scene import Camera as Camera, Scene as Scene
 from ._scene_io import (

@@ -115,6 +115,7 @@ def cmd_render(args) -> int:
         max_iterations=args.iterations or 500,
         tol=0.0 if args.iterations else (args.tol if args.tol is not None else 1e-4),
         progress=progress,
+        method=args.method,
     )
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -209,7 +210,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sheets", type=int, metavar="K",
                    help="splat: sheets per camera pass (default: one per voxel)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--iterations", type=int, help="run exactly this many Jacobi iterations")
+    p.add_argument("--method", default="auto", choices=["auto", "gmres", "jacobi"],
+                   help="iteration: GMRES (auto, the default: measured 1.2-94x faster) or Jacobi")
+    g.add_argument("--iterations", type=int,
+                   help="run exactly this many iterations (applications of the six sweeps)")
     g.add_argument("--tol", type=float,
                    help="stop when the estimated remaining relative error is below (default 1e-4)")
     p.add_argument("--supersample", type=int, default=None,

@@ -141,8 +141,8 @@ def plan(scene, lattice=None, *, terms: str = "auto") -> Plan:
         raise SolverError(f"terms must be one of {', '.join(TERMS)}, got {terms!r}")
     full = terms == "all"
     f = scene.fog
-    fog = f is not None and (full or f.scattering + f.absorption > 0)
-    volume_source = f is not None and (full or f.scattering > 0)
+    fog = full or (f is not None and f.scattering + f.absorption > 0)
+    volume_source = full or (f is not None and f.scattering > 0)
     surfaces = bool(scene.shapes)
     reflect = surfaces and (full or any(s.albedo > 0 for s in scene.shapes))
     periodic = scene.domain.boundary == "periodic-xy"

@@ -189,6 +189,7 @@ class _Problem(eqx.Module):
     mesh_shape: tuple[int, int, int] = eqx.field(static=True, default=(1, 1, 1))  # _sweep_all
     method: str = eqx.field(static=True, default="jacobi")  # "jacobi" | "gmres" (resolved)
     restart: int = eqx.field(static=True, default=30)
+    fog_mask: jax.Array | None = None  # plan restricts the fog work: nodes whose Λ is kept
 
 
 def _report_progress(k, change, err):
@@ -272,6 +273,10 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                     lam = lam + from_face(lf, axis, sign)
                     irr = irr + from_face(ef, axis, sign)
     lam = jnp.where(g.solid, 0.0, lam)
+    if pb.fog_mask is not None:
+        # Λ only where some segment has fog (τ > 0): the restricted sweeps skip the rest, and
+        # it is never used there (the source is multiplied by τ; the camera by the density)
+        lam = jnp.where(pb.fog_mask, lam, 0.0)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
 
@@ -375,7 +380,9 @@ def _iterate_gmres(pb: _Problem):
     x, hist, k, err = gmres(apply_k, (n * (2 if surfaces else 1),), dt, restart=pb.restart,
                             max_matvecs=pb.max_iterations, tol=pb.tol,
                             progress=_report_progress if pb.progress else None)
-    return unflat(x), (hist, k, err)
+    # Λ and E are non-negative; GMRES's iterate can dip below 0 by its residual.  Projecting
+    # onto x ≥ 0 only moves it closer to the (non-negative) solution.
+    return unflat(jnp.maximum(x, 0.0)), (hist, k, err)
 
 
 def _single_pass(pb: _Problem):
@@ -431,6 +438,14 @@ class SweepSolver(AbstractLightSolver):
     ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` set before JAX is imported; with 2 on
     a 2-core machine, 1.3-2x faster per iteration (benchmarks/bench_sweep.py), where XLA
     otherwise runs the sweeps' fused loops on one core.
+    method: "gmres" solves (I − K)x = b by restarted GMRES with the sweeps as the matrix-free
+    operator (``_krylov.py``); "jacobi" iterates x ← Kx + b; "auto" (default) = "gmres", the
+    faster in every case measured (3.5-94× on the furnace at albedo 0.5-0.999, 1.2-27× on thick
+    fog; benchmarks/bench_krylov.py).  ``max_iterations`` caps the applications of K either way.
+    restart: GMRES's Krylov steps per cycle (memory: restart + 1 state vectors).
+    terms: "auto" (default) builds only what the scene needs (``_plan.py``: no fog → no fog
+    step, no sky → no sky pass, fog in a sub-box → fog work only there, ...); "all" builds every
+    term, which a fit that starts a parameter from exactly 0 needs.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -516,21 +531,19 @@ class SweepSolver(AbstractLightSolver):
             jnp.zeros(geom.shape, dt))
         emis = jnp.where(geom.surf, params.emission[geom.material], 0.0) if params.emission.size \
             else jnp.zeros(geom.shape, dt)
+        tau_world = [
+            jnp.where(geom.solid, 0.0,
+                      segment_depth(sigma_t, geom.M, axis, geom.periodic_xy and axis < 2))
+            * (geom.h / 2.0)
+            for axis, _ in FACE_AXES
+        ]
+        fog_mask = None
+        if geom.plan is not None and geom.plan.fog_slabs is not None:
+            fog_mask = sum(tau_world) > 0
         return _Problem(
             geom=geom,
-            tau_half=tuple(
-                to_face(
-                    jnp.where(
-                        geom.solid,
-                        0.0,
-                        segment_depth(sigma_t, geom.M, axis, geom.periodic_xy and axis < 2),
-                    )
-                    * (geom.h / 2.0),
-                    axis,
-                    sign,
-                )
-                for axis, sign in FACE_AXES
-            ),
+            tau_half=tuple(to_face(t, axis, sign) for t, (axis, sign) in zip(tau_world, FACE_AXES)),
+            fog_mask=fog_mask,
             sigma_t=sigma_t,
             ssa=_safe_div(zeta, ext),
             sun_fluence=jnp.where(geom.solid, 0.0, sun_fluence),
@@ -600,5 +613,8 @@ def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2
     consts = tuple(eqx.tree_at(lambda k: k.weight, c, c.weight * jnp.asarray(world[f], c.weight.dtype))
                    for f, c in enumerate(geom.consts))
     pb_m = eqx.tree_at(lambda p: p.geom.consts, pb, consts)
+    if geom.plan is not None and not geom.plan.volume_source:  # the moment needs accumulating
+        full = dataclasses.replace(geom.plan, volume_source=True, fog_slabs=None)
+        pb_m = eqx.tree_at(lambda p: p.geom, pb_m, dataclasses.replace(pb_m.geom, plan=full))
     flux, _ = _sweep_all(light.source, light.radiosity, pb_m)
     return flux

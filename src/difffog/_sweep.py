@@ -399,14 +399,14 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     # (no copy of the carry per slab).
     xs = (Qs, Bs, ts, ns_, bits, passes)
     if vol_range is None or per_w or not attenuate:
-        segments = [(0, ns, attenuate)]
-    else:  # fog only in planes [lo, hi): the fog step only in the slabs that hold them
+        segments = [(0, ns, attenuate, fluence)]
+    else:  # fog only in planes [lo, hi): the fog step (and Λ) only in the slabs holding them
         s0, s1 = vol_range[0] // M, min(ns, -(-vol_range[1] // M))
-        segments = [(a, b, on) for a, b, on in ((0, s0, False), (s0, s1, True), (s1, ns, False))
-                    if b > a]
+        segments = [seg for seg in ((0, s0, False, False), (s0, s1, True, fluence),
+                                    (s1, ns, False, False)) if seg[1] > seg[0]]
     carry, outs = (init, init), []
-    for a, b, on in segments:
-        fn = functools.partial(step, attenuate=on, fluence=fluence and on)
+    for a, b, on, fl in segments:
+        fn = functools.partial(step, attenuate=on, fluence=fl)
         carry, out = jax.lax.scan(fn, carry, jax.tree.map(lambda x: x[a:b], xs), unroll=2)
         outs.append(out)
     last = carry[0]
