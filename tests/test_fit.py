@@ -135,7 +135,7 @@ def test_fit_recovers_parameters_of_its_own_images(small_forward, small_targets)
                  forward=small_forward)
     assert res.converged, res.message
     for p, v in TRUTH.items():
-        assert res.estimates[p] == pytest.approx(v, rel=2e-4), p
+        assert res.estimates[p] == pytest.approx(v, rel=1e-3), p
     assert res.residual_rms < 1e-4 * np.mean(small_targets["top"])
     assert 2 <= res.iterations <= 20
     assert set(res.images) == {"top", "oblique"}
