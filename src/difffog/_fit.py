@@ -509,14 +509,22 @@ class _Stepper:
             return (loss, loss) if self.minimise else (r, loss)
 
         self.fn = fn
+        self._static = None
         self._step = eqx.filter_jit(self._step_impl)
         self._term = eqx.filter_jit(self._term_impl)
         self._rj = eqx.filter_jit(self._rj_impl)
 
     def init(self, u0, data):
         f_struct, aux_struct = jax.eval_shape(self.fn, u0, data)
-        return self.solver.init(self.fn, u0, data, self.options, f_struct, aux_struct,
-                                frozenset())
+        state = self.solver.init(self.fn, u0, data, self.options, f_struct, aux_struct,
+                                 frozenset())
+        # The state's static part holds a closure-converted jaxpr (the linearised residual)
+        # that compares by identity: reuse the first fit's so that later fits with this stepper
+        # hit the compilation cache instead of compiling the step again.
+        dyn, static = eqx.partition(state, eqx.is_array)
+        if self._static is None:
+            self._static = static
+        return eqx.combine(dyn, self._static)
 
     def _step_impl(self, u, state, data):
         return self.solver.step(self.fn, u, data, self.options, state, frozenset())
@@ -547,6 +555,25 @@ class _Stepper:
 
     def residual_and_jacobian(self, u, data):
         return self._rj(u, data)
+
+    def final(self, u, state, data):
+        """Residual, Jacobian and images at the final u.  A least-squares solver's state holds
+        the residual and the (linearised) Jacobian at u already: reuse them, so only the
+        images' forward pass is computed again (BFGS: everything)."""
+        info = getattr(state, "f_info", None)
+        if isinstance(info, optx.FunctionInfo.ResidualJac):
+            r, J = self._from_state(info)
+            y = self._model(u, data[4])
+            return r, J, y
+        return self.residual_and_jacobian(u, data)
+
+    @eqx.filter_jit
+    def _from_state(self, info):
+        return info.residual, info.jac.as_matrix()
+
+    @eqx.filter_jit
+    def _model(self, u, base):
+        return self.problem.model(u, base)
 
 
 # Compiled steppers of recent fits, so that fitting new targets (or from a new start) with
@@ -777,7 +804,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         name = "nonlinear_max_steps_reached"
         message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
                    f"atol = {atol}; raise max_steps or start closer")
-    r, J, y = (np.asarray(a, np.float64) for a in stepper.residual_and_jacobian(u, data))
+    r, J, y = (np.asarray(a, np.float64) for a in stepper.final(u, state, data))
     mask = np.asarray(data[1]) > 0
     se, corr, cond, msgs, _ = _statistics(r[mask], J[mask], m, coords, np.asarray(u))
     for msg in msgs:
