@@ -719,7 +719,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         raise DifffogError("targets: give a dict {camera name: (H, W) image}, at least one")
     for name in targets:
         scene.camera(name)
-    names = list(targets)
+    names = sorted(targets)  # a fixed order: fits of the same views share one compiled step
     fwd = make_forward(scene, forward, cameras=names, resolution=resolution,
                        directions=directions, downsample=downsample, supersample=supersample,
                        light_tol=light_tol)
