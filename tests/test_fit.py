@@ -357,7 +357,7 @@ def test_fit_result_json_round_trips(small_forward, small_targets, tmp_path):
                  forward=small_forward)
     d = json.loads(json.dumps(res.to_json()))
     assert d["estimates"]["fog.scattering"] == pytest.approx(2.0, rel=1e-3)
-    assert d["result"] == "successful" and len(d["history"]) == res.iterations
+    assert d["converged"] and len(d["history"]) == res.iterations
     assert d["settings"]["cameras"] == ["oblique", "top"] and len(d["correlation"]) == 3
 
 

@@ -386,7 +386,8 @@ class FitResult:
     is singular.  correlation: (n, n) in the order of ``paths``.  residual_rms: root mean
     square of the weighted image residual (radiance units) over pixels with weight > 0.
     result: optimistix' result name ("successful", "nonlinear_max_steps_reached", …);
-    converged: result == "successful".  history: one dict per step (step, values, loss,
+    converged: result is "successful" or "loss_stalled" (the loss stopped falling).
+    history: one dict per step (step, values, loss,
     accepted, time_s).  images / targets: fitted and target images per camera (the forward
     model's resolution).
     """
@@ -411,7 +412,7 @@ class FitResult:
 
     @property
     def converged(self) -> bool:
-        return self.result == "successful"
+        return self.result in ("successful", "loss_stalled")
 
     def relative_error(self, truth: Mapping[str, float]) -> dict[str, float]:
         return {p: (self.estimates[p] - truth[p]) / truth[p] for p in self.paths if p in truth}
@@ -434,8 +435,10 @@ class FitResult:
             lines.append("correlation:")
             for i, p in enumerate(self.paths):
                 lines.append(f"  {p:<{w}} " + " ".join(f"{x:+.3f}" for x in self.correlation[i]))
-        if self.result != "successful":
+        if not self.converged:
             lines.append(f"not converged: {self.message}")
+        elif self.message:
+            lines.append(self.message)
         lines += [f"warning: {m}" for m in self.warnings]
         return "\n".join(lines)
 
@@ -677,7 +680,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         resolution: int = 32, directions: int = 3, downsample: int = 1, supersample: int = 2,
         light_tol: float = 1e-5, weights: Mapping[str, Any] | None = None,
         loss: str = "linear", loss_scale: float = 0.05, rtol: float = 1e-4,
-        atol: float = 1e-4, max_steps: int = 50, dtype=None,
+        atol: float = 1e-4, max_steps: int = 50, stall_steps: int = 3, dtype=None,
         checkpoint: str | os.PathLike | None = None, resume: bool = False,
         progress: bool | None = None, callback: Callable[[dict], None] | None = None,
         ) -> FitResult:
@@ -698,7 +701,10 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
     (a boolean mask works); the residual is √w·(model − target) / RMS(target).  loss: "linear"
     (least squares) or a robust "huber", "soft_l1", "cauchy" with threshold ``loss_scale`` in
     units of the target's RMS.  rtol, atol: optimistix' termination on the unconstrained
-    unknowns and the residuals.  checkpoint: a file written (atomically) after every step;
+    unknowns and the residuals; besides, the fit stops ("loss_stalled", counted as converged)
+    when the unknowns moved but the loss fell by less than rtol over ``stall_steps`` steps
+    (0: never).
+    checkpoint: a file written (atomically) after every step;
     ``resume=True`` continues from it and reaches the same answer as an uninterrupted fit.
     progress: a line per step on stderr (default: when stderr is a terminal).
     callback(entry): called after every step with that step's history entry.
@@ -712,6 +718,8 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
                     ("max_steps", max_steps)):
         if not isinstance(v, (int, np.integer)) or v < 1:
             raise DifffogError(f"{name} must be a positive integer, got {v!r}")
+    if not isinstance(stall_steps, (int, np.integer)) or stall_steps < 0:
+        raise DifffogError(f"stall_steps must be an integer >= 0, got {stall_steps!r}")
     if not loss_scale > 0:
         raise DifffogError(f"loss_scale must be positive, got {loss_scale}")
     opt = _make_solver(solver, rtol, atol)
@@ -746,6 +754,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         "resolution": resolution, "directions": directions, "downsample": downsample,
         "supersample": supersample, "light_tol": light_tol, "loss": loss,
         "loss_scale": loss_scale, "rtol": rtol, "atol": atol, "max_steps": max_steps,
+        "stall_steps": stall_steps,
         "dtype": str(np.dtype(dtype)), "cameras": names,
         "image_shapes": {n: list(tgt[n].shape) for n in names},
         "unknowns": [dataclasses.asdict(c) for c in coords],
@@ -767,6 +776,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
     values = lambda uu: {c.path: float(c.to_v(x)) for c, x in zip(coords, np.asarray(uu))}  # noqa: E731
     k = k0
     done = False
+    stalled = False
     result_code = optx.RESULTS.successful
     if k0 > 0:
         done_arr, result_code = stepper.terminate(u, state, data)
@@ -788,6 +798,15 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         if not np.all(np.isfinite(np.asarray(u))) or not math.isfinite(entry["loss"]):
             result_code = optx.RESULTS.nonfinite
             done = True
+        if (not done and stall_steps and len(history) > stall_steps
+                and history[-1 - stall_steps]["values"] != entry["values"]  # it did move
+                and history[-1 - stall_steps]["loss"] - entry["loss"]
+                <= rtol * max(entry["loss"], 1e-30)):
+            # The loss has stopped falling: the optimum to the precision of the forward model
+            # (its light solve stops at light_tol).  LM would keep shrinking its trust region
+            # without meeting the step-size criterion; stop and say so.
+            stalled = True
+            done = True
         if ckpt is not None:
             _save_checkpoint(ckpt, u, state, k, history, fp, entry["time_s"])
         if bar is not None:
@@ -800,6 +819,10 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         bar.close()
     name = _result_name(result_code)
     message = "" if name == "successful" else str(optx.RESULTS[result_code])
+    if stalled and name == "successful":
+        name = "loss_stalled"
+        message = (f"stopped: the loss fell by less than rtol = {rtol} (relative) over the last "
+                   f"{stall_steps} steps — the optimum to the forward model's precision")
     if not done and k >= max_steps:
         name = "nonlinear_max_steps_reached"
         message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
