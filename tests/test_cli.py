@@ -114,4 +114,88 @@ def test_splat_errors_are_one_line(argv, needle, capsys, tmp_path):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
+
+
+# ------------------------------------------------------------------ difffog fit
+FIT_SMALL = ["fog-balls", "--set", "shape.walls.thickness=0.1", "-N", "12", "-M", "2",
+             "--downsample", "8"]
+
+
+@pytest.fixture(scope="module")
+def fit_targets(tmp_path_factory):
+    """Targets of the small fog-balls (ζ = 2, γ = 0.5) rendered by the fit's own model."""
+    from difffog import load_scene
+    from difffog._fit import make_forward
+
+    scene = load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+    fwd = make_forward(scene, "sweep", cameras=["top", "oblique"], resolution=12,
+                       directions=2, downsample=8)
+    d = tmp_path_factory.mktemp("targets")
+    for k, v in fwd(fwd.params()).items():
+        np.save(d / f"{k}.npy", np.asarray(v))
+    return d
+
+
+def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys):
+    out = tmp_path / "fit"
+    argv = ["fit", *FIT_SMALL, "--target", f"top={fit_targets / 'top.npy'}",
+            "--target", f"oblique={fit_targets / 'oblique.npy'}",
+            "--unknown", "fog.scattering=1.2", "--unknown", "fog.absorption=0.8",
+            "--out", str(out)]
+    assert main(argv) == 0
+    files = sorted(p.name for p in out.iterdir())
+    assert files == sorted(["fit.json", "convergence.png"] + [
+        f"{c}_{k}" for c in ("top", "oblique")
+        for k in ("fit.npy", "target.npy", "residual.npy", "fit.png")])
+    rep = json.loads((out / "fit.json").read_text())
+    assert rep["estimates"]["fog.scattering"] == pytest.approx(2.0, rel=1e-3)
+    assert rep["estimates"]["fog.absorption"] == pytest.approx(0.5, rel=1e-3)
+    assert set(rep["stderr"]) == {"fog.scattering", "fog.absorption"}
+    assert len(rep["correlation"]) == 2 and rep["converged"]
+    assert len(rep["history"]) == rep["iterations"] >= 2
+    fitted, target = np.load(out / "top_fit.npy"), np.load(out / "top_target.npy")
+    np.testing.assert_allclose(np.load(out / "top_residual.npy"), fitted - target, atol=1e-7)
+    assert not (tmp_path / ".fit.fit-checkpoint.npz").exists()  # removed after success
+    assert "fog.scattering" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
+    out = tmp_path / "fit"
+    argv = ["fit", *FIT_SMALL, "--target", f"top={fit_targets / 'top.npy'}",
+            "--unknown", "fog.scattering=1.2", "--unknown", "fog.absorption=0.8",
+            "--out", str(out), "-q"]
+    assert main(argv) == 0
+    whole = json.loads((out / "fit.json").read_text())
+    out2 = tmp_path / "fit2"
+    argv2 = [a if a != str(out) else str(out2) for a in argv]
+    assert main(argv2 + ["--max-steps", "2"]) == 1  # stopped early: exit 1, checkpoint kept
+    assert (tmp_path / ".fit2.fit-checkpoint.npz").exists()
+    assert main(argv2 + ["--resume"]) == 0
+    resumed = json.loads((out2 / "fit.json").read_text())
+    assert resumed["estimates"] == whole["estimates"]
+    assert [h["values"] for h in resumed["history"]] == [h["values"] for h in whole["history"]]
+
+
+@pytest.mark.parametrize("extra,needle", [
+    (["--target", "top=MISSING.npy", "--unknown", "fog.scattering"], "no such file"),
+    (["--target", "side=T.npy", "--unknown", "fog.scattering"], "has no camera 'side'"),
+    (["--target", "top=T.npy", "--unknown", "fog.scatter"], "Did you mean 'fog.scattering'"),
+    (["--target", "top=T.npy"], "at least one --unknown"),
+    (["--target", "top=BAD.npy", "--unknown", "fog.scattering"], "expected (height, width)"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering=abc"], "not a number"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--resume"], "no checkpoint"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",
+      "fog.scattering=3,9"], "outside"),
+])
+def test_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):
+    np.save(tmp_path / "T.npy", np.ones((128, 128), np.float32))
+    np.save(tmp_path / "BAD.npy", np.ones((100, 128), np.float32))
+    extra = [a.replace("T.npy", str(tmp_path / "T.npy")).replace(
+        "BAD.npy", str(tmp_path / "BAD.npy")).replace("MISSING.npy", str(tmp_path / "M.npy"))
+        for a in extra]
+    argv = ["fit", *FIT_SMALL, *extra, "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("difffog: error:") and needle in err[0], err
     assert not (tmp_path / "o").exists()

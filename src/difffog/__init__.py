@@ -15,6 +15,12 @@ from ._batch import (
 )
 from ._directions import DirectionSet as DirectionSet, direction_set as direction_set
 from ._errors import DifffogError as DifffogError, SceneError as SceneError, SolverError as SolverError
+from ._fit import (
+    FitResult as FitResult,
+    IdentifiabilityWarning as IdentifiabilityWarning,
+    Unknown as Unknown,
+    fit as fit,
+)
 from ._lattice import Lattice as Lattice, voxelize as voxelize
 from ._lightfield import LightField as LightField
 from ._params import (

@@ -1,0 +1,108 @@
+"""Regenerate the synthetic fit targets in this folder, deterministically.
+
+    PYTHONPATH=src python data_synthetic/make.py            # everything (~10-20 min on 2 cores)
+    PYTHONPATH=src python data_synthetic/make.py --scene fog-balls
+
+For each scene and parameter set (``SETS`` below) it renders every camera of the built-in
+scene at full camera resolution with the sweep solver at resolution ``N = 48`` and ``M = 4`` —
+finer than the fits use (N = 24-32, M = 3), so that a fit of these targets is not the
+"inverse crime" — and writes, under ``<scene>/set<k>/``:
+
+    <camera>.npy            noise-free float32 radiance (H, W), row 0 at the top
+    <camera>_noise01.npy    plus i.i.d. Gaussian noise of σ = 1% of the image mean
+    <camera>_noise05.npy    plus σ = 5% of the image mean
+
+and ``truth.json`` with the parameters of every set, the render settings, σ per image and the
+seed of every noise draw (a CRC32 of "<scene>/set<k>/<camera>/<level>"), so the same command
+always writes the same bits on the same machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+N, M, SUPERSAMPLE, TOL = 48, 4, 3, 1e-5
+NOISE = {"noise01": 0.01, "noise05": 0.05}
+
+# scene -> list of parameter sets {path: value}; set 0 is the scene file's own values
+SETS = {
+    "fog-balls": [
+        {"fog.scattering": 2.0, "fog.absorption": 0.5, "shape.walls.albedo": 0.7},
+        {"fog.scattering": 1.2, "fog.absorption": 0.8, "shape.walls.albedo": 0.5},
+        {"fog.scattering": 3.0, "fog.absorption": 0.3, "shape.walls.albedo": 0.85},
+    ],
+    "translucent-cube": [
+        {"fog.scattering": 3.0, "fog.absorption": 1.0, "shape.ground.albedo": 0.6},
+        {"fog.scattering": 2.0, "fog.absorption": 0.5, "shape.ground.albedo": 0.4},
+        {"fog.scattering": 4.5, "fog.absorption": 1.5, "shape.ground.albedo": 0.75},
+    ],
+    "cloud-plane": [
+        {"fog.scattering": 60.0, "fog.absorption": 0.6, "shape.ground.albedo": 0.6},
+        {"fog.scattering": 40.0, "fog.absorption": 1.5, "shape.ground.albedo": 0.5},
+        {"fog.scattering": 80.0, "fog.absorption": 3.0, "shape.ground.albedo": 0.7},
+    ],
+}
+
+
+def seed_of(*parts: str) -> int:
+    return zlib.crc32("/".join(parts).encode())
+
+
+def make_scene(name: str, truth: dict) -> None:
+    import jax
+
+    import difffog as df
+
+    scene = df.load_scene(name)
+    renderer = df.Renderer(scene, resolution=N, supersample=SUPERSAMPLE,
+                           solver=df.SweepSolver(M=M, tol=TOL, max_iterations=2000))
+    entry = {"render": {"solver": "sweep", "resolution": N, "directions": M,
+                        "supersample": SUPERSAMPLE, "tol": TOL, "jax": jax.__version__},
+             "sets": []}
+    for k, values in enumerate(SETS[name]):
+        t = time.perf_counter()
+        params = renderer.params()
+        for path, v in values.items():
+            params = df.set_param(params, scene, path, v)
+        rendered = renderer.render(params)
+        out = HERE / name / f"set{k}"
+        out.mkdir(parents=True, exist_ok=True)
+        info = {"params": values, "iterations": int(rendered.light.iterations), "images": {}}
+        for cam, img in rendered.images.items():
+            np.save(out / f"{cam}.npy", img.astype(np.float32))
+            sig = {}
+            for level, frac in NOISE.items():
+                seed = seed_of(name, f"set{k}", cam, level)
+                rng = np.random.default_rng(seed)
+                sigma = frac * float(img.mean())
+                noisy = img + rng.normal(0.0, sigma, img.shape)
+                np.save(out / f"{cam}_{level}.npy", noisy.astype(np.float32))
+                sig[level] = {"sigma": sigma, "seed": seed}
+            info["images"][cam] = {"shape": list(img.shape), "mean": float(img.mean()), **sig}
+        entry["sets"].append(info)
+        print(f"{name} set{k}: {info['iterations']} iterations, "
+              f"{time.perf_counter() - t:.1f} s", flush=True)
+    truth[name] = entry
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", action="append", choices=sorted(SETS),
+                    help="only this scene (repeatable; default: all)")
+    args = ap.parse_args(argv)
+    path = HERE / "truth.json"
+    truth = json.loads(path.read_text()) if path.exists() else {}
+    for name in args.scene or list(SETS):
+        make_scene(name, truth)
+        path.write_text(json.dumps(truth, indent=1, sort_keys=True))
+
+
+if __name__ == "__main__":
+    main()
