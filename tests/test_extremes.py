@@ -185,7 +185,7 @@ def test_closed_conservative_emitting_box_is_an_error():
     assert np.all(np.isfinite(x)) and x.min() > 0
     # inside a trace the check runs at run time (equinox's error_if), with the same message
     with pytest.raises(Exception, match="no steady state"):
-        jax.block_until_ready(r._forward(r.params()))  # (the compiled forward: no host check)
+        jax.block_until_ready(jax.jit(r._forward_impl)(r.params()))  # (the compiled forward: no host check)
 
 
 def test_plan_guard_names_the_dropped_term():

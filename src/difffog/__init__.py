@@ -20,6 +20,7 @@ from ._fit import (
     IdentifiabilityWarning as IdentifiabilityWarning,
     Unknown as Unknown,
     fit as fit,
+    fit_batch as fit_batch,
 )
 from ._lattice import Lattice as Lattice, voxelize as voxelize
 from ._lightfield import LightField as LightField

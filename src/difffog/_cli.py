@@ -271,9 +271,15 @@ def cmd_fit(args) -> int:
     from ._fit import IdentifiabilityWarning, Unknown, fit
     from ._scene_io import load_scene
 
+    if args.accuracy is None:  # the fit API's defaults: N = 32, M = 3 (a step is 1 + n solves)
+        args.resolution = 32 if args.resolution is None else args.resolution
+        args.directions = 3 if args.directions is None else args.directions
+    else:
+        _apply_accuracy(args, args.forward)
     _positive_int("--resolution", args.resolution)
     _positive_int("--directions", args.directions)
     _positive_int("--max-steps", args.max_steps)
+    _positive_int("--devices", args.devices)
     scene = load_scene(args.scene, args.overrides)
     targets = {}
     for cam, path in _parse_kv(args.target, "--target"):
@@ -323,7 +329,8 @@ def cmd_fit(args) -> int:
         result = fit(scene, targets, unknowns, solver=args.solver, forward=args.forward,
                      resolution=args.resolution, directions=args.directions, downsample=down,
                      weights=weights or None, loss=args.loss, max_steps=args.max_steps,
-                     checkpoint=ckpt, resume=args.resume, progress=progress)
+                     devices=args.devices, checkpoint=ckpt, resume=args.resume,
+                     progress=progress)
     del caught  # the warnings are in result.warnings (and fit.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".difffog-", dir=out.parent))
@@ -434,6 +441,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render the cameras at 1/K width and height, box-averaging the "
                         "targets to match (default: the largest of 4, 2, 1 that divides)")
     p.add_argument("--max-steps", type=int, default=50, help="optimiser steps (default 50)")
+    p.add_argument("--devices", type=int, default=1, metavar="N",
+                   help="share each light solve over N devices (the sweep; on a CPU, N host "
+                        "devices sharing its cores; the same estimates; default 1)")
+    # a fit solves 1 + (number of unknowns) light problems per step: without --accuracy it
+    # uses the API's N = 32, M = 3 rather than the render presets
+    p.set_defaults(accuracy=None)
     p.add_argument("--resume", action="store_true",
                    help="continue a killed fit from its checkpoint (.OUT.fit-checkpoint.npz)")
     p.add_argument("--out", default="fit", help="output folder (default: fit)")

@@ -205,7 +205,7 @@ def _reduced_scene(scene: Scene, names: list[str], downsample: int) -> Scene:
 def make_forward(scene: Scene, forward="sweep", *, cameras: list[str], resolution: int = 32,
                  directions: int = 3, downsample: int = 1, supersample: int = 2,
                  light_tol: float = 1e-5, max_iterations: int = 1000,
-                 adjoint_rtol: float = 1e-4):
+                 adjoint_rtol: float = 1e-4, devices: int = 1):
     """The forward model of a fit: an object with ``.params(dtype)``, ``__call__(params)`` →
     {camera: (H, W)}, ``.scene`` and ``.cameras``.  ``forward`` is "sweep", "splat" or such an
     object (returned as it is)."""
@@ -224,7 +224,7 @@ def make_forward(scene: Scene, forward="sweep", *, cameras: list[str], resolutio
         # the Jacobian's tangent solves need far less accuracy than the images: LM converges
         # with an approximate Jacobian, and the estimates depend only on the residual
         solver = SweepSolver(M=directions, tol=light_tol, max_iterations=max_iterations,
-                             adjoint_rtol=adjoint_rtol)
+                             adjoint_rtol=adjoint_rtol, devices=devices)
         return Renderer(small, resolution=resolution, solver=solver, supersample=supersample)
     if forward == "splat":
         try:
@@ -233,6 +233,9 @@ def make_forward(scene: Scene, forward="sweep", *, cameras: list[str], resolutio
             raise DifffogError(
                 "forward 'splat': the splat renderer is not available in this version of "
                 "difffog; use forward='sweep'") from e
+        if devices != 1:
+            raise DifffogError("forward 'splat' renders on one device; devices applies to the "
+                               "sweep (or share many fits over devices with fit_batch)")
         return SplatRenderer(small, resolution=resolution, supersample=supersample)
     raise DifffogError(f"forward '{forward}': choose 'sweep', 'splat' or a forward-model object")
 
@@ -676,46 +679,38 @@ def _statistics(r: np.ndarray, J: np.ndarray, m: int, coords, u: np.ndarray):
     return se, corr, cond, msgs, s2
 
 
-def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forward="sweep",
-        resolution: int = 32, directions: int = 3, downsample: int = 1, supersample: int = 2,
-        light_tol: float = 1e-5, weights: Mapping[str, Any] | None = None,
-        loss: str = "linear", loss_scale: float = 0.05, rtol: float = 1e-4,
-        atol: float = 1e-4, max_steps: int = 50, stall_steps: int = 3, dtype=None,
-        checkpoint: str | os.PathLike | None = None, resume: bool = False,
-        progress: bool | None = None, callback: Callable[[dict], None] | None = None,
-        ) -> FitResult:
-    """Fit the unknowns of ``scene`` to target images.
+@dataclass
+class _Setup:
+    """Everything a fit needs before its first step (shared by :func:`fit` and
+    :func:`fit_batch`)."""
 
-    targets: {camera name: (H, W) image}, one or several views, either at the scene camera's
-    resolution or already reduced by ``downsample``.  unknowns: dotted parameter paths
-    (``fog.scattering``, ``fog.absorption``, ``shape.<name>.albedo``; ``fog.g``,
-    ``sun.irradiance``, ``sky.radiance`` as nuisance parameters), as a list, a dict
-    {path: init | (init, lower, upper) | None} or :class:`Unknown` objects.
+    fwd: Any
+    names: list[str]
+    tgt: dict
+    flat_t: np.ndarray
+    flat_w: np.ndarray
+    m: int
+    data: tuple
+    u0: Any
+    coords: list
+    inits: list
+    stepper: _Stepper
+    settings: dict
+    fingerprint: str
 
-    solver: "lm" (Levenberg–Marquardt, default), "gauss-newton", "bfgs" or an optimistix
-    least-squares solver / minimiser.  forward: "sweep" (``Renderer`` with ``SweepSolver(M=
-    directions, tol=light_tol)`` at ``resolution``), "splat", or any object with ``.params()``,
-    ``__call__(params)`` → images, ``.scene`` and ``.cameras``.  downsample: render every
-    camera at 1/k of its width and height (the target is box-averaged to match: a reduced
-    pixel's footprint is k×k full pixels).  weights: {camera: (H, W)} per-pixel weights ≥ 0
-    (a boolean mask works); the residual is √w·(model − target) / RMS(target).  loss: "linear"
-    (least squares) or a robust "huber", "soft_l1", "cauchy" with threshold ``loss_scale`` in
-    units of the target's RMS.  rtol, atol: optimistix' termination on the unconstrained
-    unknowns and the residuals; besides, the fit stops ("loss_stalled", counted as converged)
-    when the unknowns moved but the loss fell by less than rtol over ``stall_steps`` steps
-    (0: never).
-    checkpoint: a file written (atomically) after every step;
-    ``resume=True`` continues from it and reaches the same answer as an uninterrupted fit.
-    progress: a line per step on stderr (default: when stderr is a terminal).
-    callback(entry): called after every step with that step's history entry.
-    """
-    t_start = time.perf_counter()
+    def values(self, u) -> dict[str, float]:
+        return {c.path: float(c.to_v(x)) for c, x in zip(self.coords, np.asarray(u))}
+
+
+def _setup(scene: Scene, targets, unknowns, *, solver, forward, resolution, directions,
+           downsample, supersample, light_tol, weights, loss, loss_scale, rtol, atol, max_steps,
+           stall_steps, dtype, devices) -> _Setup:
     unknowns = _as_unknowns(unknowns)
     if loss not in _LOSSES:
         raise DifffogError(f"loss '{loss}': choose one of {', '.join(_LOSSES)}")
     for name, v in (("resolution", resolution), ("directions", directions),
                     ("downsample", downsample), ("supersample", supersample),
-                    ("max_steps", max_steps)):
+                    ("max_steps", max_steps), ("devices", devices)):
         if not isinstance(v, (int, np.integer)) or v < 1:
             raise DifffogError(f"{name} must be a positive integer, got {v!r}")
     if not isinstance(stall_steps, (int, np.integer)) or stall_steps < 0:
@@ -730,7 +725,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
     names = sorted(targets)  # a fixed order: fits of the same views share one compiled step
     fwd = make_forward(scene, forward, cameras=names, resolution=resolution,
                        directions=directions, downsample=downsample, supersample=supersample,
-                       light_tol=light_tol)
+                       light_tol=light_tol, devices=devices)
     tgt, wts = _prepare_targets(scene, fwd, targets, weights, downsample)
     dtype = dtype or jnp.result_type(float)
     base = fwd.params(dtype)
@@ -742,30 +737,133 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
     data = (jnp.asarray(flat_t, dtype), jnp.asarray(np.sqrt(flat_w), dtype),
             jnp.asarray(scale, dtype), jnp.asarray(loss_scale, dtype), base)
     u0 = jnp.asarray([c.to_u(v) for c, v in zip(coords, inits)], dtype)
-    stepper = _stepper(fwd, coords, names, loss, opt)
-    state = stepper.init(u0, data)
-    u = u0
-    history: list[dict] = []
-    k0, elapsed0 = 0, 0.0
-    ckpt = Path(checkpoint) if checkpoint is not None else None
     settings = {
         "forward": forward if isinstance(forward, str) else type(forward).__name__,
         "solver": solver if isinstance(solver, str) else type(solver).__name__,
         "resolution": resolution, "directions": directions, "downsample": downsample,
         "supersample": supersample, "light_tol": light_tol, "loss": loss,
         "loss_scale": loss_scale, "rtol": rtol, "atol": atol, "max_steps": max_steps,
-        "stall_steps": stall_steps,
+        "stall_steps": stall_steps, "devices": devices,
         "dtype": str(np.dtype(dtype)), "cameras": names,
         "image_shapes": {n: list(tgt[n].shape) for n in names},
         "unknowns": [dataclasses.asdict(c) for c in coords],
     }
-    fp = _fingerprint(scene=repr(scene), settings=settings, init=inits,
+    # the fingerprint leaves out the device count: a checkpoint resumes on any number of them
+    fp = _fingerprint(scene=repr(scene), settings={k: v for k, v in settings.items()
+                                                   if k != "devices"}, init=inits,
                       t=hashlib.sha256(np.ascontiguousarray(flat_t).tobytes()).hexdigest(),
                       w=hashlib.sha256(np.ascontiguousarray(flat_w).tobytes()).hexdigest())
+    return _Setup(fwd, names, tgt, flat_t, flat_w, m, data, u0, coords, inits,
+                  _stepper(fwd, coords, names, loss, opt), settings, fp)
+
+
+def _stalled(history: list[dict], stall_steps: int, rtol: float) -> bool:
+    """The unknowns moved but the loss fell by less than rtol over ``stall_steps`` steps: the
+    optimum to the precision of the forward model (its light solve stops at light_tol).  LM
+    would keep shrinking its trust region without meeting the step-size criterion."""
+    if not stall_steps or len(history) <= stall_steps:
+        return False
+    old, new = history[-1 - stall_steps], history[-1]
+    return old["values"] != new["values"] and old["loss"] - new["loss"] <= rtol * max(
+        new["loss"], 1e-30)
+
+
+def _finish(st: _Setup, u, state, *, k: int, done: bool, stalled: bool, result_code,
+            history: list, time_s: float, rtol: float, atol: float, max_steps: int,
+            stall_steps: int) -> FitResult:
+    name = _result_name(result_code)
+    message = "" if name == "successful" else str(optx.RESULTS[result_code])
+    if stalled and name == "successful":
+        name = "loss_stalled"
+        message = (f"stopped: the loss fell by less than rtol = {rtol} (relative) over the last "
+                   f"{stall_steps} steps — the optimum to the forward model's precision")
+    if not done and k >= max_steps:
+        name = "nonlinear_max_steps_reached"
+        message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
+                   f"atol = {atol}; raise max_steps or start closer")
+    r, J, y = (np.asarray(a, np.float64) for a in st.stepper.final(u, state, st.data))
+    mask = np.asarray(st.data[1]) > 0
+    se, corr, cond, msgs, _ = _statistics(r[mask], J[mask], st.m, st.coords, np.asarray(u))
+    for msg in msgs:
+        warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
+    raw = (y - st.flat_t) * np.sqrt(st.flat_w)
+    images, off = {}, 0
+    for n in st.names:
+        size = st.tgt[n].size
+        images[n] = y[off:off + size].reshape(st.tgt[n].shape).astype(np.float32)
+        off += size
+    return FitResult(
+        paths=[c.path for c in st.coords],
+        estimates=st.values(u),
+        stderr={c.path: float(s) for c, s in zip(st.coords, se)},
+        correlation=corr,
+        initial={c.path: v for c, v in zip(st.coords, st.inits)},
+        residual_rms=float(np.sqrt(np.sum(raw ** 2) / st.m)),
+        loss=float(0.5 * np.sum(r * r)),
+        iterations=k,
+        time_s=time_s,
+        result=name,
+        message=message,
+        warnings=msgs,
+        history=history,
+        images=images,
+        targets={n: st.tgt[n].astype(np.float32) for n in st.names},
+        condition=cond,
+        settings=st.settings,
+    )
+
+
+def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forward="sweep",
+        resolution: int = 32, directions: int = 3, downsample: int = 1, supersample: int = 2,
+        light_tol: float = 1e-5, weights: Mapping[str, Any] | None = None,
+        loss: str = "linear", loss_scale: float = 0.05, rtol: float = 1e-4,
+        atol: float = 1e-4, max_steps: int = 50, stall_steps: int = 3, dtype=None,
+        devices: int = 1, checkpoint: str | os.PathLike | None = None, resume: bool = False,
+        progress: bool | None = None, callback: Callable[[dict], None] | None = None,
+        ) -> FitResult:
+    """Fit the unknowns of ``scene`` to target images.
+
+    targets: {camera name: (H, W) image}, one or several views, either at the scene camera's
+    resolution or already reduced by ``downsample``.  unknowns: dotted parameter paths
+    (``fog.scattering``, ``fog.absorption``, ``shape.<name>.albedo``; ``fog.g``,
+    ``sun.irradiance``, ``sky.radiance`` as nuisance parameters), as a list, a dict
+    {path: init | (init, lower, upper) | None} or :class:`Unknown` objects.
+
+    solver: "lm" (Levenberg–Marquardt, default), "gauss-newton", "bfgs" or an optimistix
+    least-squares solver / minimiser.  forward: "sweep" (``Renderer`` with ``SweepSolver(M=
+    directions, tol=light_tol, devices=devices)`` at ``resolution``), "splat", or any object
+    with ``.params()``, ``__call__(params)`` → images, ``.scene`` and ``.cameras``.
+    downsample: render every camera at 1/k of its width and height (the target is box-averaged
+    to match: a reduced pixel's footprint is k×k full pixels).  weights: {camera: (H, W)}
+    per-pixel weights ≥ 0 (a boolean mask works); the residual is √w·(model − target) /
+    RMS(target).  loss: "linear" (least squares) or a robust "huber", "soft_l1", "cauchy" with
+    threshold ``loss_scale`` in units of the target's RMS.  rtol, atol: optimistix' termination
+    on the unconstrained unknowns and the residuals; besides, the fit stops ("loss_stalled",
+    counted as converged) when the unknowns moved but the loss fell by less than rtol over
+    ``stall_steps`` steps (0: never).  devices: JAX devices that share each light solve
+    (``SweepSolver(devices=...)``; the same estimates as on one).
+    checkpoint: a file written (atomically) after every step;
+    ``resume=True`` continues from it and reaches the same answer as an uninterrupted fit.
+    progress: a line per step on stderr (default: when stderr is a terminal).
+    callback(entry): called after every step with that step's history entry.
+    See :func:`fit_batch` for many target sets at once.
+    """
+    t_start = time.perf_counter()
+    st = _setup(scene, targets, unknowns, solver=solver, forward=forward,
+                resolution=resolution, directions=directions, downsample=downsample,
+                supersample=supersample, light_tol=light_tol, weights=weights, loss=loss,
+                loss_scale=loss_scale, rtol=rtol, atol=atol, max_steps=max_steps,
+                stall_steps=stall_steps, dtype=dtype, devices=devices)
+    stepper, data = st.stepper, st.data
+    state = stepper.init(st.u0, data)
+    u = st.u0
+    history: list[dict] = []
+    k0, elapsed0 = 0, 0.0
+    ckpt = Path(checkpoint) if checkpoint is not None else None
     if resume:
         if ckpt is None:
             raise DifffogError("resume=True needs checkpoint=PATH (the file a killed fit wrote)")
-        u, state, k0, history, elapsed0 = _load_checkpoint(ckpt, u0, state, fp)
+        u, state, k0, history, elapsed0 = _load_checkpoint(ckpt, st.u0, state, st.fingerprint)
     progress = sys.stderr.isatty() if progress is None else progress
     bar = None
     if progress:
@@ -773,7 +871,6 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
 
         bar = tqdm(total=max_steps, initial=k0, desc="fit", unit="step", file=sys.stderr,
                    leave=True)
-    values = lambda uu: {c.path: float(c.to_v(x)) for c, x in zip(coords, np.asarray(uu))}  # noqa: E731
     k = k0
     done = False
     stalled = False
@@ -791,24 +888,17 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
         if hasattr(state, "num_accepted_steps"):
             accepted = int(state.num_accepted_steps)
         # the solver's aux lags one step behind y; its state holds the aux of y itself
-        entry = {"step": k, "values": values(u), "loss": float(getattr(state, "aux", aux)),
+        entry = {"step": k, "values": st.values(u), "loss": float(getattr(state, "aux", aux)),
                  "accepted_steps": accepted,
                  "time_s": round(elapsed0 + time.perf_counter() - t_loop, 3)}
         history.append(entry)
         if not np.all(np.isfinite(np.asarray(u))) or not math.isfinite(entry["loss"]):
             result_code = optx.RESULTS.nonfinite
             done = True
-        if (not done and stall_steps and len(history) > stall_steps
-                and history[-1 - stall_steps]["values"] != entry["values"]  # it did move
-                and history[-1 - stall_steps]["loss"] - entry["loss"]
-                <= rtol * max(entry["loss"], 1e-30)):
-            # The loss has stopped falling: the optimum to the precision of the forward model
-            # (its light solve stops at light_tol).  LM would keep shrinking its trust region
-            # without meeting the step-size criterion; stop and say so.
-            stalled = True
-            done = True
+        if not done and _stalled(history, stall_steps, rtol):
+            stalled = done = True
         if ckpt is not None:
-            _save_checkpoint(ckpt, u, state, k, history, fp, entry["time_s"])
+            _save_checkpoint(ckpt, u, state, k, history, st.fingerprint, entry["time_s"])
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(f"loss {entry['loss']:.3e} " + " ".join(
@@ -817,44 +907,139 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
             callback(entry)
     if bar is not None:
         bar.close()
-    name = _result_name(result_code)
-    message = "" if name == "successful" else str(optx.RESULTS[result_code])
-    if stalled and name == "successful":
-        name = "loss_stalled"
-        message = (f"stopped: the loss fell by less than rtol = {rtol} (relative) over the last "
-                   f"{stall_steps} steps — the optimum to the forward model's precision")
-    if not done and k >= max_steps:
-        name = "nonlinear_max_steps_reached"
-        message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
-                   f"atol = {atol}; raise max_steps or start closer")
-    r, J, y = (np.asarray(a, np.float64) for a in stepper.final(u, state, data))
-    mask = np.asarray(data[1]) > 0
-    se, corr, cond, msgs, _ = _statistics(r[mask], J[mask], m, coords, np.asarray(u))
-    for msg in msgs:
-        warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
-    est = values(u)
-    raw = (y - flat_t) * np.sqrt(flat_w)
-    images, off = {}, 0
-    for n in names:
-        size = tgt[n].size
-        images[n] = y[off:off + size].reshape(tgt[n].shape).astype(np.float32)
-        off += size
-    return FitResult(
-        paths=[c.path for c in coords],
-        estimates=est,
-        stderr={c.path: float(s) for c, s in zip(coords, se)},
-        correlation=corr,
-        initial={c.path: v for c, v in zip(coords, inits)},
-        residual_rms=float(np.sqrt(np.sum(raw ** 2) / m)),
-        loss=float(0.5 * np.sum(r * r)),
-        iterations=k,
-        time_s=elapsed0 + time.perf_counter() - t_start,
-        result=name,
-        message=message,
-        warnings=msgs,
-        history=history,
-        images=images,
-        targets={n: tgt[n].astype(np.float32) for n in names},
-        condition=cond,
-        settings=settings,
-    )
+    return _finish(st, u, state, k=k, done=done, stalled=stalled, result_code=result_code,
+                   history=history, time_s=elapsed0 + time.perf_counter() - t_start, rtol=rtol,
+                   atol=atol, max_steps=max_steps, stall_steps=stall_steps)
+
+
+# fit()'s defaults of the settings fit_batch passes through
+_SETUP_DEFAULTS = dict(solver="lm", resolution=32, directions=3, downsample=1, supersample=2,
+                       light_tol=1e-5, weights=None, loss="linear", loss_scale=0.05, dtype=None)
+
+
+def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
+              devices: int = 1, forward="sweep", max_steps: int = 50, rtol: float = 1e-4,
+              atol: float = 1e-4, stall_steps: int = 3, progress: bool | None = None,
+              **kwargs) -> list[FitResult]:
+    """Fit the same unknowns to many target sets at once (a parameter study, a time series,
+    a set of images): one forward model and one compiled step, ``vmap``-ed over the fits and
+    split over ``devices`` JAX devices (``shard_map``, no communication: each device steps its
+    share of the fits).
+
+    targets: a list of {camera: image} dicts, all with the same cameras; the other keyword
+    arguments are :func:`fit`'s (except checkpoint/resume/callback).  All fits step together;
+    a fit that has converged (or stalled, or failed) is frozen while the others go on, so every
+    result equals what :func:`fit` returns for that target set.  On a CPU, N host devices need
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` before JAX is imported (the CLI sets
+    it for ``--devices``).
+    """
+    from ._batch import batch_mesh
+
+    for bad in ("checkpoint", "resume", "callback"):
+        if bad in kwargs:
+            raise DifffogError(f"fit_batch: {bad} is not supported; run fit() per target set "
+                               f"for checkpoints and callbacks")
+    unknown = set(kwargs) - set(_SETUP_DEFAULTS)
+    if unknown:
+        raise DifffogError(f"fit_batch: unknown keyword {', '.join(sorted(unknown))}; it takes "
+                           f"fit()'s: {', '.join(sorted(_SETUP_DEFAULTS))}")
+    targets = list(targets)
+    if not targets:
+        raise DifffogError("fit_batch: targets is empty; give a list of {camera: image} dicts")
+    if len({tuple(sorted(t)) for t in targets}) != 1:
+        raise DifffogError("fit_batch: every target set must have the same cameras "
+                           f"(got {sorted({tuple(sorted(t)) for t in targets})})")
+    if not isinstance(devices, (int, np.integer)) or devices < 1:
+        raise DifffogError(f"devices must be a positive integer, got {devices!r}")
+    if devices > 1:
+        batch_mesh(devices)  # a clear error when there are not enough devices
+    t_start = time.perf_counter()
+    setups = []
+    for t in targets:  # the first builds the forward model, the others reuse it
+        st = _setup(scene, t, unknowns, forward=forward, max_steps=max_steps, rtol=rtol,
+                    atol=atol, stall_steps=stall_steps, devices=1,
+                    **{**_SETUP_DEFAULTS, **kwargs})
+        forward = st.fwd
+        setups.append(st)
+    stepper = setups[0].stepper
+    states = [stepper.init(s.u0, s.data) for s in setups]
+    static = eqx.partition(states[0], eqx.is_array)[1]
+    stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    x = stack([(s.u0, eqx.partition(q, eqx.is_array)[0], s.data) for s, q in zip(setups, states)])
+
+    def one(xi):
+        u, dyn, data = xi
+        u2, state2, _ = stepper._step_impl(u, eqx.combine(dyn, static), data)
+        done, code = stepper._term_impl(u2, state2, data)
+        return u2, eqx.partition(state2, eqx.is_array)[0], done, code
+
+    B = len(setups)
+    if devices == 1:
+        bstep = jax.jit(jax.vmap(one))
+    else:
+        # The batch axis sharded over the devices and the vmapped step partitioned by XLA
+        # (GSPMD): every device steps its share.  (shard_map is not used here: lineax's
+        # closure-converted operators inside the implicit solve reject its per-device avals.)
+        pad = -B % devices
+        if pad:
+            x = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]), x)
+        spec = jax.sharding.NamedSharding(batch_mesh(devices), jax.sharding.PartitionSpec("batch"))
+        x = jax.device_put(x, spec)
+        bstep = jax.jit(jax.vmap(one), in_shardings=(spec,), out_shardings=spec)
+    k = np.zeros(B, int)
+    done = np.zeros(B, bool)
+    stalled = np.zeros(B, bool)
+    codes = [optx.RESULTS.successful] * B
+    histories: list[list[dict]] = [[] for _ in range(B)]
+    progress = sys.stderr.isatty() if progress is None else progress
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=B, desc=f"fit x{B}", unit="fit", file=sys.stderr, leave=True)
+    t_loop = time.perf_counter()
+    step = 0
+    while not done.all() and step < max_steps:
+        u2, dyn2, done2, code2 = bstep(x)
+        step += 1
+        live = ~done
+        keep = jnp.asarray(np.concatenate([done, np.ones(len(done2) - B, bool)])
+                           if len(done2) > B else done)
+        x = (jax.tree.map(lambda a, b: jnp.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
+                          (x[0], x[1]), (u2, dyn2)) + (x[2],))
+        done2, u_np = np.asarray(done2)[:B], np.asarray(x[0])
+        now = round(time.perf_counter() - t_loop, 3)
+        for i in np.flatnonzero(live):
+            k[i] += 1
+            state_i = eqx.combine(jax.tree.map(lambda a: a[i], x[1]), static)
+            codes[i] = jax.tree.map(lambda a: a[i], code2)
+            entry = {"step": int(k[i]), "values": setups[i].values(u_np[i]),
+                     "loss": float(getattr(state_i, "aux", np.nan)),
+                     "accepted_steps": (int(state_i.num_accepted_steps)
+                                        if hasattr(state_i, "num_accepted_steps") else None),
+                     "time_s": now}
+            histories[i].append(entry)
+            if done2[i]:
+                done[i] = True
+            elif not np.all(np.isfinite(u_np[i])) or not math.isfinite(entry["loss"]):
+                codes[i], done[i] = optx.RESULTS.nonfinite, True
+            elif _stalled(histories[i], stall_steps, rtol):
+                stalled[i] = done[i] = True
+        if bar is not None:
+            bar.n = int(done.sum())
+            bar.set_postfix_str(f"step {step}")
+            bar.refresh()
+    if bar is not None:
+        bar.close()
+    elapsed = time.perf_counter() - t_start
+    out = []
+    for i, st in enumerate(setups):
+        u_i = x[0][i]
+        state_i = eqx.combine(jax.tree.map(lambda a: a[i], x[1]), static)
+        res = _finish(st, u_i, state_i, k=int(k[i]), done=bool(done[i]),
+                      stalled=bool(stalled[i]), result_code=codes[i], history=histories[i],
+                      time_s=elapsed, rtol=rtol, atol=atol, max_steps=max_steps,
+                      stall_steps=stall_steps)
+        res.settings = dict(res.settings, devices=devices, batch=B)
+        out.append(res)
+    return out
