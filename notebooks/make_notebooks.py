@@ -452,9 +452,9 @@ PX = 64 if SMALL else 160  # camera width in pixels
 side = df.Camera(name="side", kind="perspective", position=(0.5, -0.9, 0.45),
                  look_at=(0.5, 0.5, 0.45), up=(0.0, 0.0, 1.0), fov_deg=45.0,
                  resolution=(PX, PX * 3 // 4))
-kernels = {"no multiple scattering (Fig. 1)": dict(forward_scatter=False, back_scatter=False),
-           "multiple forward (Fig. 2)": dict(forward_scatter=True, back_scatter=False),
-           "forward + back (Fig. 4)": dict(forward_scatter=True, back_scatter=True)}
+kernels = {"no multiple scattering (Fig. 1)": {"forward_scatter": False, "back_scatter": False},
+           "multiple forward (Fig. 2)": {"forward_scatter": True, "back_scatter": False},
+           "forward + back (Fig. 4)": {"forward_scatter": True, "back_scatter": True}}
 lights = {"sun behind the cloud": 90.0, "sun behind the viewer": -90.0}  # sun azimuth (deg)
 clouds, ratio = {}, {}
 for light, azimuth in lights.items():
@@ -535,8 +535,8 @@ fig, axes = plt.subplots(1, 2, figsize=(10, 3.3), layout="constrained")
 for ax, (name, pair) in zip(axes, pairs.items()):
     hard, soft = pair.values()
     row = int(np.argmax(np.abs(hard - soft).sum(axis=1)))
-    for (label, img), style in zip(pair.items(), [dict(color="k"), dict(color="tab:orange")]):
-        ax.plot(img[row], lw=1.2, label=label, **style)
+    for (label, img), color in zip(pair.items(), ["k", "tab:orange"]):
+        ax.plot(img[row], lw=1.2, label=label, color=color)
     ax.set_xlabel("image column (pixel)")
     ax.set_ylabel(f"radiance ({plot.RADIANCE_UNIT})")
     ax.set_title(f"{name}: row {row} of the oblique view", fontsize=9)
@@ -852,7 +852,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from IPython.display import Markdown, display
 
-import difffog as df
 from difffog import plot
 from difffog._bench import run_bench
 from difffog._presets import PRESETS"""),
@@ -917,8 +916,9 @@ ours = [r for r in rows if not r["solver"].startswith("mitsuba")]
 mitsuba = [r for r in rows if r["solver"].startswith("mitsuba")]
 scenes = sorted({r["scene"] for r in ours})
 print(f"{source}: {len(ours)} difffog rows, {len(mitsuba)} Mitsuba rows; scenes {scenes}")
-table = ["| solver | scene | setting | warm s | compile s | setup s | XLA MiB | iterations "
-         "| error % | bias % |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+header = ("| solver | scene | setting | warm s | compile s | setup s | XLA MiB | iterations "
+          "| error % | bias % |")
+table = [header, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
 for r in ours:
     table.append(f"| {r['solver']} | {r['scene']} | {r['setting']} | {r['time_s']:.2f} | "
                  f"{r['compile_s']:.1f} | {r['setup_s']:.1f} | {r['xla_mib']:.0f} | "
@@ -1006,7 +1006,8 @@ for r in ours:
     theirs_t.append(tm)
     print(f"{r['solver']:6s} {r['scene']:17s} {r['setting']:18s} {100 * r['error']:8.1f} "
           f"{r['time_s']:10.2f} {tm:10.1f} {tm / r['time_s']:8.0f}×")
-fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(labels)), 3.8), layout="constrained")
+fig, ax = plt.subplots(figsize=(min(16.0, max(5.0, 0.6 * len(labels))), 3.8),
+                       layout="constrained")
 x = np.arange(len(labels))
 ax.bar(x - 0.27, ours_t, 0.27, label="difffog, warm")
 ax.bar(x, first_t, 0.27, label="difffog, first render (set-up + compile)")
@@ -1030,7 +1031,7 @@ area)."""),
 labels = [f"{r['solver']} {r['scene']}\\n{r['setting']}" for r in ours]
 x = np.arange(len(ours))
 rot = 90 if len(ours) > 6 else 0
-fig, ax = plt.subplots(figsize=(max(5.0, 0.8 * len(ours)), 3.8), layout="constrained")
+fig, ax = plt.subplots(figsize=(min(16.0, max(5.0, 0.5 * len(ours))), 3.8), layout="constrained")
 bottom = np.zeros(len(ours))
 for key, name in [("setup_s", "host set-up"), ("compile_s", "compile"),
                   ("time_s", "warm forward pass")]:
@@ -1043,7 +1044,7 @@ ax.set_title("first render = set-up + compile + warm", fontsize=9)
 ax.legend(fontsize=8)
 plt.close(fig)
 display(fig)
-fig, ax = plt.subplots(figsize=(max(5.0, 0.8 * len(ours)), 3.6), layout="constrained")
+fig, ax = plt.subplots(figsize=(min(16.0, max(5.0, 0.5 * len(ours))), 3.6), layout="constrained")
 ax.bar(x, [r["xla_mib"] for r in ours], color="tab:purple")
 ax.set_xticks(x, labels, fontsize=7, rotation=rot)
 ax.set_ylabel("XLA memory per forward pass (MiB)")
