@@ -815,7 +815,7 @@ plot.error_map(both1.images["oblique"], both1.targets["oblique"], relative=False
     md("""\
 ## What to take from this
 
-* The fit converges in a handful of steps from a start 40–60% off, and reports standard errors
+* The fit converges in a handful of steps from a start 20–60% off, and reports standard errors
   and correlations with the estimates.
 * At a coarse lattice its error against the truth is the forward model's bias, not the noise:
   the recovery study at N = 24 (`benchmarks/results/recovery.md`) found ζ 6% low, γ 1.6% low
