@@ -872,7 +872,7 @@ from difffog._presets import PRESETS"""),
 |---|---|---|---|
 | sweep | `resolution` N: lattice nodes along the longest side | smaller voxels h = L/N: sharper shadows and edges, thin walls that do not leak | time and memory ∝ N³ per iteration |
 | sweep | `M`: direction half-width, (2M+1)² directions per cube face | finer angles: fewer ray effects, better grazing single scattering | time ∝ (2M+1)², compile time |
-| sweep | `tol`: the estimated remaining error where the Jacobi iteration stops | a converged light field; 1e-3 already changes images by < 0.1% | iterations (≈ log(tol)/log(contraction); many at high albedo) |
+| sweep | `tol`: the estimated remaining error where the iteration (GMRES by default) stops | a converged light field; 1e-3 already changes images by < 0.1% | iterations, more at high albedo |
 | splat | `resolution`: voxels splatted along the longest side | finer footprints and shadow buffer | time ∝ voxels, setup (host ray casting) |
 | splat | `sheets`: slices per camera pass (default one per voxel) | little: the splat's light model, not the slicing, sets its error | time ∝ sheets |
 | Mitsuba 3 | samples per pixel (spp) | noise ∝ 1/√spp, no bias | time ∝ spp |
@@ -880,7 +880,7 @@ from difffog._presets import PRESETS"""),
 Each row of the study records the warm time of one forward pass (the light solve and every
 camera of the scene; `time_s`), the compile time paid once per process (`compile_s`), the
 host set-up paid once per scene (`setup_s`), XLA's memory for the pass (`xla_mib`), the
-Jacobi iterations, and the relative RMSE against the reference with the reference's own
+sweep's iterations (applications of its six sweeps), and the relative RMSE against the reference with the reference's own
 noise removed (`error`) and the bias of the mean (`bias`)."""),
     md("""\
 ## 2. The study
