@@ -79,17 +79,46 @@ print("ok")
 
 def test_cli_render_devices_gives_the_same_images(tmp_path):
     """`difffog render --devices 2` (two host devices, asked for by the CLI itself) writes the
-    images of one device."""
+    images of one device, to the solve's tolerance (GMRES on a mesh also sweeps the Λ off the
+    fog that one device skips, so its iterates differ in the last digits; the fixed point is
+    the same)."""
     src = os.path.join(os.path.dirname(__file__), "..", "src")
     env = dict(os.environ, PYTHONPATH=os.path.abspath(src) + os.pathsep
                + os.environ.get("PYTHONPATH", ""))
     env.pop("XLA_FLAGS", None)
     for n in (1, 2):
         r = subprocess.run([sys.executable, "-m", "difffog", "render", "fog-balls", "-N", "12",
-                            "-M", "2", "--set", "shape.walls.thickness=0.1", "--iterations", "4",
+                            "-M", "2", "--set", "shape.walls.thickness=0.1", "--tol", "1e-6",
                             "--camera", "top", "--supersample", "1", "--devices", str(n), "-q",
                             "--out", str(tmp_path / f"d{n}")], env=env, capture_output=True,
                            text=True, timeout=600)
         assert r.returncode == 0, r.stderr[-2000:]
     a, b = (np.load(tmp_path / f"d{n}" / "top.npy") for n in (1, 2))
-    assert a.max() > 0 and np.max(np.abs(a - b)) <= 1e-6 * a.max()
+    assert a.max() > 0 and np.max(np.abs(a - b)) <= 1e-5 * a.max()
+
+
+@pytest.mark.slow
+def test_fit_batch_over_two_devices_matches_one():
+    """fit_batch with the fits split over 2 host devices gives the one-device estimates."""
+    code = """
+import numpy as np, difffog as df
+from difffog._fit import make_forward
+sc = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+fwd = make_forward(sc, "sweep", cameras=["top"], resolution=12, directions=2, downsample=8)
+ts = [{k: np.asarray(v) for k, v in fwd(df.set_param(fwd.params(), fwd.scene,
+                                                      "fog.scattering", z)).items()}
+      for z in (1.5, 2.0, 3.0)]
+unk = {"fog.scattering": 1.2, "fog.absorption": 0.8}
+a = df.fit_batch(sc, ts, unk, forward=fwd, devices=1)
+b = df.fit_batch(sc, ts, unk, forward=fwd, devices=2)
+for ra, rb, z in zip(a, b, (1.5, 2.0, 3.0)):
+    assert ra.converged and rb.converged and ra.iterations == rb.iterations
+    for p in unk:
+        assert abs(ra.estimates[p] / rb.estimates[p] - 1) <= 1e-6, (p, ra.estimates, rb.estimates)
+    assert abs(rb.estimates["fog.scattering"] / z - 1) <= 1e-3
+print("ok")
+"""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=900)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]

@@ -933,7 +933,7 @@ def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
     ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` before JAX is imported (the CLI sets
     it for ``--devices``).
     """
-    from ._batch import batch_mesh
+    from ._batch import batch_devices, map_batch
 
     for bad in ("checkpoint", "resume", "callback"):
         if bad in kwargs:
@@ -952,7 +952,7 @@ def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
     if not isinstance(devices, (int, np.integer)) or devices < 1:
         raise DifffogError(f"devices must be a positive integer, got {devices!r}")
     if devices > 1:
-        batch_mesh(devices)  # a clear error when there are not enough devices
+        batch_devices(devices)  # a clear error when there are not enough devices
     t_start = time.perf_counter()
     setups = []
     for t in targets:  # the first builds the forward model, the others reuse it
@@ -974,18 +974,10 @@ def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
         return u2, eqx.partition(state2, eqx.is_array)[0], done, code
 
     B = len(setups)
-    if devices == 1:
-        bstep = jax.jit(jax.vmap(one))
-    else:
-        # The batch axis sharded over the devices and the vmapped step partitioned by XLA
-        # (GSPMD): every device steps its share.  (shard_map is not used here: lineax's
-        # closure-converted operators inside the implicit solve reject its per-device avals.)
-        pad = -B % devices
-        if pad:
-            x = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, 0)]), x)
-        spec = jax.sharding.NamedSharding(batch_mesh(devices), jax.sharding.PartitionSpec("batch"))
-        x = jax.device_put(x, spec)
-        bstep = jax.jit(jax.vmap(one), in_shardings=(spec,), out_shardings=spec)
+
+    def bstep(xb):  # every device steps its share of the fits (no communication)
+        return map_batch(one, xb, devices)
+
     k = np.zeros(B, int)
     done = np.zeros(B, bool)
     stalled = np.zeros(B, bool)
@@ -1003,11 +995,10 @@ def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
         u2, dyn2, done2, code2 = bstep(x)
         step += 1
         live = ~done
-        keep = jnp.asarray(np.concatenate([done, np.ones(len(done2) - B, bool)])
-                           if len(done2) > B else done)
+        keep = jnp.asarray(done)
         x = (jax.tree.map(lambda a, b: jnp.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), a, b),
                           (x[0], x[1]), (u2, dyn2)) + (x[2],))
-        done2, u_np = np.asarray(done2)[:B], np.asarray(x[0])
+        done2, u_np = np.asarray(done2), np.asarray(x[0])
         now = round(time.perf_counter() - t_loop, 3)
         for i in np.flatnonzero(live):
             k[i] += 1

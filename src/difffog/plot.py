@@ -455,8 +455,13 @@ def _history(h) -> np.ndarray:
 
 
 def convergence(history, *, tol: float | None = None, label: str | None = None,
-                ylabel: str = "relative change per iteration", ax=None) -> Figure:
-    """Residual history on a log scale against the Jacobi iteration.
+                ylabel: str | None = None, xlabel: str = "application of K (six face sweeps)",
+                ax=None) -> Figure:
+    """Residual history on a log scale against the applications of the light operator K.
+
+    The solver's ``residuals`` are, per application of K, GMRES's relative residual (the
+    default method) or Jacobi's relative change (``method="jacobi"``); ``ylabel`` defaults to
+    saying so.
 
     history: a :class:`~difffog.LightField` (its ``residuals`` up to ``iterations``), a 1-D
     array (NaNs past the end are dropped), or a dict ``{label: either}`` for several curves.
@@ -474,8 +479,8 @@ def convergence(history, *, tol: float | None = None, label: str | None = None,
                     label=None if lbl is None else str(lbl))
     if tol is not None:
         ax.axhline(tol, color="k", ls=":", lw=1, label=f"tolerance {tol:g}")
-    ax.set_xlabel("Jacobi iteration")
-    ax.set_ylabel(ylabel)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel or "relative residual (GMRES) / change (Jacobi)")
     ax.grid(True, which="both", alpha=0.3)
     if any(lbl is not None for lbl in curves) or tol is not None:
         ax.legend(fontsize=8)
