@@ -105,3 +105,34 @@ def test_bench_study_rows_match_an_independent_render(tmp_path, monkeypatch):
     assert float(ours[0]["error"]) == pytest.approx(err, rel=1e-3)
     assert float(ours[0]["time_s"]) > 0 and float(ours[0]["xla_mib"]) > 0
     assert res.plot_path.stat().st_size > 10_000
+
+
+def test_mitsuba_time_at_equal_error_interpolates_its_curve():
+    """Mitsuba's time to an error: log-log between its measured points, t ∝ error⁻² beyond."""
+    rows = [dict(solver="mitsuba3 (references' run)", scene="s", time_s=t, error=e)
+            for t, e in ((1.0, 0.4), (4.0, 0.2), (16.0, 0.1))]
+    assert _bench.mitsuba_time_at(rows, "s", 0.2) == pytest.approx(4.0)
+    assert _bench.mitsuba_time_at(rows, "s", 0.4 / np.sqrt(2)) == pytest.approx(2.0)
+    assert _bench.mitsuba_time_at(rows, "s", 0.05) == pytest.approx(64.0)   # extrapolated
+    assert np.isnan(_bench.mitsuba_time_at(rows, "other", 0.1))
+
+
+def test_summary_has_presets_and_equal_error_tables(tmp_path):
+    from difffog._presets import PRESETS
+
+    rows = [dict(solver="sweep", scene="s", setting=_bench.setting_label("sweep", PRESETS["sweep"][lv]),
+                 time_s=t, compile_s=2.0, setup_s=1.0, xla_mib=10.0, iterations=5, error=e,
+                 bias=0.0) for lv, t, e in (("draft", 1.0, 0.2), ("default", 4.0, 0.1))]
+    rows += [dict(solver="mitsuba3 (references' run)", scene="s", setting="4 spp", spp=4,
+                  time_s=t, error=e) for t, e in ((2.0, 0.2), (8.0, 0.1))]
+    md = _bench.summary_markdown(rows)
+    assert "| sweep | draft | N32 M2 tol0.001 | 1.00 | 2.0 | 20.0 | 1 |" in md
+    assert "| sweep | s | N64 M3 tol0.0001 | 10.0 | 4.00 | 7.0 | 8.00 | 2.0× |" in md
+    p = tmp_path / "bench.csv"
+    with p.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=_bench.FIELDS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in _bench.FIELDS})
+    back = _bench.read_rows(p)
+    assert back[0]["time_s"] == 1.0 and np.isnan(back[2]["compile_s"])

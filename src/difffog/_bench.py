@@ -307,4 +307,77 @@ def summary_markdown(rows: list[dict]) -> str:
     for r in rows:
         if r["solver"].startswith("mitsuba"):
             lines.append(f"| {r['scene']} | {r['spp']} | {r['time_s']:.2f} | {100 * r['error']:.1f} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + ["", "## The presets", "", *preset_table(rows), "",
+                              "## Mitsuba 3 at equal error", "", *equal_error_table(rows)]) + "\n"
+
+
+def _measured(r) -> bool:
+    return isinstance(r.get("error"), float) and not math.isnan(r["error"])
+
+
+def preset_table(rows: list[dict]) -> list[str]:
+    """Each --accuracy preset's setting: warm time (mean over the scenes) and error (mean)."""
+    from ._presets import LEVELS, PRESETS
+
+    out = ["| solver | preset | setting | warm s (mean) | compile s (mean) | error % (mean) "
+           "| scenes |", "|---|---|---|---:|---:|---:|---:|"]
+    for solver in ("sweep", "splat"):
+        for level in LEVELS:
+            label = setting_label(solver, PRESETS[solver][level])
+            rs = [r for r in rows if r["solver"] == solver and r["setting"] == label
+                  and _measured(r)]
+            if rs:
+                out.append(f"| {solver} | {level} | {label} "
+                           f"| {np.mean([r['time_s'] for r in rs]):.2f} "
+                           f"| {np.mean([r['compile_s'] for r in rs]):.1f} "
+                           f"| {100 * np.mean([r['error'] for r in rs]):.1f} | {len(rs)} |")
+    return out
+
+
+def mitsuba_time_at(rows: list[dict], scene: str, error: float) -> float:
+    """Mitsuba's wall time (all cameras) to reach ``error`` on ``scene``: log-log interpolation
+    of its measured curve (error ∝ spp^-1/2 beyond its ends); NaN without a curve."""
+    pts = sorted((r["error"], r["time_s"]) for r in rows
+                 if r["solver"].startswith("mitsuba") and r["scene"] == scene and _measured(r))
+    if len(pts) < 2 or not error > 0:
+        return math.nan
+    e = np.log([p[0] for p in pts])
+    t = np.log([p[1] for p in pts])
+    x = math.log(error)
+    if x < e[0]:  # below the curve's smallest error: t ∝ error^-2
+        return float(math.exp(t[0] + 2.0 * (e[0] - x)))
+    if x > e[-1]:
+        return float(math.exp(t[-1] - 2.0 * (x - e[-1])))
+    return float(math.exp(np.interp(x, e, t)))
+
+
+def equal_error_table(rows: list[dict]) -> list[str]:
+    out = ["| solver | scene | setting | error % | difffog warm s | difffog first s "
+           "| Mitsuba s at that error | warm speed-up |", "|---|---|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        if r["solver"].startswith("mitsuba") or not _measured(r):
+            continue
+        tm = mitsuba_time_at(rows, r["scene"], r["error"])
+        first = r["time_s"] + r["compile_s"] + r["setup_s"]
+        out.append(f"| {r['solver']} | {r['scene']} | {r['setting']} | {100 * r['error']:.1f} "
+                   f"| {r['time_s']:.2f} | {first:.1f} | {tm:.2f} | {tm / r['time_s']:.1f}× |")
+    return out
+
+
+_NUMERIC = ("resolution", "M", "tol", "sheets", "spp", "time_s", "compile_s", "setup_s",
+            "xla_mib", "iterations", "error", "bias")
+
+
+def read_rows(path) -> list[dict]:
+    """A ``bench.csv`` back as rows (numbers as floats, NaN where a column does not apply), e.g.
+    to redo ``bench.md`` and the plot without re-running: ``summary_markdown(read_rows(p))``."""
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            for k in _NUMERIC:
+                try:
+                    r[k] = float(r[k])
+                except (TypeError, ValueError):
+                    r[k] = math.nan
+            rows.append(r)
+    return rows
