@@ -19,7 +19,7 @@ from scipy import ndimage
 
 from ._camera import LatticeFields, render_camera
 from ._errors import SceneError
-from ._lattice import FREE, SOLID, SURFACE, voxelize
+from ._lattice import SOLID, SURFACE, voxelize
 from ._lightfield import LightField
 from ._params import Params
 from ._plan import check_params

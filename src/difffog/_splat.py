@@ -59,7 +59,6 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass
 
 import equinox as eqx
 import jax
