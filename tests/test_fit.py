@@ -176,25 +176,28 @@ def test_noisy_fit_standard_errors_cover_the_truth(small_forward, small_targets)
     assert res.residual_rms == pytest.approx(sigma, rel=0.25)
 
 
-def test_fit_batch_equals_fitting_one_by_one(small_forward, small_targets):
+def test_fit_batch_equals_fitting_one_by_one():
     """fit_batch steps all fits together (vmap) and freezes each when it is done: every result
-    is the one fit() gives for that target set (same steps; estimates equal up to the rounding
-    of a vmapped program, bit for bit here)."""
+    is the one fit() gives for that target set (same steps and estimates).  The analytic toy
+    keeps this cheap; the sweep under vmap is covered by the two-device test in
+    test_batch.py (slow) and by render_batch."""
+    toy = Toy()
     rng = np.random.default_rng(3)
-    sets = [small_targets] + [{k: v + rng.normal(0, 0.02 * v.mean(), v.shape)
-                               for k, v in small_targets.items()} for _ in range(2)]
-    start = {"fog.scattering": 1.5, "fog.absorption": 0.7}
-    batch = df.fit_batch(_small_scene(), sets, start, forward=small_forward)
+    clean = _toy_target(toy, **{"fog.scattering": 2.0, "fog.absorption": 0.5})
+    sets = [clean] + [{"top": clean["top"] + rng.normal(0, 0.02, clean["top"].shape)}
+                      for _ in range(2)]
+    start = {"fog.scattering": 1.0, "fog.absorption": 1.5, "shape.walls.albedo": 0.3}
+    batch = df.fit_batch(toy.scene, sets, start, forward=toy)
     assert len(batch) == 3
     for t, b in zip(sets, batch):
-        one = df.fit(_small_scene(), t, start, forward=small_forward)
+        one = df.fit(toy.scene, t, start, forward=toy)
         assert b.converged and b.iterations == one.iterations, (b.result, one.result)
         assert b.estimates == pytest.approx(one.estimates, rel=1e-6)
-        assert b.stderr == pytest.approx(one.stderr, rel=1e-4)
+        assert b.stderr == pytest.approx(one.stderr, rel=1e-3, abs=1e-9)
         for hb, ho in zip(b.history, one.history):
             assert hb["values"] == pytest.approx(ho["values"], rel=1e-6)
     # the noise-free set recovers the truth; the noisy ones differ from it and each other
-    assert batch[0].estimates["fog.scattering"] == pytest.approx(2.0, rel=1e-3)
+    assert batch[0].estimates["fog.scattering"] == pytest.approx(2.0, rel=1e-4)
     assert batch[1].estimates != batch[2].estimates
 
 
@@ -385,6 +388,7 @@ def test_downsample_must_divide_the_camera(small_forward):
         make_forward(_small_scene(), "sweep", cameras=["top"], resolution=12, downsample=7)
 
 
+@pytest.mark.slow
 def test_fit_result_json_round_trips(small_forward, small_targets, tmp_path):
     res = df.fit(_small_scene(), small_targets, {"fog.scattering": 1.8, "fog.absorption": 0.5,
                                                  "shape.walls.albedo": 0.7},

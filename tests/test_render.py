@@ -31,6 +31,7 @@ PATHS = ["fog.scattering", "fog.absorption", "shape.walls.albedo", "shape.ball-m
          "sun.irradiance", "sky.radiance"]
 
 
+@pytest.mark.slow  # one more FD check of the whole chain (sweep, camera, fit have theirs)
 def test_image_loss_gradient_matches_finite_differences(x64):
     scene = _small_scene()
     solver = SweepSolver(M=2, max_iterations=1000, tol=1e-12, adjoint_rtol=1e-11)
