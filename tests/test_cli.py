@@ -136,6 +136,7 @@ def fit_targets(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow  # a whole fit through the CLI; test_fit.py covers the fit itself
 def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys):
     out = tmp_path / "fit"
     argv = ["fit", *FIT_SMALL, "--target", f"top={fit_targets / 'top.npy'}",
