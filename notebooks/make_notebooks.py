@@ -862,7 +862,7 @@ import numpy as np
 from IPython.display import Markdown, display
 
 from difffog import plot
-from difffog._bench import run_bench
+from difffog._bench import read_rows, run_bench
 from difffog._presets import PRESETS"""),
     code(REFERENCES),
     md("""\
@@ -891,24 +891,7 @@ when it is not there, `run_bench(..., quick=True)` runs one small setting per so
 `cloud-plane` into a temporary folder (about a minute): the same rows, fewer of them."""),
     code("""\
 BENCH_CSV = Path.cwd().parent / "benchmarks" / "results" / "bench" / "bench.csv"
-NUMERIC = ["resolution", "M", "tol", "sheets", "spp", "time_s", "compile_s", "setup_s",
-           "xla_mib", "iterations", "error", "bias"]
-
-
-def read_rows(path):
-    \"\"\"bench.csv as a list of dicts, numbers as floats (NaN where a column does not apply).\"\"\"
-    rows = []
-    with open(path, newline="") as f:
-        for r in csv.DictReader(f):
-            for k in NUMERIC:
-                try:
-                    r[k] = float(r[k])
-                except (TypeError, ValueError):
-                    r[k] = math.nan
-            rows.append(r)
-    return rows
-
-
+# read_rows: bench.csv as a list of dicts, numbers as floats (NaN where a column does not apply)
 committed = read_rows(BENCH_CSV) if BENCH_CSV.exists() else None
 if committed is not None and not SMALL:
     rows, source = committed, f"the committed study ({BENCH_CSV.name})"

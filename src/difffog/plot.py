@@ -149,6 +149,19 @@ def _new_figure(nrows: int, ncols: int, size: tuple[float, float], layout: str =
     return fig, axes
 
 
+def _panels(n: int, ncols: int | None, panel_size, axes, caller: str, what: str):
+    """(figure, flat list of axes, columns) for ``n`` panels: a new grid of ``ncols`` columns
+    (default 4, at most n), or the ``axes`` given (ncols defaults to their count)."""
+    if axes is None:
+        ncols = min(n, ncols or 4)
+        fig, grid = _new_figure(-(-n // ncols), ncols, panel_size, layout="compressed")
+        return fig, list(grid.ravel()), ncols
+    flat = list(np.ravel(axes))
+    if len(flat) < n:
+        raise DifffogError(f"difffog.plot.{caller}: {n} {what} but {len(flat)} axes given")
+    return flat[0].figure, flat, ncols or len(flat)
+
+
 def _pixel_labels(ax, bottom: bool = True, left: bool = True):
     if bottom:
         ax.set_xlabel("column (pixels)")
@@ -179,17 +192,7 @@ def image_grid(images: Mapping[str, np.ndarray], *, ncols: int | None = None,
     if scale is None:
         scale = exposure(arrays, percentile)
     n = len(arrays)
-    if axes is None:
-        ncols = min(n, ncols or 4)
-        nrows = -(-n // ncols)
-        fig, grid = _new_figure(nrows, ncols, panel_size, layout="compressed")
-        flat = list(grid.ravel())
-    else:
-        flat = list(np.ravel(axes))
-        if len(flat) < n:
-            raise DifffogError(f"difffog.plot.image_grid: {n} images but {len(flat)} axes given")
-        fig = flat[0].figure
-        ncols = ncols or len(flat)
+    fig, flat, ncols = _panels(n, ncols, panel_size, axes, "image_grid", "images")
     norm = mcolors.PowerNorm(gamma=1.0 / gamma, vmin=0.0, vmax=float(scale), clip=True)
     im = None
     for i, (title, a) in enumerate(arrays.items()):
@@ -343,16 +346,9 @@ def lattice_slices(lattice, field="node_type", *, axis="z", index=None, label: s
     extent = (origin[u], origin[u] + h * shape[u], origin[v], origin[v] + h * shape[v])
 
     n = len(indices)
-    if axes is None:
-        ncols = min(n, ncols)
-        fig, grid = _new_figure(-(-n // ncols), ncols, panel_size, layout="compressed")
-        flat = list(grid.ravel())
-    else:
-        flat = list(np.ravel(axes))
-        if len(flat) < n:
-            raise DifffogError(f"difffog.plot.lattice_slices: {n} slices but {len(flat)} axes")
-        fig = flat[0].figure
-        ncols = len(flat)
+    # with axes given, their count is the row length (as image_grid with ncols=None)
+    fig, flat, ncols = _panels(n, ncols if axes is None else None, panel_size, axes,
+                               "lattice_slices", "slices")
     for ax in flat[n:]:
         ax.set_visible(False)
 
