@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import inspect
 import json
 import math
 import os
@@ -912,9 +913,10 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, solver="lm", forw
                    atol=atol, max_steps=max_steps, stall_steps=stall_steps)
 
 
-# fit()'s defaults of the settings fit_batch passes through
-_SETUP_DEFAULTS = dict(solver="lm", resolution=32, directions=3, downsample=1, supersample=2,
-                       light_tol=1e-5, weights=None, loss="linear", loss_scale=0.05, dtype=None)
+# the settings fit_batch passes through, with fit()'s own defaults (read from its signature)
+_SETUP_DEFAULTS = {k: inspect.signature(fit).parameters[k].default
+                   for k in ("solver", "resolution", "directions", "downsample", "supersample",
+                             "light_tol", "weights", "loss", "loss_scale", "dtype")}
 
 
 def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
