@@ -22,10 +22,10 @@
 # looks at what the fit says about itself: its convergence, its residual, its standard errors
 # and correlations, what 5% image noise changes, and what a second view adds.
 #
-# The size switch: `small` (what the test suite runs: a 24-node lattice, M = 2, one sixty-fourth of
-# the pixels, loose tolerances, at most six steps per fit; about six minutes on 2 busy CPU cores,
-# most of it compiling) or `full` (the recovery study's settings: N = 24, M = 3, a sixteenth of the
-# pixels; about twelve minutes). Three fits share one compiled step (section 2).
+# The size switch: `small` (what the test suite runs: a 21-node lattice, M = 2, one sixty-fourth of
+# the pixels, loose tolerances, two steps per fit; about a minute on 2 CPU cores, most of it
+# compiling) or `full` (the recovery study's settings: N = 24, M = 3, a sixteenth of the pixels;
+# about twelve minutes). Three fits share one compiled step (section 2).
 
 # %%
 import os
@@ -44,12 +44,12 @@ print(f"size {SIZE}: N = {N}, M = {M}, tol = {TOL:g}")
 # %%
 # the fit's own settings (the lattice is coarser than the targets' N = 48, M = 4 on purpose:
 # a fit that uses the very model that made its targets finds them exactly, the "inverse crime")
-FIT_N = 24  # lattice nodes along the domain
+FIT_N = 21 if SMALL else 24  # lattice nodes along the domain (>= 21: the walls are 0.05 thick)
 FIT_M = 2 if SMALL else 3  # direction half-width
 DOWNSAMPLE = 8 if SMALL else 4  # fit each camera at 1/DOWNSAMPLE of its width and height
 LIGHT_TOL = 1e-3 if SMALL else 1e-5  # the light solve's tolerance inside the fit
 JAC_RTOL = 1e-3 if SMALL else 1e-4  # the tangent light solves' (the Jacobian's) tolerance
-MAX_STEPS = 6 if SMALL else 30  # the small size's fits stop early: a check, not a result
+MAX_STEPS = 2 if SMALL else 30  # the small size's fits stop after two: a check, not a result
 print(f"fit: N = {FIT_N}, M = {FIT_M}, downsample {DOWNSAMPLE}, light tol {LIGHT_TOL:g}")
 
 # %%
@@ -223,8 +223,8 @@ fig
 # (± 1.0%), the walls' albedo +4.8% (± 0.2%); with 5% noise −5.8%, −1.6%, +4.8% (the same);
 # against the Mitsuba 3 reference instead of synthetic targets −11%, −4.4%, +6.8%. The
 # model's misfit at the truth was 8.4% of the target mean. The truth lies outside ±2 standard
-# errors for ζ and the albedo in every case. At the small size (M = 2, 1/8 of the pixels)
-# the bias is larger still.
+# errors for ζ and the albedo in every case. At the small size (N = 21, M = 2, 1/8 of the
+# pixels) the bias is larger still.
 
 # %%
 def misfit(res, views):

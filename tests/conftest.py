@@ -4,6 +4,7 @@ import tempfile
 import jax
 import pytest
 
+import notebook_runs
 from helpers import MODELS, build_fit_model, build_model
 
 
@@ -20,6 +21,14 @@ def pytest_configure(config):
     jax.config.update("jax_compilation_cache_dir", cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_collection_finish(session):
+    # the notebooks' small-size runs start now, in the background (notebook_runs.py)
+    # (a kernel whose pytest dies exits too: ipykernel polls its parent)
+    names = notebook_runs.small_run_names(session.items)
+    if names and not session.config.option.collectonly:
+        notebook_runs.start(names)
 
 
 @pytest.fixture

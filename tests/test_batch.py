@@ -79,6 +79,7 @@ print("ok")
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
 
 
+@pytest.mark.slow  # two CLI runs; test_sweep.py's sharded test checks the sweep on a mesh
 def test_cli_render_devices_gives_the_same_images(tmp_path):
     """`difffog render --devices 2` (two host devices, asked for by the CLI itself) writes the
     images of one device, to the solve's tolerance (GMRES on a mesh also sweeps the Λ off the

@@ -4,29 +4,23 @@ outputs (a reader on the web sees the figures).
 
 Each notebook's source is ``notebooks/NN-name.py``, paired with ``NN-name.ipynb`` by
 ``notebooks/jupytext.toml``.  Here each .py is executed in a fresh Jupyter kernel (nbclient)
-with ``DIFFFOG_NOTEBOOK_SIZE=small`` and this checkout's ``difffog`` on the kernel's path.  Most
-of a run is XLA compiling, which keeps about one core busy, so the four kernels run two at a
-time (one module-scoped fixture; each notebook's test reports its own failure).  The times are
-in notebooks/README.md.
+with ``DIFFFOG_NOTEBOOK_SIZE=small`` and this checkout's ``difffog`` on the kernel's path.  They
+run in the background from the end of collection on (``notebook_runs.py``); each notebook's test
+reports its own failure.  The times are in notebooks/README.md.
 """
 
-import asyncio
-import os
-import time
 from pathlib import Path
 
 import jupytext
 import nbformat
 import pytest
-from nbclient import NotebookClient
 
-import difffog
+import notebook_runs
+from notebook_runs import SRC, small_run_names
 
 ROOT = Path(__file__).resolve().parents[1]
 NB_DIR = ROOT / "notebooks"
 NAMES = ["01-forward-rendering", "02-fitting", "03-speed-vs-accuracy", "04-the-papers"]
-LANES = 2  # kernels at a time
-CELL_TIMEOUT_S = 600  # generous: a loaded 2-core machine compiles the solver in up to ~40 s
 MIN_FIGURES = 5  # every notebook displays at least this many figures
 MAX_IPYNB_MB = 2.0  # outputs are figures at screen resolution, not data
 SYNC_HINT = "run `jupytext --sync notebooks/*.py` (or edit and save the notebook in Jupyter)"
@@ -87,39 +81,11 @@ def test_committed_notebook_has_its_outputs(name):
     assert mb < MAX_IPYNB_MB, f"{name}.ipynb is {mb:.1f} MB: keep figures small, print less"
 
 
-SRC = str(Path(difffog.__file__).resolve().parents[1])  # the difffog under test
-
-
 @pytest.fixture(scope="module")
 def small_runs(request):
-    """{name: (executed notebook, the exception it raised or None, seconds)}: the notebooks
-    this session tests run at the small size, ``LANES`` kernels at a time, the longest (02)
-    first."""
-    wanted = {item.callspec.params["name"] for item in request.session.items
-              if getattr(item, "originalname", None) == "test_notebook_runs_at_the_small_size"}
-    path_entries = [SRC] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
-    env = dict(os.environ, DIFFFOG_NOTEBOOK_SIZE="small", PYTHONPATH=os.pathsep.join(path_entries))
-
-    async def run(name, lanes):
-        nb = jupytext.read(NB_DIR / f"{name}.py")
-        nb.cells.append(nbformat.v4.new_code_cell("import difffog; print(difffog.__file__)"))
-        client = NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
-                                resources={"metadata": {"path": str(NB_DIR)}})
-        async with lanes:
-            t = time.perf_counter()
-            try:
-                await client.async_execute(env=env)
-                error = None
-            except Exception as e:  # CellExecutionError names the cell, with its traceback
-                error = e
-            return name, (nb, error, time.perf_counter() - t)
-
-    async def run_all():
-        lanes = asyncio.Semaphore(LANES)
-        order = sorted((n for n in NAMES if n in wanted), key=lambda n: n != "02-fitting")
-        return dict(await asyncio.gather(*(run(n, lanes) for n in order)))
-
-    return asyncio.run(run_all())
+    """{name: (executed notebook, the exception it raised or None, seconds)}: the runs
+    ``notebook_runs`` started in the background when collection finished (conftest.py)."""
+    return notebook_runs.results(small_run_names(request.session.items))
 
 
 @pytest.mark.parametrize("name", NAMES)
