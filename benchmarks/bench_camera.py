@@ -1,37 +1,46 @@
 """Time ``render_camera`` (compile excluded) on random smooth lattices.
 
-Cameras as in the shared scenes: a 128×128 orthographic top view and a 160×120 perspective
+Cameras as in the built-in scenes: a 128×128 orthographic top view and a 160×120 perspective
 oblique view of the unit cube, on 64³ and 128³ lattices with fog, sun, sky and three spheres;
 supersample 1 and 2, default step h/2.  ``--grad`` also times jit(grad) of the image sum with
-respect to all fields.
+respect to all fields.  ``--quick``: a 16³ lattice, supersample 1, one repeat.
 
-    python benchmarks/bench_camera.py [--sizes 64 128] [--repeat 3] [--grad]
+The camera march is measured alone, on synthetic fields, so this imports the sweep's internal
+``difffog.forward.sweep._march`` (``LatticeFields``, ``march_steps``, ``render_camera``) and
+``difffog.forward._camera.camera_rays`` on purpose.  The output starts with the machine (JAX
+backend and devices, copy bandwidth) measured in the same run.
+
+    python benchmarks/bench_camera.py [--quick] [--sizes 64 128] [--repeat 3] [--grad]
+        [--out FILE.md]
 """
 
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
-from difffog._camera import LatticeFields, march_steps, render_camera
-from difffog._scene import Camera
-
-CAMERAS = {
-    "ortho 128x128": Camera("top", "orthographic", (0.5, 0.5, 1.5), (0.5, 0.5, 0.0),
-                            (0.0, 1.0, 0.0), (128, 128), extent=(1.0, 1.0)),
-    "persp 160x120": Camera("oblique", "perspective", (0.5, -0.35, 1.75), (0.5, 0.5, 0.35),
-                            (0.0, 0.0, 1.0), (160, 120), fov_deg=45.0),
-}
+import _common as C
 
 
-def random_fields(n: int, seed: int = 0) -> LatticeFields:
+def cameras():
+    import difffog as df
+
+    return {
+        "ortho 128x128": df.Camera("top", "orthographic", (0.5, 0.5, 1.5), (0.5, 0.5, 0.0),
+                                   (0.0, 1.0, 0.0), (128, 128), extent=(1.0, 1.0)),
+        "persp 160x120": df.Camera("oblique", "perspective", (0.5, -0.35, 1.75),
+                                   (0.5, 0.5, 0.35), (0.0, 0.0, 1.0), (160, 120), fov_deg=45.0),
+    }
+
+
+def random_fields(n: int, seed: int = 0):
     """Smooth random fields on an n³ lattice over the unit cube, float32."""
+    import jax.numpy as jnp
+    from scipy.ndimage import gaussian_filter
+
+    from difffog.forward.sweep._march import LatticeFields
+
     rng = np.random.default_rng(seed)
     smooth = lambda: gaussian_filter(rng.standard_normal((n, n, n)), n / 16, mode="wrap")  # noqa
     norm = lambda a: (a - a.min()) / (a.max() - a.min())  # noqa: E731
@@ -47,51 +56,49 @@ def random_fields(n: int, seed: int = 0) -> LatticeFields:
         sdf=f32(sdf), origin=(0.0, 0.0, 0.0), h=h, g=0.6, sun_dir=(0.3, 0.2, 0.93), sky=1.0)
 
 
-def timeit(fn, repeat: int) -> tuple[float, float]:
-    """(first-call seconds incl. compile, median seconds of `repeat` warm calls)."""
-    t = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return first, statistics.median(times)
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
-    ap.add_argument("--supersample", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--repeat", type=int, default=3)
+    C.add_sizes(ap, [64, 128], [16])
+    ap.add_argument("--supersample", type=int, nargs="+", default=None,
+                    help="default 1 2; with --quick 1")
+    ap.add_argument("--repeat", type=int, default=None, help="default 3; with --quick 1")
     ap.add_argument("--grad", action="store_true", help="also time jit(grad) w.r.t. the fields")
-    args = ap.parse_args(argv)
+    ap.add_argument("--out", default=None, help="also write the table (markdown) here")
+    args = C.parse(ap, argv)
+    supersample = args.supersample or ([1] if args.quick else [1, 2])
+    repeat = args.repeat or (1 if args.quick else 3)
 
-    print(f"jax {jax.__version__} on {jax.devices()[0].device_kind} "
-          f"({jax.devices()[0].platform}), float32, step h/2")
-    cols = "lattice  camera          ss   rays    steps  first(s)  render(s)  Mray-steps/s"
-    if args.grad:
-        cols += "  grad(s)"
-    print(cols)
-    print("-" * len(cols))
+    import jax
+
+    from difffog.forward._camera import camera_rays
+    from difffog.forward.sweep._march import march_steps, render_camera
+
+    info = C.machine()
+    C.print_machine(info)
+    print("float32, step h/2", flush=True)
+    header = ["lattice", "camera", "ss", "rays", "steps", "first (s)", "render (s)",
+              "Mray-steps/s"] + (["grad (s)"] if args.grad else [])
+    rows = []
     for n in args.sizes:
         fields = random_fields(n)
-        for cname, cam in CAMERAS.items():
-            for ss in args.supersample:
-                from difffog._camera import camera_rays
-
+        for cname, cam in cameras().items():
+            for ss in supersample:
                 o, d = camera_rays(cam, ss)
                 steps = march_steps(fields, fields.h / 2, o, d)
                 rays = o.shape[0] * o.shape[1] * o.shape[2]
-                first, t = timeit(lambda: render_camera(fields, cam, supersample=ss), args.repeat)
-                line = (f"{n:>4}^3   {cname:<15} {ss:>2} {rays:>7} {steps:>7} {first:>9.2f} "
-                        f"{t:>10.3f} {rays * steps / t / 1e6:>13.1f}")
+                t = C.time_calls(lambda: render_camera(fields, cam, supersample=ss), repeat)
+                row = [f"{n}³", cname, ss, rays, steps, f"{t.first:.2f}", f"{t.median:.3f}",
+                       f"{rays * steps / t.median / 1e6:.1f}"]
                 if args.grad:
                     g = jax.jit(jax.grad(lambda f: render_camera(f, cam, supersample=ss).sum()))
-                    _, tg = timeit(lambda: g(fields), args.repeat)
-                    line += f" {tg:>8.3f}"
-                print(line, flush=True)
+                    row.append(f"{C.time_calls(lambda: g(fields), repeat).median:.3f}")
+                rows.append(row)
+                print("  ".join(map(str, row)), flush=True)
+    lines = C.md_table(header, rows, "ll" + "r" * (len(header) - 2))
+    print("\n".join(lines))
+    if args.out:
+        C.write_text(args.out, ["# Camera march (benchmarks/bench_camera.py)", "",
+                                *C.machine_lines(info), "", *lines])
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_krylov.py                       # N = 32, M = 3, float32
     python benchmarks/bench_krylov.py --N 48 --albedos 0.9 0.99
+    python benchmarks/bench_krylov.py --quick --out /tmp/krylov   # N = 16, M = 2, albedo 0.9
 
 For the furnace (closed box, emission 1, wall albedo a, a purely scattering fog: exact radiance
 1/(1 − a)) and for fog-balls made thick and bright (ζ + γ = 8 per unit, fog albedo a, every
@@ -9,7 +10,9 @@ surface albedo a; the roof is open, so light leaks), solve to tol = 1e-4 with ea
 record the applications of K (one application = one Jacobi iteration = six sweeps), the warm
 solve time (compilation timed apart), the solver's own error estimate and the true error: max
 relative difference of Λ and B from a float64 GMRES solve to 1e-9 (the furnace: from the exact
-1/(1 − a)).  Writes benchmarks/results/krylov.md and krylov.csv.
+1/(1 − a)).  Writes krylov.md (with the machine: JAX backend and devices, copy bandwidth,
+measured in the same run) and krylov.csv to ``--out`` (default benchmarks/results).  Public API
+only (``difffog.SweepSolver`` on a ``difffog.voxelize`` lattice).
 """
 
 from __future__ import annotations
@@ -20,13 +23,13 @@ import os
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+import _common as C
 from difffog import Params, SweepSolver, load_scene, voxelize
-
-OUT = Path(__file__).resolve().parent / "results"
 
 
 def scene_for(name: str, a: float):
@@ -61,15 +64,13 @@ def run(name, a, N, M, cap, tol):
         jax.config.update("jax_enable_x64", True)
         s = SweepSolver(M=M, method="gmres", tol=1e-9, max_iterations=2000)
         g = s.prepare(scene, lat)
-        light = jax.jit(s.solve)(g, Params.from_scene(scene, jnp.float64))
+        light = eqx.filter_jit(s.solve)(g, Params.from_scene(scene, jnp.float64))
         ref = fields(light, g)
         jax.config.update("jax_enable_x64", False)
     for method in ("jacobi", "gmres"):
         s = SweepSolver(M=M, method=method, tol=tol, max_iterations=cap)
         g = s.prepare(scene, lat)
-        t = time.perf_counter()
-        compiled = jax.jit(s.solve).lower(g, p32).compile()
-        tc = time.perf_counter() - t
+        compiled, tc = C.compile_timed(s.solve, g, p32)
         t = time.perf_counter()
         light = jax.block_until_ready(compiled(g, p32))
         ts = time.perf_counter() - t
@@ -88,22 +89,30 @@ def run(name, a, N, M, cap, tol):
     return rows
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--N", type=int, default=32)
-    ap.add_argument("--M", type=int, default=3)
-    ap.add_argument("--albedos", type=float, nargs="+", default=[0.5, 0.9, 0.99, 0.999])
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--N", type=int, default=None, help="default 32; with --quick 16")
+    ap.add_argument("--M", type=int, default=None, help="default 3; with --quick 2")
+    ap.add_argument("--albedos", type=float, nargs="+", default=None,
+                    help="default 0.5 0.9 0.99 0.999; with --quick 0.9")
     ap.add_argument("--scenes", nargs="+", default=["furnace", "fog-balls"])
     ap.add_argument("--cap", type=int, default=3000, help="max applications of K")
     ap.add_argument("--tol", type=float, default=1e-4)
-    args = ap.parse_args()
+    ap.add_argument("--out", type=Path, default=C.RESULTS, help="folder of the reports")
+    C.add_quick(ap)
+    args = C.parse(ap, argv)
+    args.N = args.N or (16 if args.quick else 32)
+    args.M = args.M or (2 if args.quick else 3)
+    args.albedos = args.albedos or ([0.9] if args.quick else [0.5, 0.9, 0.99, 0.999])
+    info = C.machine()
+    C.print_machine(info)
     load = os.getloadavg()[0]
     rows = []
     for name in args.scenes:
         for a in args.albedos:
             rows.extend(run(name, a, args.N, args.M, args.cap, args.tol))
-    OUT.mkdir(exist_ok=True)
-    with open(OUT / "krylov.csv", "w", newline="") as f:
+    args.out.mkdir(parents=True, exist_ok=True)
+    with open(args.out / "krylov.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
@@ -111,24 +120,27 @@ def main():
         "# Jacobi vs GMRES (benchmarks/bench_krylov.py)",
         "",
         f"N = {args.N}, M = {args.M}, float32, tol = {args.tol:g}, cap {args.cap} applications; "
-        f"load average at start {load:.1f} on a 2-core CPU shared with other jobs. "
+        f"load average at start {load:.1f} on a CPU shared with other jobs. "
         "Applications = applications of K (six sweeps each, Jacobi's iterations); true error = "
         "max relative error of Λ and B against the exact furnace value or a float64 GMRES solve "
         "to 1e-9.",
         "",
-        "| scene | albedo | method | applications | solve (s) | s / application | "
-        "error estimate | true error | speed-up |",
-        "|---|---:|---|---:|---:|---:|---:|---:|---:|",
+        *C.machine_lines(info),
+        "",
     ]
+    table = []
     for r in rows:
         jac = next(x for x in rows if x["scene"] == r["scene"] and x["albedo"] == r["albedo"]
                    and x["method"] == "jacobi")
         cap = "" if r["converged"] else " (cap)"
-        lines.append(
-            f"| {r['scene']} | {r['albedo']:g} | {r['method']} | {r['applications']}{cap} | "
-            f"{r['solve_s']:.2f} | {r['s_per_application']:.3f} | {r['error_estimate']:.1e} | "
-            f"{r['true_error']:.1e} | {jac['solve_s'] / r['solve_s']:.1f}× |")
-    (OUT / "krylov.md").write_text("\n".join(lines) + "\n")
+        table.append([r["scene"], f"{r['albedo']:g}", r["method"], f"{r['applications']}{cap}",
+                      f"{r['solve_s']:.2f}", f"{r['s_per_application']:.3f}",
+                      f"{r['error_estimate']:.1e}", f"{r['true_error']:.1e}",
+                      f"{jac['solve_s'] / r['solve_s']:.1f}×"])
+    lines += C.md_table(["scene", "albedo", "method", "applications", "solve (s)",
+                         "s / application", "error estimate", "true error", "speed-up"],
+                        table, "lrlrrrrrr")
+    C.write_text(args.out / "krylov.md", lines)
     print("\n".join(lines))
 
 

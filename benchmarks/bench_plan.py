@@ -1,8 +1,9 @@
-"""What the plan saves: the same scene solved with the plan (terms="auto") and with every term
-forced on (terms="all").
+"""What the terms save: the same scene solved with only the terms it needs (terms="auto", the
+solver's "plan", ``SweepGeometry.terms``) and with every term forced on (terms="all").
 
     python benchmarks/bench_plan.py                # N = 48, M = 3, float32
     python benchmarks/bench_plan.py --N 64
+    python benchmarks/bench_plan.py --quick --out /tmp/plan   # N = 16, M = 2
 
 Cases:
 - ring-box (no fog) vs the same scene with a zero-density fog forced on (ζ = γ = 0, all terms):
@@ -13,37 +14,29 @@ Cases:
   vs iterating.
 For each: the warm time of 10 Jacobi iterations (fixed work: the per-iteration saving), the
 warm time of a default solve (GMRES to 1e-4, sun and sky passes included), and the largest
-difference between the two light fields (they must agree).  Writes
-benchmarks/results/plan.md.
+difference between the two light fields (they must agree).  Writes plan.md (with the
+machine: JAX backend and devices, copy bandwidth, measured in the same run) to ``--out``
+(default benchmarks/results).  Public API only.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import time
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from difffog import Params, SweepSolver, load_scene, voxelize
-from difffog._scene import Fog
-
-OUT = Path(__file__).resolve().parent / "results"
+import _common as C
+from difffog import Fog, Params, SweepSolver, load_scene, voxelize
 
 
 def timed(solver, scene, lat, p):
     g = solver.prepare(scene, lat)
-    c = jax.jit(solver.solve).lower(g, p).compile()
-    jax.block_until_ready(c(g, p))
-    best = np.inf
-    for _ in range(2):
-        t = time.perf_counter()
-        light = jax.block_until_ready(c(g, p))
-        best = min(best, time.perf_counter() - t)
-    return best, light, g
+    c, _ = C.compile_timed(solver.solve, g, p)
+    t = C.time_calls(lambda: c(g, p), 2)
+    return t.best, t.value, g
 
 
 def case(title, scene_auto, scene_all, N, M):
@@ -68,17 +61,23 @@ def case(title, scene_auto, scene_all, N, M):
                 d.append(np.max(np.abs(fa - ff)) / max(np.max(np.abs(ff)), 1e-30))
             row["diff"] = float(max(d))
             row["iterations"] = (int(la.iterations), int(lf.iterations))
-            row["plan"] = "; ".join(ln.split(None, 1)[1] for ln in ga.plan.lines(lat_a.shape)[1:3])
+            row["terms"] = "; ".join(ln.split(None, 1)[1]
+                                     for ln in ga.terms.lines(lat_a.shape)[1:3])
     print(row, flush=True)
     return row
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--N", type=int, default=48)
-    ap.add_argument("--M", type=int, default=3)
-    args = ap.parse_args()
-    N, M = args.N, args.M
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--N", type=int, default=None, help="default 48; with --quick 16")
+    ap.add_argument("--M", type=int, default=None, help="default 3; with --quick 2")
+    ap.add_argument("--out", type=Path, default=C.RESULTS, help="folder of the report")
+    C.add_quick(ap)
+    args = C.parse(ap, argv)
+    N = args.N or (16 if args.quick else 48)
+    M = args.M or (2 if args.quick else 3)
+    info = C.machine()
+    C.print_machine(info)
     load = os.getloadavg()[0]
     rows = []
     rb = load_scene("ring-box")
@@ -92,24 +91,26 @@ def main():
                                            "shape.ring.albedo=0"])
     rows.append(case("translucent-cube, ζ = 0, albedo 0: one pass vs iterating", dark, dark, N, M))
     lines = [
-        "# What the plan saves (benchmarks/bench_plan.py)",
+        "# What the terms save (benchmarks/bench_plan.py)",
         "",
         f"N = {N}, M = {M}, float32, warm times (best of 2, compilation excluded); load average "
-        f"{load:.1f} at start on a 2-core CPU shared with other jobs, so compare within a row. "
-        "'all' = SweepSolver(terms='all'): every term built. Difference = max relative "
-        "difference of B and of the fluence at fog nodes between the two.",
+        f"{load:.1f} at start on a CPU shared with other jobs, so compare within a row. "
+        "'all' = SweepSolver(terms='all'): every term built; 'plan' = terms='auto'. Difference "
+        "= max relative difference of B and of the fluence at fog nodes between the two.",
         "",
-        "| case | 10 iterations: plan / all (s) | saving | solve to 1e-4: plan / all (s) | "
-        "iterations | saving | difference |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        *C.machine_lines(info),
+        "",
     ]
+    table = []
     for r in rows:
         (ia, if_), (sa, sf) = r["iter10"], r["solve"]
-        lines.append(f"| {r['case']} | {ia:.2f} / {if_:.2f} | {if_ / ia:.1f}× | {sa:.2f} / {sf:.2f} | "
-                     f"{r['iterations'][0]} / {r['iterations'][1]} | {sf / sa:.1f}× | "
-                     f"{r['diff']:.1e} |")
-    OUT.mkdir(exist_ok=True)
-    (OUT / "plan.md").write_text("\n".join(lines) + "\n")
+        table.append([r["case"], f"{ia:.2f} / {if_:.2f}", f"{if_ / ia:.1f}×",
+                      f"{sa:.2f} / {sf:.2f}", f"{r['iterations'][0]} / {r['iterations'][1]}",
+                      f"{sf / sa:.1f}×", f"{r['diff']:.1e}"])
+    lines += C.md_table(["case", "10 iterations: plan / all (s)", "saving",
+                         "solve to 1e-4: plan / all (s)", "iterations", "saving", "difference"],
+                        table)
+    C.write_text(args.out / "plan.md", lines)
     print("\n".join(lines))
 
 

@@ -14,17 +14,17 @@ Run:  python benchmarks/bench_voxelize.py [--quick] [--repeat N]
 from __future__ import annotations
 
 import argparse
-import glob
-import os
-import time
 import warnings
+from importlib import resources
 
 import numpy as np
 
-from difffog._lattice import SURFACE, voxelize
-from difffog._scene import Domain, Mesh, Scene, Sphere, Torus
+import _common as C
+from difffog import (Domain, Mesh, Scene, Sphere, Torus, builtin_scenes, load_scene,
+                     voxelize)
+from difffog.geometry._lattice import SURFACE
 
-SCENES = os.environ.get("DIFFFOG_SCENES", "/work/shared/scenes")
+RING_OBJ = resources.files("difffog").joinpath("data", "scenes", "meshes", "ring.obj")
 RING_AXIS = np.array([0.0, -0.5, 0.866])
 
 
@@ -64,7 +64,8 @@ def torus_scene() -> tuple[Scene, callable]:
 def mesh_scene() -> tuple[Scene, callable]:
     import trimesh
 
-    m = trimesh.load(os.path.join(SCENES, "meshes", "ring.obj"), force="mesh")
+    with resources.as_file(RING_OBJ) as path:
+        m = trimesh.load(path, force="mesh")
     c = np.array([0.5, 0.5, 0.4])
     mesh = Mesh(name="ring", path="ring.obj", vertices=m.vertices + c, faces=m.faces)
     # ring.obj is a torus R = 0.14, r = 0.05 around the axis (0, 0.866, -0.5)
@@ -84,18 +85,19 @@ def normal_errors(scene, exact, resolution, M, rule) -> tuple[float, float]:
     return float(ang.mean()), float(np.percentile(ang, 95))
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="resolutions 32 and 64 only (smoke test)")
+    C.add_sizes(ap, [32, 64, 128], [16], what="resolutions of the normal errors")
+    C.add_sizes(ap, [64, 128], [32], flag="--timing-sizes",
+                what="resolutions of the voxelize() timings")
     ap.add_argument("--repeat", type=int, default=2, help="timing repeats (best is reported)")
-    args = ap.parse_args()
-    resolutions = (32, 64) if args.quick else (32, 64, 128)
-
-    print("## Normal angular error (degrees) at SURFACE nodes: mean / 95th percentile")
-    print(
-        f"{'shape':10s} {'res':>4s} {'M':>2s} {'com mean':>9s} {'com p95':>8s} "
-        f"{'analytic mean':>14s} {'analytic p95':>13s}"
-    )
+    ap.add_argument("--out", default=None, help="also write the tables (markdown) here")
+    args = C.parse(ap, argv)
+    info = C.machine()
+    lines = ["# Voxelization (benchmarks/bench_voxelize.py)", "", *C.machine_lines(info), "",
+             "## Normal angular error (degrees) at SURFACE nodes: mean / 95th percentile", ""]
+    print("\n".join(lines), flush=True)
+    rows = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # thin-shape warnings do not matter here
         for name, make in (
@@ -104,35 +106,33 @@ def main():
             ("ring.obj", mesh_scene),
         ):
             scene, exact = make()
-            for res in resolutions:
+            for res in args.sizes:
                 for M in (3, 5):
                     cm, cp = normal_errors(scene, exact, res, M, "com")
                     am, apct = normal_errors(scene, exact, res, M, "analytic")
-                    print(f"{name:10s} {res:4d} {M:2d} {cm:9.2f} {cp:8.2f} {am:14.3f} {apct:13.3f}")
-
-    from difffog._scene_io import load_scene
-
-    print()
-    print(f"## voxelize(scene, resolution, M=5) time (best of {args.repeat}) and node counts")
-    print(
-        f"{'scene':18s} {'res':>4s} {'seconds':>8s} {'free':>9s} {'surface':>9s} "
-        f"{'solid':>9s} {'MiB':>6s}"
-    )
-    for path in sorted(glob.glob(os.path.join(SCENES, "*.toml"))):
-        scene = load_scene(path)
-        for res in (64,) if args.quick else (64, 128):
-            best = np.inf
-            for _ in range(args.repeat):
-                t0 = time.perf_counter()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    lat = voxelize(scene, res, 5)
-                best = min(best, time.perf_counter() - t0)
+                    rows.append([name, res, M, f"{cm:.2f}", f"{cp:.2f}", f"{am:.3f}",
+                                 f"{apct:.3f}"])
+                    print("  ".join(map(str, rows[-1])), flush=True)
+    lines += C.md_table(["shape", "res", "M", "com mean", "com p95", "analytic mean",
+                         "analytic p95"], rows)
+    lines += ["", f"## voxelize(scene, resolution, M=5) time (best of {args.repeat}) and node "
+              "counts", ""]
+    rows = []
+    for name in builtin_scenes():
+        scene = load_scene(name)
+        for res in args.timing_sizes:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                t = C.time_calls(lambda: voxelize(scene, res, 5), args.repeat, first=False)
+                lat = t.value
             c = lat.counts()
-            print(
-                f"{scene.title:18s} {res:4d} {best:8.2f} {c['free']:9d} {c['surface']:9d} "
-                f"{c['solid']:9d} {lat.nbytes / 2**20:6.1f}"
-            )
+            rows.append([name, res, f"{t.best:.2f}", c["free"], c["surface"],
+                         c["solid"], f"{lat.nbytes / 2**20:.1f}"])
+            print("  ".join(map(str, rows[-1])), flush=True)
+    lines += C.md_table(["scene", "res", "seconds", "free", "surface", "solid", "MiB"], rows)
+    print("\n".join(lines))
+    if args.out:
+        C.write_text(args.out, lines)
 
 
 if __name__ == "__main__":

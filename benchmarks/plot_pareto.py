@@ -6,18 +6,20 @@ Reads figures already measured, runs nothing:
   lattice setting (N, M), time = warm light solve + render of all the scene's cameras
   (compilation excluded), error = relative RMSE against the Mitsuba reference with the
   reference's noise removed;
-* Mitsuba 3: ``../shared/references/convergence.csv``: one point per samples-per-pixel count,
-  its wall time for that camera and the same noise-corrected error.
+* Mitsuba 3: ``convergence.csv`` of the references shipped with difffog
+  (``difffog.study.references.references_dir()``, or ``--references DIR``): one point per
+  samples-per-pixel count, its wall time for that camera and the same noise-corrected error.
 
 Both were measured on the project's shared 2-core CPU, at different times and loads (see the
 two sources), so read factors of two in time as noise.  Writes
-``benchmarks/results/pareto.png``.
+``benchmarks/results/pareto.png`` (``--out``).
 
-    python benchmarks/plot_pareto.py
+    python benchmarks/plot_pareto.py [--ours references.csv] [--references DIR] [--out PNG]
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 from pathlib import Path
@@ -25,11 +27,9 @@ from pathlib import Path
 from matplotlib.figure import Figure
 
 from difffog import plot
+from difffog.study import references
 
-ROOT = Path(__file__).resolve().parents[1]
-OURS = ROOT / "benchmarks" / "results" / "references.csv"
-PEER = ROOT.parent / "shared" / "references" / "convergence.csv"
-OUT = ROOT / "benchmarks" / "results" / "pareto.png"
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def read(path: Path) -> list[dict]:
@@ -37,10 +37,18 @@ def read(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def main():
-    if not PEER.exists():
-        raise SystemExit(f"no Mitsuba convergence data at {PEER}")
-    ours, peer = read(OURS), read(PEER)
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ours", type=Path, default=RESULTS / "references.csv",
+                    help="validate_references.py's CSV")
+    ap.add_argument("--references", type=Path, default=None,
+                    help="folder of the Mitsuba references (default: the shipped ones)")
+    ap.add_argument("--out", type=Path, default=RESULTS / "pareto.png")
+    args = ap.parse_args(argv)
+    peer_csv = (args.references or references.references_dir()) / "convergence.csv"
+    if not peer_csv.exists():
+        raise SystemExit(f"no Mitsuba convergence data at {peer_csv}")
+    ours, peer = read(args.ours), read(peer_csv)
     shots = list(dict.fromkeys((r["scene"], r["camera"]) for r in ours))
     ncols = 3
     nrows = math.ceil(len(shots) / ncols)
@@ -63,8 +71,9 @@ def main():
         ax.set_visible(False)
     fig.suptitle("Time against error: difffog sweep (warm solve + render) and Mitsuba 3 "
                  "(wall time), 2-core CPU")
-    fig.savefig(OUT, dpi=72)
-    print(f"wrote {OUT}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=72)
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

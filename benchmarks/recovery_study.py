@@ -9,8 +9,9 @@ albedo − 0.15), to these targets:
 * ``crime``: the fit's own model at the truth (the "inverse crime": a sanity check only);
 * ``hires``: ``data_synthetic/`` noise-free (N = 48, M = 4), every parameter set;
 * ``noise01`` / ``noise05``: the same with 1% / 5% Gaussian noise (set 0);
-* ``mc``: the Mitsuba 3 references of ``../shared/references`` with the scene file's
-  parameters as truth (their own noise ≈ 2–6% per pixel).
+* ``mc``: the Mitsuba 3 references shipped with difffog (``difffog.study.references``, or
+  ``--references DIR``) with the scene file's parameters as truth (their own noise ≈ 2–6% per
+  pixel).
 
 and reports the relative error of each unknown, its stated standard error (relative), the
 iterations and the wall time (compile of the first fit of a scene included in that fit only),
@@ -20,9 +21,14 @@ repeats the hires and mc fits at other N to show how that bias, and the error, c
 
     PYTHONPATH=src python benchmarks/recovery_study.py                    # ~30-60 min, 2 cores
     PYTHONPATH=src python benchmarks/recovery_study.py --scenes fog-balls --resolutions 16 24 32
+    PYTHONPATH=src python benchmarks/recovery_study.py --quick --out /tmp/recovery
 
-Writes ``benchmarks/results/recovery.csv`` and ``recovery.md`` (appending rows of new
-settings to an existing CSV, replacing rows with the same scene/case/set/N).
+(``--quick``: fog-balls, N = 12, the crime and mc cases, at most 3 steps per fit.)  One model
+per scene and N (``_common.fit_model``: the public ``difffog.forward_model`` at the registry's
+fit defaults) serves all of its fits (``difffog.fit(..., forward=model)``).  Writes
+``recovery.csv`` and ``recovery.md`` to ``--out`` (default ``benchmarks/results``), appending
+rows of new settings to an existing CSV, replacing rows with the same scene/case/set/N; the
+markdown names the machine of the latest run (JAX backend and devices, copy bandwidth).
 """
 
 from __future__ import annotations
@@ -37,13 +43,11 @@ from pathlib import Path
 
 import numpy as np
 
+import _common as C
 import difffog as df
-from difffog._fit import make_forward
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data_synthetic"
-REFS = ROOT.parent / "shared" / "references"
-RESULTS = ROOT / "benchmarks" / "results"
 SURFACE = {"fog-balls": "walls", "translucent-cube": "ground", "cloud-plane": "ground"}
 CAMERAS = ["top", "oblique"]
 FIELDS = ["scene", "case", "set", "N", "M", "unknown", "truth", "estimate", "rel_error_pct",
@@ -65,8 +69,6 @@ def start_of(truth: dict) -> dict:
 
 def misfit(fwd, scene, truth, targets, downsample) -> float:
     """Image RMS of the model at the truth against the (reduced) targets, % of their mean."""
-    from difffog._fit import _block_mean
-
     p = fwd.params()
     for k, v in truth.items():
         p = df.set_param(p, fwd.scene, k, v)
@@ -75,20 +77,21 @@ def misfit(fwd, scene, truth, targets, downsample) -> float:
     for name, tgt in targets.items():
         t = np.asarray(tgt, np.float64)
         model = np.asarray(imgs[name], np.float64)
-        if t.shape != model.shape:
-            t = _block_mean(t, t.shape[0] // model.shape[0])
+        if t.shape != model.shape:  # a reduced pixel is the mean of k×k full ones
+            k = t.shape[0] // model.shape[0]
+            t = t.reshape(t.shape[0] // k, k, t.shape[1] // k, k).mean(axis=(1, 3))
         num += float(np.sum((model - t) ** 2))
         den += float(np.sum(t))
         cnt += t.size
     return 100 * np.sqrt(num / cnt) / (den / cnt)
 
 
-def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load):
+def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, max_steps):
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.IdentifiabilityWarning)
         res = df.fit(scene, targets, start_of(truth), forward=fwd, downsample=downsample,
-                     max_steps=40, callback=lambda e: print(
+                     max_steps=max_steps, callback=lambda e: print(
                          f"    step {e['step']}: loss {e['loss']:.4g} at {e['time_s']:.0f} s",
                          flush=True))
     wall = time.perf_counter() - t
@@ -111,11 +114,11 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load):
           + f"; misfit at truth {mis:.2f}%", flush=True)
 
 
-def study(scene_name, N, M, downsample, cases, rows, all_sets=True):
+def study(scene_name, N, M, downsample, cases, rows, all_sets=True, max_steps=40,
+          refdir=None):
     truth_all = json.loads((DATA / "truth.json").read_text())[scene_name]
     scene = df.load_scene(scene_name)
-    fwd = make_forward(scene, "sweep", cameras=CAMERAS, resolution=N, directions=M,
-                       downsample=downsample)
+    fwd = C.fit_model(scene, CAMERAS, N, M, downsample)
     load = round(os.getloadavg()[0], 1)
     sets = truth_all["sets"]
     for case in cases:
@@ -130,17 +133,18 @@ def study(scene_name, N, M, downsample, cases, rows, all_sets=True):
             elif case == "mc":
                 sc = df.load_scene(scene_name)
                 truth = {a: float(df.get_param(df.Params.from_scene(sc), sc, a)) for a in truth}
-                targets = {c: np.load(REFS / scene_name / f"{c}.npy") for c in CAMERAS}
+                targets = {c: C.reference(scene_name, c, refdir)[0] for c in CAMERAS}
             else:
                 suffix = "" if case == "hires" else f"_{case}"
                 targets = {c: np.load(DATA / scene_name / f"set{k}" / f"{c}{suffix}.npy")
                            for c in CAMERAS}
-            run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load)
+            run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load,
+                     max_steps)
 
 
-def write(rows):
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / "recovery.csv"
+def write(rows, out: Path, info: dict):
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "recovery.csv"
     old = []
     if path.exists():
         with path.open() as f:
@@ -159,6 +163,7 @@ def write(rows):
              "γ×1.6, albedo−0.15; both cameras at 1/4 size; M = 3. `misfit@truth`: image RMS "
              "of the fit's model at the true parameters, % of the target mean (model bias + "
              "target noise). `load`: 1-min load average when the scene started.", "",
+             "Machine of the latest run:", "", *C.machine_lines(info), "",
              "| scene | case | set | N | ζ error % (±se) | γ error % (±se) | albedo error % "
              "(±se) | steps | result | time s | misfit@truth % | residual % | load |",
              "|---|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
@@ -183,25 +188,39 @@ def write(rows):
                      f"{r0['load']} |")
     lines += ["", "✗: the truth lies outside ±2 stated standard errors (the standard error "
               "measures noise, not model bias)."]
-    (RESULTS / "recovery.md").write_text("\n".join(lines) + "\n")
+    C.write_text(out / "recovery.md", lines)
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=["fog-balls", "translucent-cube",
-                                                     "cloud-plane"])
-    ap.add_argument("--resolutions", nargs="+", type=int, default=[24])
-    ap.add_argument("--cases", nargs="+", default=["crime", "hires", "noise01", "noise05", "mc"])
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="default fog-balls translucent-cube cloud-plane; with --quick fog-balls")
+    C.add_sizes(ap, [24], [12], flag="--resolutions", what="fit resolutions N")
+    ap.add_argument("--cases", nargs="+", default=None,
+                    help="default crime hires noise01 noise05 mc; with --quick crime mc")
     ap.add_argument("-M", type=int, default=3)
     ap.add_argument("--downsample", type=int, default=4)
+    ap.add_argument("--max-steps", type=int, default=None,
+                    help="per fit (default 40; with --quick 3)")
     ap.add_argument("--set0-only", action="store_true",
                     help="hires: fit parameter set 0 only (not all sets)")
-    args = ap.parse_args()
-    for name in args.scenes:
+    ap.add_argument("--references", type=Path, default=None,
+                    help="folder of the Mitsuba references (default: the shipped ones)")
+    ap.add_argument("--out", type=Path, default=C.RESULTS, help="folder of the reports")
+    args = C.parse(ap, argv)
+    scenes = args.scenes or (["fog-balls"] if args.quick else
+                             ["fog-balls", "translucent-cube", "cloud-plane"])
+    cases = args.cases or (["crime", "mc"] if args.quick else
+                           ["crime", "hires", "noise01", "noise05", "mc"])
+    max_steps = args.max_steps or (3 if args.quick else 40)
+    info = C.machine()
+    C.print_machine(info)
+    for name in scenes:
         for N in args.resolutions:
             rows = []
-            study(name, N, args.M, args.downsample, args.cases, rows, not args.set0_only)
-            write(rows)  # after every scene, so a killed run keeps what it measured
+            study(name, N, args.M, args.downsample, cases, rows, not args.set0_only, max_steps,
+                  args.references)
+            write(rows, args.out, info)  # after every scene, so a killed run keeps its rows
 
 
 if __name__ == "__main__":

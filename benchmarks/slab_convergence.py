@@ -2,21 +2,25 @@
 
 A laterally infinite homogeneous slab (isotropic scattering, g = 0) of optical thickness τ and
 single-scattering albedo a under a uniform sky, as a periodic lattice one node wide with N fog
-nodes across the slab (``difffog._validation.slab_problem``), solved in float64 with
+nodes across the slab (``difffog.study.slab_problem``), solved in float64 with
 ``SweepSolver(M, max_iterations=5000, tol=1e-8)``.  Total reflectance R and transmittance T
 (unscattered sky included) come from the converged source by the formal solution along a fine
-μ quadrature (``slab_reflectance``), and are compared with the adding-doubling table
-``/work/shared/references/slab_adding_doubling.csv`` (iadpython, 64 quadrature points).
+μ quadrature (``difffog.study.slab_reflectance``), and are compared with the adding-doubling
+table shipped with difffog (``difffog.study.references.slab_table()``, or ``--references DIR``;
+iadpython, 64 quadrature points).
 
 Two treatments of the sky: ``lattice`` (sky_quadrature=(0, 0), the default for periodic
 domains: the sky enters along the lattice's downward directions) and ``first-collision``
 (sky_quadrature=(16, 16): the uncollided sky is swept along 16 μ × 16 φ directions and only its
 first scattering enters the lattice).
 
-Writes ``benchmarks/results/slab_convergence.csv`` and ``slab_convergence.md``.
+Writes ``slab_convergence.csv`` and ``slab_convergence.md`` to ``--out`` (default
+``benchmarks/results``); the markdown ends with the run's machine (JAX backend and devices, copy
+bandwidth, measured in the same run).
 
     python benchmarks/slab_convergence.py                 # a {0.5,0.9,0.99} × τ {0.1,1,4}
     python benchmarks/slab_convergence.py --n 16 32 --m 2 3 --variants lattice
+    python benchmarks/slab_convergence.py --quick --out /tmp/slab   # N 8 16, M 2, a 0.9, τ 1
 """
 
 from __future__ import annotations
@@ -26,19 +30,9 @@ import csv
 import time
 from pathlib import Path
 
-import jax
+import numpy as np
 
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from difffog import Params, SweepSolver  # noqa: E402
-from difffog._validation import slab_problem, slab_reflectance  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
-AD_CSV = ROOT.parent / "shared" / "references" / "slab_adding_doubling.csv"
-RESULTS = ROOT / "benchmarks" / "results"
+import _common as C
 
 ALBEDOS = (0.5, 0.9, 0.99)
 TAUS = (0.1, 1.0, 4.0)
@@ -47,30 +41,34 @@ MS = (2, 3, 5)
 VARIANTS = {"lattice": (0, 0), "first-collision": (16, 16)}
 
 
-def ad_reference(albedo: float, tau: float) -> tuple[float, float]:
-    with open(AD_CSV, newline="") as f:
-        for r in csv.DictReader(f):
-            if (float(r["albedo"]) == albedo and float(r["tau"]) == tau and float(r["g"]) == 0
-                    and r["illumination"] == "diffuse"):
-                return float(r["R_total"]), float(r["T_total"])
+def ad_reference(table: list[dict], albedo: float, tau: float) -> tuple[float, float]:
+    """(R, T) of the adding-doubling table's diffusely lit slab (g = 0)."""
+    for r in table:
+        if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == 0
+                and r["illumination"] == "diffuse"):
+            return float(r["R_total"]), float(r["T_total"])
     raise KeyError((albedo, tau))
 
 
 def run_column(N: int, M: int, sky_q: tuple[int, int], cases, max_iterations: int, tol: float):
     """R, T, iterations, warm solve seconds for every (albedo, τ) on one compiled lattice."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from difffog import Params, SweepSolver
+    from difffog.study import slab_problem, slab_reflectance
+
     solver = SweepSolver(M=M, max_iterations=max_iterations, tol=tol, sky_quadrature=sky_q)
     scene0, lat, margin = slab_problem(1.0, 0.5, N, M)
     geom = solver.prepare(scene0, lat)  # the lattice does not depend on (albedo, τ)
-    solve = jax.jit(solver.solve)
+    solve = eqx.filter_jit(solver.solve)
     density = np.asarray(lat.density, np.float64)[0, 0]
     out = []
     for albedo, tau in cases:
         scene, _, _ = slab_problem(tau, albedo, N, M)
         params = Params.from_scene(scene, jnp.float64)
-        jax.block_until_ready(solve(geom, params))  # compile (first case only) / warm
-        t = time.perf_counter()
-        light = jax.block_until_ready(solve(geom, params))
-        dt = time.perf_counter() - t
+        t = C.time_calls(lambda: solve(geom, params), 1)  # after the compile (first case) / warm-up
+        light, dt = t.value, t.times[0]
         sigma = float(params.scattering + params.absorption) * density  # g = 0
         R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h,
                                 sky=1.0)
@@ -78,7 +76,7 @@ def run_column(N: int, M: int, sky_q: tuple[int, int], cases, max_iterations: in
     return out
 
 
-def markdown(rows, ns, ms, variants) -> str:
+def markdown(rows, ns, ms, variants, machine: dict | None = None) -> str:
     idx = {(r["variant"], r["albedo"], r["tau"], r["N"], r["M"]): r for r in rows}
     cases = sorted({(r["albedo"], r["tau"]) for r in rows})
     lines = [
@@ -118,6 +116,8 @@ def markdown(rows, ns, ms, variants) -> str:
                              f"(max {100 * max(eR):.1f} / {100 * max(eT):.1f})")
             lines.append(f"| {v} | {m} | " + " | ".join(cells) + " |")
     lines += ["", "## Conclusion", ""] + conclusion(rows, ns, ms, variants)
+    if machine is not None:
+        lines += ["", "## Machine", "", *C.machine_lines(machine)]
     return "\n".join(lines) + "\n"
 
 
@@ -211,17 +211,25 @@ def read_csv(path: Path) -> list[dict]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--n", nargs="+", type=int, default=list(NS))
-    ap.add_argument("--m", nargs="+", type=int, default=list(MS))
-    ap.add_argument("--albedos", nargs="+", type=float, default=list(ALBEDOS))
-    ap.add_argument("--taus", nargs="+", type=float, default=list(TAUS))
-    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    C.add_sizes(ap, NS, (8, 16), flag="--n", what="fog nodes across the slab")
+    C.add_sizes(ap, MS, (2,), flag="--m", what="direction half-widths M")
+    ap.add_argument("--albedos", nargs="+", type=float, default=None,
+                    help=f"default {' '.join(map(str, ALBEDOS))}; with --quick 0.9")
+    ap.add_argument("--taus", nargs="+", type=float, default=None,
+                    help=f"default {' '.join(map(str, TAUS))}; with --quick 1")
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None,
+                    help="default both; with --quick lattice")
     ap.add_argument("--max-iterations", type=int, default=5000)
     ap.add_argument("--tol", type=float, default=1e-8)
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--references", type=Path, default=None,
+                    help="folder of the references (default: the shipped ones)")
+    ap.add_argument("--out", type=Path, default=C.RESULTS)
     ap.add_argument("--from-csv", action="store_true",
                     help="only rebuild the markdown from an existing slab_convergence.csv")
-    args = ap.parse_args(argv)
+    args = C.parse(ap, argv)
+    args.albedos = args.albedos or ([0.9] if args.quick else list(ALBEDOS))
+    args.taus = args.taus or ([1.0] if args.quick else list(TAUS))
+    args.variants = args.variants or (["lattice"] if args.quick else list(VARIANTS))
     if args.from_csv:
         rows = read_csv(args.out / "slab_convergence.csv")
         variants = [v for v in VARIANTS if any(r["variant"] == v for r in rows)]
@@ -230,10 +238,19 @@ def main(argv=None):
         (args.out / "slab_convergence.md").write_text(md)
         print(md)
         return
-    if not AD_CSV.exists():
-        raise SystemExit(f"no adding-doubling table at {AD_CSV}")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from difffog.study import references
+
+    try:
+        table = references.slab_table(args.references)
+    except OSError as e:
+        raise SystemExit(f"no adding-doubling table: {e}") from None
+    info = C.machine()
+    t_all = time.perf_counter()
     cases = [(a, t) for a in args.albedos for t in args.taus]
-    refs = {c: ad_reference(*c) for c in cases}
+    refs = {c: ad_reference(table, *c) for c in cases}
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for v in args.variants:
@@ -255,10 +272,12 @@ def main(argv=None):
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{x:.7g}" if isinstance(x, float) else x) for k, x in r.items()})
-    md = markdown(rows, args.n, args.m, args.variants)
+    md = markdown(rows, args.n, args.m, args.variants, info)
     (args.out / "slab_convergence.md").write_text(md)
     print()
     print(md)
+    print(f"total {time.perf_counter() - t_all:.0f} s, warm solves "
+          f"{sum(r['solve_s'] for r in rows):.2f} s")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,10 @@
 """Validation ladder step 3: difffog's sweep solver against the Mitsuba 3 reference images.
 
-For every scene and camera in ``/work/shared/references`` and every lattice setting (N nodes
-along the longest axis, direction half-width M) this renders the scene with ``SweepSolver`` and
-reports, against the Monte Carlo reference:
+For every scene and camera with a Mitsuba reference (those shipped with difffog,
+``difffog.study.references``, or ``--references DIR``) and every lattice setting (N nodes along
+the longest axis, direction half-width M) this renders the scene with the sweep model
+(``difffog.forward_model(scene, "sweep", ...)`` and ``difffog.render``) and reports, against
+the Monte Carlo reference (``_common.compare``):
 
 * ``bias``: mean(difffog) / mean(reference) − 1;
 * ``rel_rmse``: RMSE / mean(reference);
@@ -12,41 +14,37 @@ reports, against the Monte Carlo reference:
   noise left after smoothing is about a third of ``ref_noise_rel``; one-pixel edge offsets
   count less);
 * wall times of the light solve and of the render of all the scene's cameras (one jitted call),
-  compile excluded (``Renderer.render`` compiles each ahead of time, then times one run), and
-  the Jacobi iterations.
+  compile excluded (``difffog.render`` compiles each ahead of time, then times one run), and
+  the iterations.
 
 furnace, fog-balls and ring-box are what the sweep solver is meant for.  translucent-cube and
 cloud-plane are rendered too and labelled "outside the sweep's intended use": cloud-plane is
 strongly forward scattering (Henyey–Greenstein g = 0.85), which the sweep only approximates by
 δ-isotropic scaling ζ' = ζ(1−g).
 
-Writes ``benchmarks/results/references.csv``, ``references.md`` and, per scene and camera, a
-PNG ``references_<scene>_<camera>.png`` at the best setting (lowest noise-corrected error):
-difffog | Mitsuba | signed error.
+Writes ``references.csv``, ``references.md`` (with the machine: JAX backend and devices, copy
+bandwidth, measured in the same run) and, per scene and camera, a PNG
+``references_<scene>_<camera>.png`` at the best setting (lowest noise-corrected error):
+difffog | Mitsuba | signed error, to ``--out`` (default ``benchmarks/results``).
 
     python benchmarks/validate_references.py                       # (32,3) (64,3) (64,5)
     python benchmarks/validate_references.py --full                # adds (96,3)
     python benchmarks/validate_references.py --settings 64,3 --scenes fog-balls ring-box
+    python benchmarks/validate_references.py --quick --out /tmp/refs   # (16,2), fog-balls
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import json
-import math
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
-from difffog import Renderer, SweepSolver, load_scene
-
-ROOT = Path(__file__).resolve().parents[1]
-REFS = ROOT.parent / "shared" / "references"
-RESULTS = ROOT / "benchmarks" / "results"
+import _common as C
+import difffog as df
 
 INTENDED = ("furnace", "fog-balls", "ring-box")
 OUTSIDE = ("translucent-cube", "cloud-plane")
@@ -58,85 +56,45 @@ OUTSIDE_NOTE = {
 }
 DEFAULT_SETTINGS = [(32, 3), (64, 3), (64, 5)]
 FULL_EXTRA = [(96, 3)]
-
-
-def load_reference(scene: str, camera: str):
-    img = np.load(REFS / scene / f"{camera}.npy").astype(np.float64)
-    with open(REFS / scene / f"{camera}_stats.json") as f:
-        stats = json.load(f)
-    return img, float(stats["ref_noise_rmse"])
-
-
-def compare(img: np.ndarray, ref: np.ndarray, noise_rmse: float) -> dict:
-    """Error metrics of ``img`` against the noisy reference ``ref`` (both (H, W))."""
-    img = np.asarray(img, np.float64)
-    mean_ref = float(ref.mean())
-    rmse = float(np.sqrt(np.mean((img - ref) ** 2)))
-    rmse_corr = math.sqrt(max(rmse**2 - noise_rmse**2, 0.0))
-    box = lambda a: ndimage.uniform_filter(a, size=3, mode="nearest")  # noqa: E731
-    rmse_s3 = float(np.sqrt(np.mean((box(img) - box(ref)) ** 2)))
-    return {
-        "ref_mean": mean_ref,
-        "img_mean": float(img.mean()),
-        "bias": float(img.mean()) / mean_ref - 1.0,
-        "rel_rmse": rmse / mean_ref,
-        "rel_rmse_corr": rmse_corr / mean_ref,
-        "rel_rmse_s3": rmse_s3 / mean_ref,
-        "ref_noise_rel": noise_rmse / mean_ref,
-    }
+QUICK_SETTINGS = [(16, 2)]
 
 
 def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int):
     """Images and timings of one (N, M) setting.
 
-    ``Renderer.render`` compiles the solve and the render ahead of time (``jit.lower().compile()``)
-    and then times one run of each, so the times exclude compilation without paying for a
-    second solve.
+    ``difffog.render`` compiles the light solve and the images ahead of time
+    (``lower().compile()``) and then times one run of each, so the times exclude compilation
+    without paying for a second solve.  The columns keep their names: solve = the light,
+    render = the images of every camera.
     """
-    scene = load_scene(scene_name)
+    scene = df.load_scene(scene_name)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        r = Renderer(scene, resolution=N,
-                     solver=SweepSolver(M=M, tol=tol, max_iterations=max_iterations))
+        model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=tol,
+                                 max_iterations=max_iterations)
     notes = sorted({str(w.message).split(":")[0] for w in caught})
-    out = r.render(r.params())
+    out = df.render(model)
     t = out.timings
     images = {k: np.asarray(v, np.float64) for k, v in out.images.items()}
     info = {
-        "lattice": "x".join(str(s) for s in r.lattice.shape),
+        "lattice": "x".join(str(s) for s in model.lattice.shape),
         "iterations": int(out.light.iterations),
         "error_estimate": float(out.light.error_estimate),
         "setup_s": t["voxelize_s"] + t["prepare_s"],
-        "solve_compile_s": t["solve_compile_s"],
-        "render_compile_s": t["render_compile_s"],
-        "solve_s": t["solve_s"],
-        "render_s": t["render_s"],
+        "solve_compile_s": t["light_compile_s"],
+        "render_compile_s": t["images_compile_s"],
+        "solve_s": t["light_s"],
+        "render_s": t["images_s"],
         "warnings": "; ".join(notes),
     }
     return images, info
-
-
-def save_png(path: Path, scene: str, camera: str, ours: np.ndarray, ref: np.ndarray,
-             label: str, m: dict, noise: float):
-    from matplotlib.figure import Figure
-
-    from difffog import plot
-
-    fig = Figure(figsize=(13, 3.9), layout="compressed")
-    axes = fig.subplots(1, 3)
-    # difffog and Mitsuba under one tone map (the command line's, shared by both images)
-    plot.image_grid({f"difffog ({label})": ours, "Mitsuba 3 reference": ref}, axes=axes[:2])
-    plot.error_map(ours, ref, noise=noise, ax=axes[2],
-                   title=f"difffog vs Mitsuba; {100 * m['rel_rmse_s3']:.1f}% smoothed 3×3")
-    fig.suptitle(f"{scene} / {camera}")
-    fig.savefig(path, dpi=72)
 
 
 def fmt_pct(x: float) -> str:
     return f"{100 * x:+.1f}"
 
 
-def write_markdown(path: Path, rows: list[dict], settings, tol: float):
+def write_markdown(path: Path, rows: list[dict], settings, tol: float, machine: dict):
     lines = [
         "# difffog (sweep solver) against the Mitsuba 3 references",
         "",
@@ -144,21 +102,20 @@ def write_markdown(path: Path, rows: list[dict], settings, tol: float):
         f"{tol:g}; float32; supersample 2. Errors in % of the reference mean. `rmse_corr`: the "
         "reference's own noise (`noise`) removed in quadrature; `rmse_s3`: after a 3×3 box "
         "smoothing of both images (about noise/3 of reference noise left in it). Times: warm "
-        "(compile excluded) seconds on the shared 2-core CPU; `render` covers all cameras of "
+        "(compile excluded) seconds on the machine below; `render` covers all cameras of "
         "the scene in one call.",
         "",
-        "| scene | camera | N | M | bias % | rmse % | rmse_corr % | rmse_s3 % | noise % "
-        "| iters | solve s | render s |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        *C.machine_lines(machine),
+        "",
     ]
-    for r in rows:
-        name = r["scene"] + (" †" if r["scene"] in OUTSIDE else "")
-        lines.append(
-            f"| {name} | {r['camera']} | {r['N']} | {r['M']} | {fmt_pct(r['bias'])} "
-            f"| {100 * r['rel_rmse']:.1f} | {100 * r['rel_rmse_corr']:.1f} "
-            f"| {100 * r['rel_rmse_s3']:.1f} | {100 * r['ref_noise_rel']:.1f} "
-            f"| {r['iterations']} | {r['solve_s']:.2f} | {r['render_s']:.2f} |"
-        )
+    lines += C.md_table(
+        ["scene", "camera", "N", "M", "bias %", "rmse %", "rmse_corr %", "rmse_s3 %", "noise %",
+         "iters", "solve s", "render s"],
+        [[r["scene"] + (" †" if r["scene"] in OUTSIDE else ""), r["camera"], r["N"], r["M"],
+          fmt_pct(r["bias"]), f"{100 * r['rel_rmse']:.1f}", f"{100 * r['rel_rmse_corr']:.1f}",
+          f"{100 * r['rel_rmse_s3']:.1f}", f"{100 * r['ref_noise_rel']:.1f}", r["iterations"],
+          f"{r['solve_s']:.2f}", f"{r['render_s']:.2f}"] for r in rows],
+        "llrrrrrrrrrr")
     out = sorted({r["scene"] for r in rows} & set(OUTSIDE))
     if out:
         lines += ["", "† " + "; ".join(f"{s}: {OUTSIDE_NOTE[s]}" for s in out) + "."]
@@ -193,29 +150,34 @@ def parse_setting(s: str) -> tuple[int, int]:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--settings", nargs="+", type=parse_setting, default=None,
-                    help="N,M pairs (default: 32,3 64,3 64,5)")
+                    help="N,M pairs (default: 32,3 64,3 64,5; with --quick 16,2)")
     ap.add_argument("--full", action="store_true", help="also (96,3)")
-    ap.add_argument("--scenes", nargs="+", default=list(INTENDED + OUTSIDE))
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="default: all five; with --quick fog-balls")
     ap.add_argument("--tol", type=float, default=1e-3)
     ap.add_argument("--max-iterations", type=int, default=400)
-    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--references", type=Path, default=None,
+                    help="folder of the Mitsuba references (default: the shipped ones)")
+    ap.add_argument("--out", type=Path, default=C.RESULTS)
     ap.add_argument("--no-png", action="store_true")
-    args = ap.parse_args(argv)
-    if not REFS.exists():
-        raise SystemExit(f"no references at {REFS}")
-    settings = list(args.settings or DEFAULT_SETTINGS)
+    C.add_quick(ap)
+    args = C.parse(ap, argv)
+    scenes = args.scenes or (["fog-balls"] if args.quick else list(INTENDED + OUTSIDE))
+    settings = list(args.settings or (QUICK_SETTINGS if args.quick else DEFAULT_SETTINGS))
     if args.full:
         settings += [s for s in FULL_EXTRA if s not in settings]
     args.out.mkdir(parents=True, exist_ok=True)
+    mach = C.machine()
+    C.print_machine(mach)
 
     rows, kept = [], {}
-    for scene in args.scenes:
+    for scene in scenes:
         for N, M in settings:
             t = time.perf_counter()
             images, info = run_setting(scene, N, M, args.tol, args.max_iterations)
             for cam, img in images.items():
-                ref, noise = load_reference(scene, cam)
-                m = compare(img, ref, noise)
+                ref, noise = C.reference(scene, cam, args.references)
+                m = C.compare(img, ref, noise)
                 row = {"scene": scene, "camera": cam, "N": N, "M": M, "tol": args.tol,
                        "intended": scene in INTENDED, **m, **info}
                 rows.append(row)
@@ -235,10 +197,11 @@ def main(argv=None):
     if not args.no_png:
         for (s, c), r in best_rows(rows).items():
             img, ref = kept[(s, c, r["N"], r["M"])]
-            save_png(args.out / f"references_{s}_{c}.png", s, c, img, ref,
-                     f"N={r['N']}, M={r['M']}", r, load_reference(s, c)[1])
+            C.save_comparison_png(args.out / f"references_{s}_{c}.png", s, c, img, ref,
+                                  f"N={r['N']}, M={r['M']}", r,
+                                  C.reference(s, c, args.references)[1])
     print()
-    print(write_markdown(args.out / "references.md", rows, settings, args.tol))
+    print(write_markdown(args.out / "references.md", rows, settings, args.tol, mach))
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
     PYTHONPATH=src python data_synthetic/make.py            # everything (~10-20 min on 2 cores)
     PYTHONPATH=src python data_synthetic/make.py --scene fog-balls
+    PYTHONPATH=src python data_synthetic/make.py --quick --out /tmp/synthetic   # smoke test
 
 For each scene and parameter set (``SETS`` below) it renders every camera of the built-in
 scene at full camera resolution with the sweep solver at resolution ``N = 48`` and ``M = 4`` —
@@ -14,7 +15,11 @@ finer than the fits use (N = 24-32, M = 3), so that a fit of these targets is no
 
 and ``truth.json`` with the parameters of every set, the render settings, σ per image and the
 seed of every noise draw (a CRC32 of "<scene>/set<k>/<camera>/<level>"), so the same command
-always writes the same bits on the same machine.
+always writes the same bits on the same machine.  The model is the public
+``difffog.forward_model(scene, "sweep", ...)``, rendered with ``difffog.render``.
+
+``--quick`` renders N = 16, M = 2, supersample 1, the first parameter set only (a smoke test,
+not the committed targets: it must be written elsewhere with ``--out DIR``).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 N, M, SUPERSAMPLE, TOL = 48, 4, 3, 1e-5
+QUICK = dict(N=16, M=2, supersample=1, sets=1)
 NOISE = {"noise01": 0.01, "noise05": 0.05}
 
 # scene -> list of parameter sets {path: value}; set 0 is the scene file's own values
@@ -55,24 +61,25 @@ def seed_of(*parts: str) -> int:
     return zlib.crc32("/".join(parts).encode())
 
 
-def make_scene(name: str, truth: dict) -> None:
+def make_scene(name: str, truth: dict, root: Path = HERE, N: int = N, M: int = M,
+               supersample: int = SUPERSAMPLE, sets: int | None = None) -> None:
     import jax
 
     import difffog as df
 
     scene = df.load_scene(name)
-    renderer = df.Renderer(scene, resolution=N, supersample=SUPERSAMPLE,
-                           solver=df.SweepSolver(M=M, tol=TOL, max_iterations=2000))
+    model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=TOL,
+                             max_iterations=2000, supersample=supersample)
     entry = {"render": {"solver": "sweep", "resolution": N, "directions": M,
-                        "supersample": SUPERSAMPLE, "tol": TOL, "jax": jax.__version__},
+                        "supersample": supersample, "tol": TOL, "jax": jax.__version__},
              "sets": []}
-    for k, values in enumerate(SETS[name]):
+    for k, values in enumerate(SETS[name][:sets]):
         t = time.perf_counter()
-        params = renderer.params()
+        params = model.params()
         for path, v in values.items():
             params = df.set_param(params, scene, path, v)
-        rendered = renderer.render(params)
-        out = HERE / name / f"set{k}"
+        rendered = df.render(model, params)
+        out = root / name / f"set{k}"
         out.mkdir(parents=True, exist_ok=True)
         info = {"params": values, "iterations": int(rendered.light.iterations), "images": {}}
         for cam, img in rendered.images.items():
@@ -96,11 +103,20 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", action="append", choices=sorted(SETS),
                     help="only this scene (repeatable; default: all)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"N = {QUICK['N']}, M = {QUICK['M']}, supersample "
+                         f"{QUICK['supersample']}, the first set only (needs --out)")
+    ap.add_argument("--out", type=Path, default=HERE,
+                    help="folder of the <scene>/set<k>/ targets and truth.json (default: here)")
     args = ap.parse_args(argv)
-    path = HERE / "truth.json"
+    if args.quick and args.out.resolve() == HERE:
+        ap.error("--quick writes smaller targets than the committed ones: give --out DIR")
+    kw = QUICK if args.quick else {}
+    path = args.out / "truth.json"
+    args.out.mkdir(parents=True, exist_ok=True)
     truth = json.loads(path.read_text()) if path.exists() else {}
     for name in args.scene or list(SETS):
-        make_scene(name, truth)
+        make_scene(name, truth, args.out, **kw)
         path.write_text(json.dumps(truth, indent=1, sort_keys=True))
 
 

@@ -8,8 +8,13 @@
   (Fig. 11), with a profile across the row where they differ most.
 
     python docs/splat_figures.py            # N = 48, writes docs/splat_*.png
-    python docs/splat_figures.py --smoke    # N = 16, quick check
+    python docs/splat_figures.py --quick --out /tmp/figs   # N = 16 (also --smoke), quick check
     python docs/splat_figures.py --figures shadows
+
+The models are the public ``difffog.forward_model(scene, "splat", ...)``.  Locating the shadow
+of an occluder on the ground uses difffog's internal ray caster on purpose
+(``difffog.geometry._rays``: ``scene_triangles``, ``cast_rays``) and the cameras' rays
+(``difffog.forward._camera.camera_rays``).
 """
 
 from __future__ import annotations
@@ -24,10 +29,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from difffog import SplatRenderer, load_scene, set_param  # noqa: E402
-from difffog._camera import camera_rays  # noqa: E402
-from difffog._raster import cast_rays, scene_triangles  # noqa: E402
-from difffog._scene import Camera  # noqa: E402
+import difffog as df  # noqa: E402
+from difffog import Camera, load_scene, set_param  # noqa: E402
+from difffog.forward._camera import camera_rays  # noqa: E402
+from difffog.geometry._rays import cast_rays, scene_triangles  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 
@@ -41,14 +46,16 @@ def show(ax, img, title, vmax=None):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--smoke", action="store_true")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", "--smoke", dest="smoke", action="store_true",
+                    help="N = 16, 48-pixel images (a quick check)")
     ap.add_argument("--out", type=Path, default=HERE)
     ap.add_argument("--figures", nargs="+", choices=("clouds", "shadows"),
                     default=["clouds", "shadows"])
     args = ap.parse_args(argv)
     N = 16 if args.smoke else 48
     px = 48 if args.smoke else 160
+    args.out.mkdir(parents=True, exist_ok=True)
 
     if "clouds" in args.figures:
         clouds(args.out, N, px)
@@ -73,12 +80,13 @@ def clouds(out: Path, N: int, px: int):
         sc = sc.replace(shapes=(), cameras=(cam,))
         imgs, clear = [], None
         for _, kw in configs:
-            r = SplatRenderer(sc, resolution=N, similarity=False, **kw)
-            p = r.params()
-            imgs.append(np.asarray(r(p)["side"]))
+            model = df.forward_model(sc, "splat", accuracy=None, resolution=N,
+                                     similarity=False, **kw)
+            p = model.params()
+            imgs.append(np.asarray(model(p)["side"]))
             if clear is None:  # the same view without the cloud: which pixels see it
                 p0 = set_param(set_param(p, sc, "fog.scattering", 0.0), sc, "fog.absorption", 0.0)
-                clear = np.asarray(r(p0)["side"])
+                clear = np.asarray(model(p0)["side"])
         cloud = np.abs(imgs[0] - clear) > 0.02 * float(clear.max())
         vmax = max(float(np.percentile(i, 99.5)) for i in imgs)
         for ax, (title, _), img in zip(row, configs, imgs):
@@ -88,7 +96,6 @@ def clouds(out: Path, N: int, px: int):
     fig.savefig(out / "splat_clouds.png", dpi=80)
     plt.close(fig)
     print(f"wrote {out / 'splat_clouds.png'}")
-
 
 
 def shadow_centre(scene, camera, occluder: str) -> tuple[int, int]:
@@ -119,8 +126,9 @@ def shadows(out: Path, N: int, px: int):
         for radius in (0.0, 4.0):
             s = base.replace(sun=dataclasses.replace(base.sun, angular_radius_deg=radius),
                              cameras=(cam,))
-            pair.append(np.asarray(SplatRenderer(s, resolution=N, similarity=True,
-                                                 soft_shadows=radius > 0)()["oblique"]))
+            model = df.forward_model(s, "splat", accuracy=None, resolution=N, similarity=True,
+                                     soft_shadows=radius > 0)
+            pair.append(np.asarray(model()["oblique"]))
         rows.append((name, occluder, s, cam, pair))
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), constrained_layout=True,
                              gridspec_kw={"width_ratios": [1, 1, 0.9]})

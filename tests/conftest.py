@@ -1,5 +1,34 @@
+import os
+import tempfile
+
 import jax
 import pytest
+
+import notebook_runs
+from helpers import MODELS, build_fit_model, build_model
+
+
+def pytest_configure(config):
+    # Tests build many small models whose compiled programs are identical (the same scene at
+    # the same size in several modules, or in both pytest-xdist workers): a persistent
+    # compilation cache shared by this session's processes turns every repeat compile into a
+    # cache hit.  A fresh folder per session (the first process makes it; xdist workers
+    # inherit it through the environment), so runs stay independent.
+    cache = os.environ.get("DIFFFOG_TEST_XLA_CACHE")
+    if not cache:
+        cache = tempfile.mkdtemp(prefix="difffog-test-xla-")
+        os.environ["DIFFFOG_TEST_XLA_CACHE"] = cache
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_collection_finish(session):
+    # the notebooks' small-size runs start now, in the background (notebook_runs.py)
+    # (a kernel whose pytest dies exits too: ipykernel polls its parent)
+    names = notebook_runs.small_run_names(session.items)
+    if names and not session.config.option.collectonly:
+        notebook_runs.start(names)
 
 
 @pytest.fixture
@@ -9,3 +38,41 @@ def x64():
     jax.config.update("jax_enable_x64", True)
     yield
     jax.config.update("jax_enable_x64", old)
+
+
+_MODELS: dict = {}
+
+
+@pytest.fixture(params=list(MODELS))
+def model(request):
+    """Each small forward model of ``helpers.MODELS`` (float32), built once per session and
+    shared by every test module that asks for it (their compiled code is shared too)."""
+    if request.param not in _MODELS:
+        _MODELS[request.param] = build_model(request.param)
+    return _MODELS[request.param]
+
+
+@pytest.fixture(scope="session")
+def sweep_model():
+    """The small sweep model of ``helpers.MODELS`` (shared)."""
+    if "sweep" not in _MODELS:
+        _MODELS["sweep"] = build_model("sweep")
+    return _MODELS["sweep"]
+
+
+@pytest.fixture(params=list(MODELS))
+def fit_model(request):
+    """Each solver's fog-balls model as a fit builds it (``helpers.build_fit_model``), shared
+    by every fit test of the session so that the fit's compiled step is shared."""
+    key = ("fit", request.param)
+    if key not in _MODELS:
+        _MODELS[key] = build_fit_model(request.param)
+    return _MODELS[key]
+
+
+@pytest.fixture
+def sweep_fit_model():
+    """The sweep's fit model of ``fit_model`` (shared)."""
+    if ("fit", "sweep") not in _MODELS:
+        _MODELS[("fit", "sweep")] = build_fit_model("sweep")
+    return _MODELS[("fit", "sweep")]

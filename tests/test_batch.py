@@ -5,18 +5,18 @@ import subprocess
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import difffog as df
 
+SRC = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "src"))
 
 @pytest.fixture(scope="module")
-def renderer():
-    scene = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
-    return df.Renderer(scene, resolution=12, solver=df.SweepSolver(M=2, tol=1e-6),
-                       supersample=1)
+def renderer(sweep_model):
+    """The session's small sweep model (conftest.py): its compiled code is shared with the
+    interface tests."""
+    return sweep_model
 
 
 def _sets(r):
@@ -25,17 +25,7 @@ def _sets(r):
                          "shape.walls.albedo", a) for z, a in ((0.5, 0.2), (2.0, 0.5), (4.0, 0.9))]
 
 
-def test_batch_equals_one_by_one(renderer):
-    sets = _sets(renderer)
-    batch = df.render_batch(renderer, sets)
-    for i, p in enumerate(sets):
-        one = renderer(p)
-        for cam, img in one.items():
-            np.testing.assert_allclose(np.asarray(batch[cam][i]), np.asarray(img),
-                                       rtol=1e-5, atol=1e-7 * float(img.max()))
-    # the batch really varies: more scattering, different images
-    assert float(jnp.abs(batch["top"][0] - batch["top"][2]).max()) > 0.05 * float(
-        batch["top"].max())
+# render_batch equal to rendering one by one, for every model: test_interface.py
 
 
 def test_stack_and_unstack_round_trip(renderer):
@@ -53,14 +43,22 @@ def test_batch_errors(renderer):
         df.render_batch(renderer, renderer.params())  # not stacked
     with pytest.raises(df.SolverError, match="xla_force_host_platform_device_count"):
         df.render_batch(renderer, _sets(renderer), devices=len(jax.devices()) + 1)
+    with pytest.raises(df.SolverError, match="expected a forward model"):
+        df.render_batch(renderer.scene, _sets(renderer))
 
 
-def test_batch_over_two_devices_matches_one():
-    """3 parameter sets over 2 host devices (padded to 4) give the one-device images."""
-    code = """
+TWO_DEVICES = {"splat": "resolution=12", "sweep": "resolution=12, M=2, tol=1e-6"}
+
+
+@pytest.mark.parametrize("solver", ["splat", pytest.param("sweep", marks=pytest.mark.slow)])
+def test_batch_over_two_devices_matches_one(solver):
+    """3 parameter sets over 2 host devices (padded to 4) give the one-device images.  (The
+    batching is the same for both models; the sweep's three compiles take ~70 s.)"""
+    code = f"""
 import jax, numpy as np, difffog as df
 scene = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
-r = df.Renderer(scene, resolution=12, solver=df.SweepSolver(M=2, tol=1e-6), supersample=1)
+r = df.forward_model(scene, "{solver}", accuracy=None, {TWO_DEVICES[solver]}, supersample=1,
+                     cameras=["top"])
 p0 = r.params()
 sets = [df.set_param(p0, scene, "fog.scattering", z) for z in (0.5, 2.0, 4.0)]
 a = df.render_batch(r, sets, devices=1)
@@ -69,22 +67,25 @@ for k in a:
     assert a[k].shape == b[k].shape == (3,) + a[k].shape[1:], (a[k].shape, b[k].shape)
     err = float(np.max(np.abs(np.asarray(a[k]) - np.asarray(b[k]))) / np.max(np.asarray(a[k])))
     assert err <= 1e-6, (k, err)
+    # the batch really varies
+    assert float(np.max(np.abs(np.asarray(a[k][0]) - np.asarray(a[k][2])))) > 0.02 * float(
+        np.max(np.asarray(a[k])))
 print("ok")
 """
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
 
 
+@pytest.mark.slow  # two CLI runs; test_sweep.py's sharded test checks the sweep on a mesh
 def test_cli_render_devices_gives_the_same_images(tmp_path):
     """`difffog render --devices 2` (two host devices, asked for by the CLI itself) writes the
     images of one device, to the solve's tolerance (GMRES on a mesh also sweeps the Λ off the
     fog that one device skips, so its iterates differ in the last digits; the fixed point is
     the same)."""
-    src = os.path.join(os.path.dirname(__file__), "..", "src")
-    env = dict(os.environ, PYTHONPATH=os.path.abspath(src) + os.pathsep
-               + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("XLA_FLAGS", None)
     for n in (1, 2):
         r = subprocess.run([sys.executable, "-m", "difffog", "render", "fog-balls", "-N", "12",
@@ -102,9 +103,10 @@ def test_fit_batch_over_two_devices_matches_one():
     """fit_batch with the fits split over 2 host devices gives the one-device estimates."""
     code = """
 import numpy as np, difffog as df
-from difffog._fit import make_forward
+from difffog.fit._driver import make_model
 sc = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
-fwd = make_forward(sc, "sweep", cameras=["top"], resolution=12, directions=2, downsample=8)
+fwd = make_model(sc, "sweep", cameras=["top"], resolution=12, downsample=8,
+                 model_settings={"M": 2})
 ts = [{k: np.asarray(v) for k, v in fwd(df.set_param(fwd.params(), fwd.scene,
                                                       "fog.scattering", z)).items()}
       for z in (1.5, 2.0, 3.0)]
@@ -118,7 +120,8 @@ for ra, rb, z in zip(a, b, (1.5, 2.0, 3.0)):
     assert abs(rb.estimates["fog.scattering"] / z - 1) <= 1e-3
 print("ok")
 """
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=900)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]

@@ -1,6 +1,7 @@
 """The speed-accuracy study (`difffog bench`) and the accuracy presets."""
 
 import csv
+import dataclasses
 import json
 import warnings
 
@@ -8,41 +9,48 @@ import numpy as np
 import pytest
 
 import difffog as df
-from difffog import _bench
-from difffog._cli import _apply_accuracy, build_parser, main
-from difffog._presets import LEVELS, PRESETS, forward_model, preset
+from difffog.cli import main
+from difffog.cli._main import build_parser, model_settings
+from difffog.forward._registry import LEVELS, SOLVERS, forward_model, preset
+from difffog.study import _bench
 
 
 def test_presets_order_cost_and_reject_unknown_names():
-    for solver in PRESETS:
+    for solver in SOLVERS:
         res = [preset(solver, lv)["resolution"] for lv in LEVELS]
         assert res == sorted(res) and res[0] < res[-1], (solver, res)
     assert preset("sweep", "draft")["M"] <= preset("sweep", "high")["M"]
     p = preset("sweep")
     p["resolution"] = 1  # a copy: the table is not changed
-    assert PRESETS["sweep"]["default"]["resolution"] != 1
+    assert SOLVERS["sweep"].presets["default"]["resolution"] != 1
     with pytest.raises(df.DifffogError, match="draft, default, high"):
         preset("sweep", "fast")
     with pytest.raises(df.DifffogError, match="sweep or splat"):
         preset("montecarlo")
-    with pytest.raises(df.DifffogError, match="unknown setting"):
+    # a setting of the other solver is refused also on top of a preset
+    with pytest.raises(df.DifffogError, match="sheets is not a setting of the sweep solver"):
         forward_model(df.load_scene("furnace"), accuracy="draft", sheets=3)
 
 
+def _settings(argv, solver="sweep"):
+    args = build_parser().parse_args(argv)
+    return model_settings(args, solver, accuracy=args.accuracy)
+
+
 def test_cli_accuracy_fills_only_what_is_not_given():
-    args = build_parser().parse_args(["render", "--accuracy", "draft"])
-    _apply_accuracy(args, "sweep")
-    assert (args.resolution, args.directions, args.tol) == (32, 2, 1e-3)
-    args = build_parser().parse_args(["render", "--accuracy", "high", "-N", "40", "--tol", "1e-6"])
-    _apply_accuracy(args, "sweep")
-    assert (args.resolution, args.directions, args.tol) == (40, PRESETS["sweep"]["high"]["M"],
-                                                            1e-6)
-    args = build_parser().parse_args(["render", "--solver", "splat", "--accuracy", "high"])
-    _apply_accuracy(args, "splat")
-    assert args.resolution == PRESETS["splat"]["high"]["resolution"] and args.sheets is None
-    args = build_parser().parse_args(["render", "--iterations", "5"])
-    _apply_accuracy(args, "sweep")
-    assert args.tol is None and args.iterations == 5  # exact iteration count wins
+    assert _settings(["render", "--accuracy", "draft"]) == dict(resolution=32, M=2, tol=1e-3)
+    assert _settings(["render", "--accuracy", "high", "-N", "40", "--tol", "1e-6"]) == dict(
+        resolution=40, M=SOLVERS["sweep"].presets["high"]["M"], tol=1e-6)
+    s = _settings(["render", "--solver", "splat", "--accuracy", "high"], "splat")
+    assert s == dict(SOLVERS["splat"].presets["high"]) and s["sheets"] is None
+    # an exact iteration count wins over the preset's tolerance: K iterations, tol 0
+    s = _settings(["render", "--iterations", "5"])
+    assert s["max_iterations"] == 5 and s["tol"] == 0.0
+    # an iteration cap keeps the tolerance (the preset's or --tol)
+    s = _settings(["render", "--max-iterations", "7"])
+    assert s["max_iterations"] == 7 and s["tol"] == preset("sweep")["tol"]
+    s = _settings(["render", "--max-iterations", "7", "--tol", "1e-6"])
+    assert (s["max_iterations"], s["tol"]) == (7, 1e-6)
 
 
 def test_mitsuba_rows_sum_time_and_average_error_over_cameras(tmp_path):
@@ -84,26 +92,34 @@ def test_bench_errors_are_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
-def test_bench_study_rows_match_an_independent_render(tmp_path, monkeypatch):
-    """A one-setting study on fog-balls: the CSV's error is the error of the same render
-    computed here, Mitsuba's curve is included, and the Pareto plot is written."""
-    refs = _bench.default_references()
-    if refs is None:
-        pytest.skip("no ../shared/references")
-    setting = dict(resolution=12, M=2, tol=1e-3)
-    monkeypatch.setitem(_bench.QUICK, "sweep", [setting])
-    res = _bench.run_bench(scenes=["fog-balls"], solvers=["sweep"], out=tmp_path / "b",
-                           references=refs, quick=True)
+STUDY_SETTINGS = {"splat": dict(resolution=12, sheets=None),
+                  "sweep": dict(resolution=12, M=2, tol=1e-3)}
+
+
+@pytest.mark.parametrize("solver", ["splat", pytest.param("sweep", marks=pytest.mark.slow)])
+def test_bench_study_rows_match_an_independent_render(solver, tmp_path, monkeypatch):
+    """A one-setting study on fog-balls against the shipped references: the CSV's error is the
+    error of the same render computed here, Mitsuba's curve is included, and the Pareto plot
+    is written.  (The study is the same for both solvers; the sweep compiles 4× longer.)"""
+    from difffog.study import references
+
+    setting = STUDY_SETTINGS[solver]
+    monkeypatch.setitem(SOLVERS, solver, dataclasses.replace(SOLVERS[solver], quick=(setting,)))
+    res = _bench.run_bench(scenes=["fog-balls"], solvers=[solver], out=tmp_path / "b",
+                           quick=True)  # references=None: the shipped ones
     with res.csv_path.open() as f:
         rows = list(csv.DictReader(f))
-    ours = [r for r in rows if r["solver"] == "sweep"]
+    ours = [r for r in rows if r["solver"] == solver]
     assert len(ours) == 1 and any(r["solver"].startswith("mitsuba") for r in rows)
+    assert ours[0]["setting"] == _bench.setting_label(setting)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the walls are thinner than a voxel at N = 12
-        r = _bench.build("sweep", df.load_scene("fog-balls"), setting)
-    err, bias, _ = _bench.scene_errors(r(r.params()), refs, "fog-balls")
+        r = forward_model(df.load_scene("fog-balls"), solver, accuracy=None, **setting)
+    err, bias, _ = _bench.scene_errors(r(r.params()), references.references_dir(), "fog-balls")
     assert float(ours[0]["error"]) == pytest.approx(err, rel=1e-3)
+    assert float(ours[0]["bias"]) == pytest.approx(bias, rel=1e-3, abs=1e-6)
     assert float(ours[0]["time_s"]) > 0 and float(ours[0]["xla_mib"]) > 0
+    assert int(float(ours[0]["iterations"])) >= 1
     assert res.plot_path.stat().st_size > 10_000
 
 
@@ -118,9 +134,7 @@ def test_mitsuba_time_at_equal_error_interpolates_its_curve():
 
 
 def test_summary_has_presets_and_equal_error_tables(tmp_path):
-    from difffog._presets import PRESETS
-
-    rows = [dict(solver="sweep", scene="s", setting=_bench.setting_label("sweep", PRESETS["sweep"][lv]),
+    rows = [dict(solver="sweep", scene="s", setting=_bench.setting_label(preset("sweep", lv)),
                  time_s=t, compile_s=2.0, setup_s=1.0, xla_mib=10.0, iterations=5, error=e,
                  bias=0.0) for lv, t, e in (("draft", 1.0, 0.2), ("default", 4.0, 0.1))]
     rows += [dict(solver="mitsuba3 (references' run)", scene="s", setting="4 spp", spp=4,

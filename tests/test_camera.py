@@ -7,18 +7,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from difffog._camera import (
+from difffog import Camera, SceneError
+from difffog.forward._camera import camera_basis, camera_rays, hg_phase
+from difffog.forward.sweep._march import (
     LatticeFields,
-    camera_basis,
-    camera_rays,
-    hg_phase,
     march_steps,
     render_camera,
     render_rays,
     trace_rays,
 )
-from difffog._errors import SceneError
-from difffog._scene import Camera
 
 
 @pytest.fixture
@@ -325,7 +322,7 @@ def test_march_steps():
 @pytest.mark.parametrize("periodic", [False, True])
 def test_custom_backward_matches_autodiff(x64, periodic):
     """The march's hand-scheduled backward equals JAX's autodiff of the plain forward scan."""
-    from difffog import _camera as cm
+    from difffog.forward.sweep import _march as cm
 
     rng = np.random.default_rng(1)
     n, h = (7, 6, 5), 0.15

@@ -1,13 +1,14 @@
 """The command line: outputs on disk, exit codes and one-line errors."""
 
 import json
+import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from difffog._cli import main
+from difffog.cli import main
 
 
 def test_info_summarizes_scene(capsys):
@@ -57,7 +58,8 @@ def test_render_writes_images_and_report(tmp_path, capsys):
     assert rep["settings"]["resolution"] == 12 and rep["settings"]["solver_options"]["M"] == 2
     assert rep["iterations"] == len(rep["residuals"]) > 10
     assert rep["error_estimate"] < 1e-5
-    assert set(rep["timings_s"]) >= {"voxelize_s", "solve_s", "render_s", "solve_compile_s"}
+    assert rep["result"] == "successful"
+    assert set(rep["timings_s"]) >= {"voxelize_s", "light_s", "images_s", "light_compile_s"}
     assert rep["peak_memory_mb"] > 0
     assert not list(tmp_path.glob(".difffog-*"))  # the staging folder is gone
 
@@ -71,7 +73,7 @@ def test_render_fixed_iterations_and_override(tmp_path):
     assert rep["iterations"] == 3
     assert rep["overrides"] == ["shape.walls.albedo=0.5", "fog.scattering=0"]
     assert rep["settings"]["solver_options"]["method"] == "jacobi"
-    assert any("volume" in line for line in rep["settings"]["plan"])
+    assert any("volume" in line for line in rep["settings"]["terms"])
     # an empty furnace of albedo 0.5 after 3 Jacobi iterations: B = 1 + 0.5·(1 + 0.5·(1 + 0.5))
     assert float(np.load(out / "inside.npy").mean()) == pytest.approx(1.875, rel=0.02)
     # GMRES (the default) has the exact 1/(1 - 0.5) = 2 after the same 3 applications
@@ -79,8 +81,41 @@ def test_render_fixed_iterations_and_override(tmp_path):
     assert float(np.load(tmp_path / "g" / "inside.npy").mean()) == pytest.approx(2.0, rel=1e-3)
 
 
+def test_unconverged_render_exits_1_with_one_line_and_writes_its_report(tmp_path, capsys):
+    """An optically thick fog with a small iteration cap: the light solve stops before --tol.
+    The images and report.json are still written (naming the result), one line on stderr says
+    what happened (the result, its estimated error and iterations), and the exit status is 1."""
+    out = tmp_path / "thick"
+    argv = ["render", "fog-balls", "--set", "fog.scattering=60", "--set", "fog.absorption=0.001",
+            "--set", "shape.walls.thickness=0.1", "-N", "10", "-M", "2", "--tol", "1e-8",
+            "--max-iterations", "3", "--supersample", "1", "--camera", "top", "-q",
+            "--out", str(out)]
+    assert main(argv) == 1
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1, err
+    assert re.search(r"^difffog: error: render: max_iterations_reached \(estimated error "
+                     r"[0-9.e+-]+ after 3 iterations\)", err[0]), err[0]
+    assert "--max-iterations" in err[0]  # what to do about it
+    assert sorted(p.name for p in out.iterdir()) == ["report.json", "top.npy", "top.png"]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["result"] == "max_iterations_reached"
+    assert rep["iterations"] == 3 and rep["error_estimate"] > 1e-8
+    assert rep["settings"]["solver_options"]["max_iterations"] == 3
+    assert rep["settings"]["solver_options"]["tol"] == 1e-8
+    assert np.isfinite(np.load(out / "top.npy")).all()
+
+
+def test_max_iterations_and_iterations_are_exclusive(tmp_path, capsys):
+    assert main(["render", "furnace", "--iterations", "3", "--max-iterations", "5",
+                 "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--max-iterations" in err[0] and "--iterations" in err[0]
+    assert not (tmp_path / "o").exists()
+
+
 def test_console_script_entry_point():
-    r = subprocess.run([sys.executable, "-m", "difffog._cli", "info", "slab", "-N", "8", "-M", "1"],
+    r = subprocess.run([sys.executable, "-m", "difffog", "info", "slab", "-N", "8", "-M", "1"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "slab" in r.stdout
 
@@ -93,8 +128,11 @@ def test_render_with_the_splat_solver(tmp_path):
     img = np.load(out / "top.npy")
     assert img.dtype == np.float32 and img.shape == (128, 128) and np.isfinite(img).all()
     rep = json.loads((out / "report.json").read_text())
-    assert rep["settings"]["solver"] == "splat" and rep["passes"]["top"]["sheets"] == 10
-    assert "iterations" not in rep and rep["settings"]["supersample"] == 1
+    assert rep["settings"]["solver"] == "splat"
+    assert rep["settings"]["passes"]["top"]["sheets"] == 10
+    # a single pass per camera: one "iteration", no remaining error to estimate
+    assert rep["iterations"] == 1 and rep["error_estimate"] == 0.0
+    assert rep["result"] == "successful" and rep["settings"]["supersample"] == 1
     # the lit ground in the top-left corner: ρ/π·(E·cos 40° + π·sky), no fog above it
     assert float(img[0, 0]) == pytest.approx(0.6 / np.pi * (3.0 * np.cos(np.radians(40.0))
                                                              + np.pi * 0.2), rel=1e-3)
@@ -104,7 +142,12 @@ def test_render_with_the_splat_solver(tmp_path):
     "argv,needle",
     [
         (["render", "furnace", "--solver", "splat", "--out", "OUT"], "no [sun]"),
-        (["render", "fog-balls", "--sheets", "8", "--out", "OUT"], "--sheets applies to"),
+        (["render", "fog-balls", "--sheets", "8", "--out", "OUT"],
+         "--sheets does not apply to --solver sweep"),
+        (["render", "fog-balls", "--solver", "splat", "--directions", "2", "--out", "OUT"],
+         "--directions does not apply to --solver splat"),
+        (["render", "fog-balls", "--solver", "splat", "--max-iterations", "5", "--out", "OUT"],
+         "--max-iterations does not apply to --solver splat"),
         (["render", "fog-balls", "--solver", "splat", "--sheets", "0", "--out", "OUT"],
          "--sheets must be a positive"),
     ],
@@ -113,7 +156,8 @@ def test_splat_errors_are_one_line(argv, needle, capsys, tmp_path):
     argv = [str(tmp_path / "o") if a == "OUT" else a for a in argv]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and needle in err[0]
+    assert len(err) == 1 and err[0].startswith("difffog: error:") and needle in err[0], err
+    assert not (tmp_path / "o").exists()
 
 
 # ------------------------------------------------------------------ difffog fit
@@ -125,11 +169,11 @@ FIT_SMALL = ["fog-balls", "--set", "shape.walls.thickness=0.1", "-N", "12", "-M"
 def fit_targets(tmp_path_factory):
     """Targets of the small fog-balls (ζ = 2, γ = 0.5) rendered by the fit's own model."""
     from difffog import load_scene
-    from difffog._fit import make_forward
+    from difffog.fit._driver import make_model
 
     scene = load_scene("fog-balls", ["shape.walls.thickness=0.1"])
-    fwd = make_forward(scene, "sweep", cameras=["top", "oblique"], resolution=12,
-                       directions=2, downsample=8)
+    fwd = make_model(scene, "sweep", cameras=["top", "oblique"], resolution=12, downsample=8,
+                     model_settings={"M": 2})
     d = tmp_path_factory.mktemp("targets")
     for k, v in fwd(fwd.params()).items():
         np.save(d / f"{k}.npy", np.asarray(v))
@@ -142,7 +186,7 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
     argv = ["fit", *FIT_SMALL, "--target", f"top={fit_targets / 'top.npy'}",
             "--target", f"oblique={fit_targets / 'oblique.npy'}",
             "--unknown", "fog.scattering=1.2", "--unknown", "fog.absorption=0.8",
-            "--out", str(out)]
+            "--solver", "sweep", "--optimizer", "lm", "--out", str(out)]
     assert main(argv) == 0
     files = sorted(p.name for p in out.iterdir())
     assert files == sorted(["fit.json", "convergence.png"] + [
@@ -153,6 +197,9 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
     assert rep["estimates"]["fog.absorption"] == pytest.approx(0.5, rel=1e-3)
     assert set(rep["stderr"]) == {"fog.scattering", "fog.absorption"}
     assert len(rep["correlation"]) == 2 and rep["converged"]
+    assert rep["settings"]["forward"] == "sweep" and rep["settings"]["optimizer"] == "lm"
+    assert rep["settings"]["model"]["resolution"] == 12
+    assert rep["settings"]["model"]["solver_options"]["M"] == 2
     assert len(rep["history"]) == rep["iterations"] >= 2
     fitted, target = np.load(out / "top_fit.npy"), np.load(out / "top_target.npy")
     np.testing.assert_allclose(np.load(out / "top_residual.npy"), fitted - target, atol=1e-7)
@@ -188,6 +235,9 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--resume"], "no checkpoint"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",
       "fog.scattering=3,9"], "outside"),
+    # FIT_SMALL gives -M, a setting the splat does not take
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--solver", "splat"],
+     "--directions does not apply to --solver splat"),
 ])
 def test_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):
     np.save(tmp_path / "T.npy", np.ones((128, 128), np.float32))
@@ -200,3 +250,22 @@ def test_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("difffog: error:") and needle in err[0], err
     assert not (tmp_path / "o").exists()
+
+
+def test_fit_parser_takes_the_solver_and_the_optimizer():
+    """`difffog fit --solver NAME --optimizer NAME`: the forward model's settings come from the
+    solver's fit defaults (no --accuracy) and only the flags given."""
+    from difffog.cli._main import build_parser, model_settings
+
+    args = build_parser().parse_args(["fit", *FIT_SMALL, "--solver", "sweep",
+                                      "--optimizer", "gauss-newton"])
+    assert (args.solver, args.optimizer, args.accuracy, args.devices) == (
+        "sweep", "gauss-newton", None, None)
+    assert model_settings(args, args.solver, accuracy=args.accuracy) == {"resolution": 12,
+                                                                        "M": 2}
+    args = build_parser().parse_args(["fit", "--solver", "splat", "--optimizer", "bfgs", "-N",
+                                      "16"])
+    assert model_settings(args, "splat", accuracy=None) == {"resolution": 16}
+    for argv in (["fit", "--optimizer", "adam"], ["fit", "--solver", "montecarlo"]):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(argv)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from difffog import SceneError, direction_set
-from difffog._directions import cosine_normalization
+from difffog.geometry._directions import cosine_normalization
 
 
 @pytest.mark.parametrize("M", [1, 2, 3, 5, 8])

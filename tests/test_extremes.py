@@ -7,13 +7,22 @@ E/(1 − ρ), = where nothing absorbs and the solve converged), gradients finite
 ζ → 0 (the no-fog image) and γ → 0 (the conservative image).  A closed box that conserves all
 energy and emits has no steady state: a SolverError, not a hang or an Inf.
 
+Every matrix point also checks the light solve's result code (``light.result``): it is a
+:class:`difffog.RESULTS` member consistent with the solve's own record (successful: the
+estimated error reached the tolerance and the fields are finite; max_iterations_reached: the
+cap was hit; stagnated: stopped early short of the tolerance; nonfinite: non-finite fields),
+and a solve reported successful gives the right answer where one is known (the furnace without
+absorption).  The matrix runs the images unchecked (``throw=False`` semantics: the code is
+returned, not raised), so unconverged corners report their code instead of failing.
+
 The parameters are traced values, so one compile per (solver, scene, dtype) serves the whole
-matrix.  To add a solver, add one entry to SOLVERS (same surface as ``Renderer``: ``.params()``,
-``__call__(params)`` → images, ``.solve(params)`` → LightField).
+matrix.  To add a solver, add one entry to SOLVERS (a forward model: ``.params()``,
+``.light(params)`` with ``.result``, ``.images_from(light, params)``).
 """
 
 import dataclasses
 import itertools
+import warnings
 
 import equinox as eqx
 import jax
@@ -21,17 +30,22 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from difffog import Renderer, SolverError, SweepSolver, load_scene, set_param
+import difffog as df
+from difffog import SolverError, load_scene, set_param
 
 VALUES = [0.0, 1e-6, 1e-3, 1.0, 1e3, 1e6]
 ALBEDOS = [0.0, 1e-6, 0.5, 1 - 1e-6, 1.0]
 DTYPES = ["float32", "float64"]
 TOL = 1e-4
+MAX_ITERATIONS = 40
 
-SOLVERS = {
-    "sweep": lambda scene, N: Renderer(scene, resolution=N, supersample=1,
-                                       solver=SweepSolver(M=1, tol=TOL, max_iterations=40)),
-}
+
+def _sweep(scene, N, **kw):
+    return df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=1, tol=TOL,
+                            max_iterations=MAX_ITERATIONS, supersample=1, **kw)
+
+
+SOLVERS = {"sweep": _sweep}
 
 
 def _small(scene, res=(6, 5)):
@@ -58,23 +72,31 @@ def _with(p, zeta=None, gamma=None, albedo=None):
     return p
 
 
+def _loss(model, p):
+    light = model.light(p)
+    imgs = model.images_from(light, p)  # unchecked: the result code comes back in ``light``
+    return sum(jnp.sum(v) for v in imgs.values()), (imgs, light)
+
+
+@eqx.filter_jit
+def _value_and_grad(model, p):
+    return jax.value_and_grad(lambda q: _loss(model, q), has_aux=True)(p)
+
+
 class _Case:
-    """One renderer and one compiled function per dtype: images, light field and the gradient
-    of the images' sum w.r.t. every parameter (so every matrix point checks the gradient too)."""
+    """One model and one compiled function per dtype: images, light and the gradient of the
+    images' sum w.r.t. every parameter (so every matrix point checks the gradient too)."""
 
     def __init__(self, solver, scene, N):
-        self.r = SOLVERS[solver](scene, N)
-
-        def loss(p):
-            light = self.r.solver.solve(self.r.geometry, p)
-            imgs = self.r._images_impl(light, p)
-            return sum(jnp.sum(v) for v in imgs.values()), (imgs, light)
-
-        self._vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
+        self.model = SOLVERS[solver](scene, N, throw=False)
 
     def fwd(self, p):
-        (_, (imgs, light)), g = self._vg(p)
-        return imgs, light, g
+        """(images, light, gradient, adjoint warnings): an unconverged tangent/adjoint solve of
+        the implicit gradient warns (the model's solver is built with throw=False)."""
+        with warnings.catch_warnings(record=True) as w:
+            warnings.simplefilter("always", df.AdjointWarning)
+            (_, (imgs, light)), g = jax.block_until_ready(_value_and_grad(self.model, p))
+        return imgs, light, g, [x for x in w if issubclass(x.category, df.AdjointWarning)]
 
 
 _CACHE = {}
@@ -86,6 +108,15 @@ def _case(solver, which, dtype):
         scene = _open_scene() if which == "open" else _furnace()
         _CACHE[key] = _Case(solver, scene, 10 if which == "open" else 8)
     return _CACHE[key]
+
+
+_MODELS = {}
+
+
+def _model(key, build):
+    if key not in _MODELS:
+        _MODELS[key] = build()
+    return _MODELS[key]
 
 
 # float64 runs with -m slow (the default suite keeps float32, the harder case for overflow and
@@ -107,20 +138,61 @@ def _finite_grad(g):
     return all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree.leaves(g))
 
 
+def _code(light):
+    """The light's RESULTS member, or a string saying why its code is inconsistent."""
+    code = int(light.result)
+    if code not in set(df.RESULTS):
+        return f"unknown result code {code}"
+    code = df.RESULTS(code)
+    k, err = int(light.iterations), float(light.error_estimate)
+    finite = all(np.all(np.isfinite(np.asarray(x))) for x in
+                 (light.fluence, light.radiosity, light.sun_fluence, light.sky_fluence))
+    reached = err <= TOL
+    ok = {df.RESULTS.successful: finite and reached and k <= MAX_ITERATIONS,
+          df.RESULTS.max_iterations_reached: finite and not reached and k == MAX_ITERATIONS,
+          df.RESULTS.stagnated: finite and not reached and k < MAX_ITERATIONS,
+          df.RESULTS.nonfinite: not finite}[code]
+    return code if ok else (f"{code.name} inconsistent (iterations {k}, error {err:.3g}, "
+                            f"finite {finite})")
+
+
+def _label(code, warned):
+    """The code's name (+ a note where the gradient's adjoint solve warned), for the record."""
+    name = code.name if isinstance(code, df.RESULTS) else code
+    return name + (" (adjoint warned)" if warned else "")
+
+
+#: furnace points (ζ, γ) whose light solve reports success with a wrong light field (see
+#: test_furnace_energy_balance_matrix): the thick-fog issue
+THICK_FOG_KNOWN_WRONG = {(1e3, 0.0), (1e6, 0.0)}
+
+#: {(scene, dtype): {point: code name}} of the last matrix runs, for reports (``-s`` prints it)
+CODES: dict = {}
+
+
+def _record(which, dtype, codes):
+    CODES[(which, dtype.name)] = codes
+    failed = {k: v for k, v in codes.items() if v != "successful"}
+    # every point returned its code (none raised); failure codes are allowed, inconsistent
+    # codes are not (checked by the caller)
+    print(f"\n{which} {dtype.name}: {len(codes) - len(failed)}/{len(codes)} successful; "
+          f"others: {failed}")
+
+
 @pytest.mark.parametrize("solver", list(SOLVERS))
 def test_open_scene_matrix(solver, dtype):
-    """fog-balls over ζ × γ (surface albedo 0.5) and surface albedo × a few fogs; values and
-    gradients at every point."""
+    """fog-balls over ζ × γ (surface albedo 0.5) and surface albedo × a few fogs; values,
+    gradients and the result code at every point."""
     c = _case(solver, "open", dtype.name)
-    p0 = c.r.params(dtype)
+    p0 = c.model.params(dtype)
     F = float(p0.sun_irradiance)
     grid = [dict(zeta=z, gamma=g, albedo=0.5) for z, g in itertools.product(VALUES, VALUES)]
     grid += [dict(zeta=z, gamma=g, albedo=a) for a in ALBEDOS
              for z, g in [(0.0, 0.0), (1.0, 1e-6), (1e3, 1.0)]]
-    bad = []
+    bad, codes = [], {}
     for kw in grid:
         p = _with(p0, **kw)
-        imgs, light, grad = c.fwd(p)
+        imgs, light, grad, warned = c.fwd(p)
         x = _images(imgs)
         t_sun = np.asarray(light.sun_fluence, np.float64) / F
         ok = (np.all(np.isfinite(x)) and x.min() >= 0
@@ -131,27 +203,57 @@ def test_open_scene_matrix(solver, dtype):
             bad.append(("values", kw, float(x.min()), float(x.max())))
         if not _finite_grad(grad):
             bad.append(("gradient", kw))
+        code = _code(light)
+        codes[tuple(kw.values())] = _label(code, warned)
+        if not isinstance(code, df.RESULTS):
+            bad.append(("result", kw, code))
+    _record("open", dtype, codes)
     assert not bad, bad
+    # the extremes push the gradient's adjoint solve past its budget somewhere, and it says
+    # so (an AdjointWarning), never silently: the sweep's adjoint goes through CheckedSolver
+    assert any(v.endswith("(adjoint warned)") for v in codes.values()), codes
 
 
 @pytest.mark.parametrize("solver", list(SOLVERS))
 def test_furnace_energy_balance_matrix(solver, dtype):
     """Closed box, emission 1, walls albedo 0.5: radiance ≤ 2 everywhere, = 2 where the fog does
-    not absorb (the solve converged there); ≥ 0 and finite always."""
+    not absorb (the solve converged there; and wherever it reports success); ≥ 0 and finite
+    always."""
     c = _case(solver, "furnace", dtype.name)
-    p0 = c.r.params(dtype)
-    bad = []
+    p0 = c.model.params(dtype)
+    geom = c.model.geometry
+    fog = np.asarray(geom.free) & (np.asarray(geom.density) > 0)  # the fog inside the box
+    bad, codes, wrong = [], {}, {}
     for z, g in itertools.product(VALUES, VALUES):
-        imgs, light, grad = c.fwd(_with(p0, zeta=z, gamma=g))
+        imgs, light, grad, warned = c.fwd(_with(p0, zeta=z, gamma=g))
         x = _images(imgs)
         if not _finite_grad(grad):
             bad.append(("gradient", z, g))
-        converged = float(light.error_estimate) <= TOL
+        code = _code(light)
+        codes[(z, g)] = _label(code, warned)
+        if not isinstance(code, df.RESULTS):
+            bad.append(("result", z, g, code))
+        converged = code == df.RESULTS.successful
         rtol = 1e-2 if dtype == jnp.float32 else 1e-3  # tolerance 1e-4 × the furnace's 1/(1-ρ)
         if not (np.all(np.isfinite(x)) and x.min() >= 0 and x.max() <= 2 * (1 + rtol)):
             bad.append(("bounds", z, g, float(x.min()), float(x.max())))
         if g == 0 and z <= 1 and not (converged and np.allclose(x, 2.0, rtol=rtol)):
-            bad.append(("balance", z, g, float(x.min()), float(x.max()), converged))
+            bad.append(("balance", z, g, float(x.min()), float(x.max()), codes[(z, g)]))
+        # a light solve that reports success has the furnace's answer: the mean radiance J =
+        # Λ/4π in the fog is 2 without absorption, at most 2 with it
+        if converged and z > 0:
+            J = np.asarray(light.fluence, np.float64)[fog] / (4 * np.pi)
+            if J.max() > 2 * (1 + rtol) or (g == 0 and not np.allclose(J, 2.0, rtol=rtol)):
+                wrong[(z, g)] = (float(J.min()), float(J.max()))
+    _record("furnace", dtype, codes)
+    print(f"furnace {dtype.name}: light wrong although successful at {wrong}")
+    # Known (the thick-fog issue, not fixed here): at ζ ≥ 1e3 a node's half-step optical depth
+    # (ζh/2 ≥ 62 at N = 8) rounds expm1(−τ) to −1, so neighbouring nodes no longer exchange
+    # light; the solve then converges, with a tiny residual, to a spurious fixed point of the
+    # rounded operator (J = 0 inside the conservative fog, 2 only at the walls) and reports
+    # success.  Any other wrong answer reported as successful fails here.
+    new = {k: v for k, v in wrong.items() if k not in THICK_FOG_KNOWN_WRONG}
+    assert not new, ("light wrong although successful", new)
     assert not bad, bad
 
 
@@ -159,10 +261,15 @@ def test_furnace_energy_balance_matrix(solver, dtype):
 def test_continuity_at_zero(solver, dtype):
     """ζ → 0 gives the no-fog image, γ → 0 the conservative one (relative to the image's max)."""
     c = _case(solver, "open", dtype.name)
-    p0 = c.r.params(dtype)
-    img = lambda **kw: _images(c.fwd(_with(p0, **kw))[0])  # noqa: E731
-    nofog = SOLVERS[solver](_open_scene().replace(fog=None), 10)
-    ref_nofog = _images(nofog(nofog.params(dtype)))
+    p0 = c.model.params(dtype)
+
+    def img(**kw):
+        imgs, light, _, _ = c.fwd(_with(p0, **kw))
+        assert int(light.result) == df.RESULTS.successful, kw
+        return _images(imgs)
+
+    nofog = _model((solver, "nofog"), lambda: SOLVERS[solver](_open_scene().replace(fog=None), 10))
+    ref_nofog = _images(nofog(nofog.params(dtype)))  # raises if its light solve failed
     scale = ref_nofog.max()
     tol = 2e-3 if dtype == jnp.float32 else 1e-4
     assert np.max(np.abs(img(zeta=1e-6, gamma=1e-6) - ref_nofog)) < tol * scale
@@ -177,27 +284,34 @@ def test_continuity_at_zero(solver, dtype):
 def test_closed_conservative_emitting_box_is_an_error():
     """Furnace with albedo 1: no steady state → SolverError naming the fix, up front."""
     scene = _furnace(albedo=1.0)
-    r = SOLVERS["sweep"](scene, 8)
+    m = SOLVERS["sweep"](scene, 8)
     with pytest.raises(SolverError, match="no steady state.*albedo below 1"):
-        r(r.params())
+        m.images(m.params())  # host-side check of concrete parameters, before any work
     with pytest.raises(SolverError, match="no steady state"):
-        r.render()
-    # absorbing fog inside: a steady state exists, and it is finite
-    p = set_param(r.params(), scene, "fog.absorption", 0.5)
-    x = _images(r(p))
-    assert np.all(np.isfinite(x)) and x.min() > 0
-    # inside a trace the check runs at run time (equinox's error_if), with the same message
+        df.render(m)
+    # inside a trace the check runs at run time (equinox's error_if), with the same message;
+    # the matrix's compiled function for the furnace (its albedo a traced parameter) serves
+    c = _case("sweep", "furnace", "float32")
+    p1 = _with(c.model.params(jnp.float32), albedo=1.0)
     with pytest.raises(Exception, match="no steady state"):
-        jax.block_until_ready(jax.jit(r._forward_impl)(r.params()))  # (the compiled forward: no host check)
+        c.fwd(p1)
+    # absorbing fog inside: a steady state exists, and it is finite
+    imgs, light, _, _ = c.fwd(set_param(p1, scene, "fog.absorption", 0.5))
+    assert int(light.result) == df.RESULTS.successful
+    x = _images(imgs)
+    assert np.all(np.isfinite(x)) and x.min() > 0
 
 
-def test_plan_guard_names_the_dropped_term():
-    """A scene without fog plans no fog; giving it fog later is a SolverError naming the fix."""
+def test_terms_guard_names_the_dropped_term():
+    """A scene without fog gets terms without fog; giving it fog later is a SolverError naming
+    the fix."""
     scene = _open_scene().replace(fog=None)
-    r = SOLVERS["sweep"](scene, 10)
+    m = _model(("sweep", "nofog"), lambda: SOLVERS["sweep"](scene, 10))
+    p = set_param(m.params(), scene, "fog.scattering", 1.0)
     with pytest.raises(SolverError, match="terms='all'"):
-        r(set_param(r.params(), scene, "fog.scattering", 1.0))
-    full = Renderer(scene, resolution=10, supersample=1,
-                    solver=SweepSolver(M=1, tol=TOL, terms="all"))
+        m.images(p)
+    with pytest.raises(SolverError, match="terms='all'"):
+        df.render(m, p)
+    full = SOLVERS["sweep"](scene, 10, terms="all")
     x = _images(full(set_param(full.params(), scene, "fog.scattering", 1.0)))
     assert np.all(np.isfinite(x)) and x.min() >= 0

@@ -1,4 +1,5 @@
-"""Voxelization (``_lattice``): node types, SURFACE shell, thin layers, density, SDF, normals."""
+"""Voxelization (``geometry._lattice``): node types, SURFACE shell, thin layers, density, SDF,
+normals."""
 
 from __future__ import annotations
 
@@ -9,9 +10,22 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from difffog._errors import SceneError
-from difffog._lattice import FREE, SOLID, SURFACE, Lattice, voxelize
-from difffog._scene import Box, Domain, Fog, Mesh, OpenBox, Quad, Scene, Sphere, Torus
+from difffog import (
+    Box,
+    Domain,
+    Fog,
+    Lattice,
+    Mesh,
+    OpenBox,
+    Quad,
+    Scene,
+    SceneError,
+    Sphere,
+    Torus,
+    load_scene,
+    voxelize,
+)
+from difffog.geometry._lattice import FREE, SOLID, SURFACE
 
 SHARED = "/work/shared/scenes"
 UNIT = Domain((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
@@ -37,8 +51,10 @@ def load_shared_mesh(fname, translate):
 
     m = trimesh.load(os.path.join(SHARED, "meshes", fname), force="mesh")
     t = np.asarray(translate, float)
+    # a shape name has no dots: "ring.obj" -> "ring"
+    name = os.path.splitext(fname)[0]
     return Mesh(
-        name=fname, path=fname, translate=tuple(t), vertices=m.vertices + t, faces=m.faces
+        name=name, path=fname, translate=tuple(t), vertices=m.vertices + t, faces=m.faces
     ), m
 
 
@@ -551,8 +567,6 @@ SHARED_SCENES = sorted(glob.glob(os.path.join(SHARED, "*.toml")))
 
 @pytest.mark.parametrize("path", SHARED_SCENES, ids=[os.path.basename(p) for p in SHARED_SCENES])
 def test_shared_scenes(path):
-    from difffog._scene_io import load_scene
-
     sc = load_scene(path)
     lat = voxelize(sc, 32, 3)
     assert ((lat.sdf < 0) == (lat.node_type == SOLID)).all()
@@ -572,8 +586,6 @@ def test_shared_scenes(path):
 @pytest.mark.slow
 @pytest.mark.parametrize("path", SHARED_SCENES, ids=[os.path.basename(p) for p in SHARED_SCENES])
 def test_shared_scenes_128(path):
-    from difffog._scene_io import load_scene
-
     sc = load_scene(path)
     lat = voxelize(sc, 128, 5)
     assert ((lat.sdf < 0) == (lat.node_type == SOLID)).all()

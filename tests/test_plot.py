@@ -17,9 +17,9 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from difffog import DifffogError, load_scene, plot, voxelize  # noqa: E402
-from difffog._cli import _tonemap as cli_tonemap  # noqa: E402
-from difffog._lattice import FREE, SOLID, SURFACE  # noqa: E402
+from difffog import DifffogError, _image, load_scene, plot, voxelize  # noqa: E402
+from difffog._output import save_image  # noqa: E402
+from difffog.geometry._lattice import FREE, SOLID, SURFACE  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -58,12 +58,28 @@ def test_import_difffog_does_not_import_matplotlib():
 
 # --- tone map ---------------------------------------------------------------------------------
 
-def test_tonemap_of_one_image_is_the_command_lines():
+def _cli_tonemap(img):
+    """The command line's PNG tone map as 0.1 wrote it: 99.5th percentile, clip, gamma 2.2."""
+    scale = float(np.percentile(img, 99.5)) or 1.0
+    x = np.clip(img / scale, 0.0, 1.0) ** (1 / 2.2)
+    return (x * 255 + 0.5).astype(np.uint8)
+
+
+def test_tonemap_of_one_image_is_the_command_lines(tmp_path):
+    from skimage import io as skio
+
     img = _images()["bright"].astype(np.float32)
     out, scale = plot.tonemap(img)
     assert out.dtype == np.uint8
-    np.testing.assert_array_equal(out, cli_tonemap(img))
+    np.testing.assert_array_equal(out, _cli_tonemap(img))
     assert scale == pytest.approx(np.percentile(img, 99.5))
+    # the PNG the command line writes (render, fit) is this tone map
+    save_image(tmp_path, "x", img)
+    np.testing.assert_array_equal(skio.imread(tmp_path / "x.png"), out)
+    np.testing.assert_array_equal(np.load(tmp_path / "x.npy"), img)
+    # difffog.plot re-exports the NumPy-only image functions
+    assert plot.tonemap is _image.tonemap and plot.image_errors is _image.image_errors
+    assert plot.exposure is _image.exposure
 
 
 def test_tonemap_shares_one_scale_across_images():
@@ -86,10 +102,14 @@ def test_tonemap_edge_cases():
     img = np.array([[np.nan, 1.0], [2.0, np.inf]])
     out, s = plot.tonemap(img, scale=2.0, dtype="float")
     np.testing.assert_allclose(out, [[0.0, 0.5 ** (1 / 2.2)], [1.0, 1.0]])
-    with pytest.raises(DifffogError, match="dtype"):
+    with pytest.raises(DifffogError, match="^tonemap: dtype must be 'uint8' or 'float'"):
         plot.tonemap(img, dtype="uint16")
-    with pytest.raises(DifffogError, match="scale must be a positive"):
+    with pytest.raises(DifffogError, match="^tonemap: scale must be a positive"):
         plot.tonemap(img, scale=0.0)
+    with pytest.raises(DifffogError, match=r"^percentile must be in \(0, 100\]"):
+        plot.tonemap(img, percentile=0.0)
+    with pytest.raises(DifffogError, match="^no images given"):
+        plot.tonemap([])
 
 
 # --- image grid -------------------------------------------------------------------------------
@@ -180,6 +200,12 @@ def test_error_map_absolute_and_bad_input():
         plot.error_map(img, np.ones((3, 3)))
     with pytest.raises(DifffogError, match="mean radiance is not positive"):
         plot.error_map(img, np.zeros((4, 4)))
+    # image_errors (difffog._image) says what is wrong without a "difffog.plot:" prefix
+    with pytest.raises(DifffogError,
+                       match=r"^image \(4, 4\) and reference \(3, 3\) differ in shape"):
+        _image.image_errors(img, np.ones((3, 3)))
+    with pytest.raises(DifffogError, match="^the reference's mean radiance is not positive"):
+        _image.image_errors(img, np.zeros((4, 4)))
 
 
 # --- lattice slices ---------------------------------------------------------------------------
@@ -239,7 +265,7 @@ def test_lattice_slices_reject_bad_requests(lattice):
         plot.lattice_slices(lat, axis="w")
     with pytest.raises(DifffogError, match="outside the lattice"):
         plot.lattice_slices(lat, index=lat.shape[2])
-    with pytest.raises(DifffogError, match="renderer.lattice"):
+    with pytest.raises(DifffogError, match="model.lattice"):
         plot.lattice_slices(lat, np.zeros((2, 2, 2)))
 
 

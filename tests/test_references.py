@@ -1,38 +1,33 @@
-"""The sweep solver against an independent renderer and its slab convergence (DESIGN.md ladder 3-4).
+"""The sweep solver against an independent renderer and its slab convergence (docs/design.md
+ladder 3-4).
 
-References: Mitsuba 3 images of the benchmark scenes and the adding-doubling slab table under
-``/work/shared/references`` (skipped when absent).  The bounds are what
+References: Mitsuba 3 images of the benchmark scenes and the adding-doubling slab table,
+shipped with the package (:mod:`difffog.study.references`).  The bounds are what
 ``benchmarks/validate_references.py`` and ``benchmarks/slab_convergence.py`` measured, with a
 margin; ``benchmarks/results/references.md`` and ``slab_convergence.md`` hold the full tables.
 """
 
-import csv
 import functools
-import json
 import math
-from pathlib import Path
 
-import jax
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from difffog import Params, Renderer, SweepSolver, load_scene
-from difffog._validation import slab_problem, slab_reflectance
-
-REFS = Path(__file__).resolve().parents[2] / "shared" / "references"
-
-
-def _need_refs():
-    if not REFS.exists():
-        pytest.skip(f"shared references not available ({REFS})")
+import difffog as df
+from difffog import Params, SweepSolver, load_scene
+from difffog.study import references
+from difffog.study._slab import slab_problem, slab_reflectance
 
 
 def _reference(scene: str, camera: str):
-    img = np.load(REFS / scene / f"{camera}.npy").astype(np.float64)
-    with open(REFS / scene / f"{camera}_stats.json") as f:
-        noise = float(json.load(f)["ref_noise_rmse"])
-    return img, noise
+    ref = references.reference(scene, camera)
+    assert ref is not None, (f"no shipped reference for {scene}/{camera} in "
+                             f"{references.references_dir()}")
+    img, noise = ref
+    assert noise is not None, f"{scene}/{camera}: the shipped reference has no noise estimate"
+    return np.asarray(img, np.float64), float(noise)
 
 
 def _errors(img, scene: str, camera: str):
@@ -47,10 +42,19 @@ def _errors(img, scene: str, camera: str):
 
 @functools.lru_cache(maxsize=None)
 def _render(scene: str, N: int, M: int, tol: float):
-    r = Renderer(load_scene(scene), resolution=N, solver=SweepSolver(M=M, tol=tol))
-    p = r.params()
-    imgs = r.images(r.solve(p), p)
-    return {k: np.asarray(v, np.float64) for k, v in imgs.items()}
+    model = df.SweepModel(load_scene(scene), resolution=N, solver=SweepSolver(M=M, tol=tol))
+    out = df.render(model)  # raises if the light solve did not converge
+    assert out.result == df.RESULTS.successful
+    assert int(out.light.result) == df.RESULTS.successful
+    return {k: np.asarray(v, np.float64) for k, v in out.images.items()}
+
+
+def test_references_are_shipped():
+    """Every benchmark scene's reference image, with its noise estimate, and the slab table."""
+    assert (references.references_dir() / "slab_adding_doubling.csv").is_file()
+    for scene, camera in [("furnace", "inside"), *MEASURED]:
+        img, noise = _reference(scene, camera)
+        assert img.ndim == 2 and np.all(np.isfinite(img)) and noise > 0
 
 
 # ---------------------------------------------------------------- 3. furnace (fast)
@@ -67,7 +71,6 @@ def test_furnace_image_is_ten_and_matches_mitsuba():
     img = _render("furnace", 16, 2, 1e-4)["inside"]
     assert np.all(np.isfinite(img))
     assert np.max(np.abs(img / 10.0 - 1.0)) < FURNACE_MAX_DEV
-    _need_refs()
     bias, rel, rel_corr = _errors(img, "furnace", "inside")
     assert abs(bias) < FURNACE_BIAS, bias
     assert rel < FURNACE_REL_RMSE, rel
@@ -89,7 +92,6 @@ MEASURED = {
 @pytest.mark.slow
 @pytest.mark.parametrize("scene,camera", list(MEASURED))
 def test_scene_against_mitsuba(scene, camera):
-    _need_refs()
     img = _render(scene, 64, 3, 1e-3)[camera]
     bias, _, rel_corr = _errors(img, scene, camera)
     rmse_bound, bias_measured = MEASURED[(scene, camera)]
@@ -98,17 +100,22 @@ def test_scene_against_mitsuba(scene, camera):
 
 
 # ---------------------------------------------------------------- 4. slab convergence (slow)
+@eqx.filter_jit
+def _solve_jit(solver, geom, params):
+    return solver.solve(geom, params)
+
+
 def _slab_errors(albedo, tau, n_fog, M):
-    with open(REFS / "slab_adding_doubling.csv", newline="") as f:
-        R_ref, T_ref = next(
-            (float(r["R_total"]), float(r["T_total"])) for r in csv.DictReader(f)
-            if float(r["albedo"]) == albedo and float(r["tau"]) == tau and float(r["g"]) == 0
-            and r["illumination"] == "diffuse"
-        )
+    R_ref, T_ref = next(
+        (r["R_total"], r["T_total"]) for r in references.slab_table()
+        if r["albedo"] == albedo and r["tau"] == tau and r["g"] == 0
+        and r["illumination"] == "diffuse"
+    )
     scene, lat, margin = slab_problem(tau, albedo, n_fog, M)
     solver = SweepSolver(M=M, max_iterations=5000, tol=1e-8)
     params = Params.from_scene(scene, jnp.float64)
-    light = jax.jit(solver.solve)(solver.prepare(scene, lat), params)
+    light = _solve_jit(solver, solver.prepare(scene, lat), params)
+    assert int(light.result) == df.RESULTS.successful
     sigma = tau * np.asarray(lat.density, np.float64)[0, 0]  # g = 0: σ_t = τ per unit length
     R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h, sky=1.0)
     return R / R_ref - 1.0, T / T_ref - 1.0
@@ -117,7 +124,6 @@ def _slab_errors(albedo, tau, n_fog, M):
 @pytest.mark.slow
 def test_slab_error_falls_with_resolution(x64):
     """a = 0.9, τ = 1, M = 3: measured R −0.69% → −0.40%, T +0.52% → +0.38% (N = 16 → 64)."""
-    _need_refs()
     eR16, eT16 = _slab_errors(0.9, 1.0, 16, 3)
     eR64, eT64 = _slab_errors(0.9, 1.0, 64, 3)
     assert abs(eR64) < abs(eR16) and abs(eT64) < abs(eT16), (eR16, eT16, eR64, eT64)

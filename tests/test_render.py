@@ -1,31 +1,17 @@
-"""The whole pipeline: one solve for all cameras, images, and gradients of an image loss."""
+"""The whole pipeline's gradient: one light solve for all cameras, images, and the gradient of
+an image loss against finite differences over every kind of parameter.
 
-import dataclasses
+(Images, ``df.render``, its timings and result, and a three-parameter gradient check of both
+forward models are in test_interface.py.)
+"""
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
-from difffog import Renderer, SweepSolver, get_param, load_scene, set_param
-
-
-def _small_scene():
-    scene = load_scene("fog-balls", ["shape.walls.thickness=0.1"])  # > one voxel at N = 12
-    cams = tuple(dataclasses.replace(c, resolution=(12, 10)) for c in scene.cameras)
-    return scene.replace(cameras=cams)
-
-
-def test_render_returns_every_camera_with_schema_shapes():
-    r = Renderer(_small_scene(), resolution=12, solver=SweepSolver(M=2, tol=1e-3), supersample=1)
-    out = r.render()
-    assert set(out.images) == {"top", "oblique"}
-    for img in out.images.values():
-        assert img.shape == (10, 12) and img.dtype == np.float32  # (height, width)
-        assert np.all(np.isfinite(img)) and img.min() >= 0
-    assert out.settings["resolution"] == 12
-    assert out.timings["solve_s"] > 0 and out.timings["render_s"] > 0
-
+import difffog as df
+from difffog import get_param, set_param
+from helpers import build_model, small_scene
 
 PATHS = ["fog.scattering", "fog.absorption", "shape.walls.albedo", "shape.ball-mid.albedo",
          "sun.irradiance", "sky.radiance"]
@@ -33,14 +19,15 @@ PATHS = ["fog.scattering", "fog.absorption", "shape.walls.albedo", "shape.ball-m
 
 @pytest.mark.slow  # one more FD check of the whole chain (sweep, camera, fit have theirs)
 def test_image_loss_gradient_matches_finite_differences(x64):
-    scene = _small_scene()
-    solver = SweepSolver(M=2, max_iterations=1000, tol=1e-12, adjoint_rtol=1e-11)
-    r = Renderer(scene, resolution=12, solver=solver, supersample=1)
-    p0 = r.params(jnp.float64)
-    target = jax.tree.map(lambda a: 0.9 * a, r(p0))
+    scene = small_scene()
+    m = build_model("sweep", scene, max_iterations=1000, tol=1e-12, adjoint_rtol=1e-11)
+    p0 = m.params(jnp.float64)
+    light = jax.jit(lambda m, p: m.light(p))(m, p0)
+    assert int(light.result) == df.RESULTS.successful
+    target = jax.tree.map(lambda a: 0.9 * a, m(p0))  # m(p) raises if a light solve failed
 
     def loss(p):
-        imgs = r(p)
+        imgs = m(p)
         return sum(jnp.sum((imgs[k] - target[k]) ** 2) for k in imgs)
 
     g = jax.jit(jax.grad(loss))(p0)

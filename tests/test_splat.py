@@ -1,18 +1,23 @@
 """The splat solver (Zhang & Crawfis): exact Beer–Lambert shadow buffer, the forward-scattering
-recurrence, polygon shading conventions, errors, gradients against finite differences."""
+recurrence, polygon shading conventions, errors, gradients against finite differences.
 
-import json
+The interface every model shares (images, render, render_batch, the light at points, a
+gradient, a short fit) is tested in ``test_interface.py``; here only what is the splat's own."""
+
+import dataclasses
 import math
-from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import difffog as df
-from difffog._scene import Camera, Domain, Fog, Quad, Scene, Sky, Sun
-from difffog._splat import _hg_total_forward, _trilinear_np_jax
+from difffog import Camera, Domain, Fog, Quad, Scene, Sky, Sun
+from difffog._numerics import trilinear
+from difffog.forward.splat._pass import _hg_total_forward
+from difffog.study.references import reference
 
 ATT_ONLY = dict(forward_scatter=False, back_scatter=False, soft_shadows=False, similarity=False)
 
@@ -32,34 +37,70 @@ def slab_scene(zeta=3.0, gamma=1.0, g=0.0, zenith=30.0, z0=0.3, z1=0.6, sky=0.0,
         shapes=tuple(shapes), cameras=(top,))
 
 
-def test_beer_lambert_through_a_homogeneous_slab():
+@eqx.filter_jit
+def _light(model, params):
+    return model.light(params)
+
+
+def light_of(model, params=None) -> df.SheetLight:
+    """The model's sheet light (jitted), at the scene's parameters by default."""
+    return _light(model, model.params() if params is None else params)
+
+
+def streams_at(model, points, params=None):
+    """(direct, forward, back) at world points, as float64 NumPy arrays."""
+    d, f, b = light_of(model, params).streams_at(jnp.asarray(points))
+    return tuple(np.asarray(x, np.float64) for x in (d, f, b))
+
+
+# ------------------------------------------------------------------------------ shared models
+@pytest.fixture(scope="module")
+def slab_models():
+    """Attenuation-only splats of the slab at 2 and 16 Gauss points per footprint segment."""
+    sc = slab_scene()
+    return {q: df.SplatModel(sc, resolution=20, quadrature=q, **ATT_ONLY) for q in (2, 16)}
+
+
+@pytest.fixture(scope="module")
+def cloud_alone():
+    """The cloud alone (no ground, no airplane), its cameras at 32 × 24 pixels."""
+    sc = df.load_scene("cloud-plane").replace(shapes=())
+    return sc.replace(cameras=tuple(_small(c, (32, 24)) for c in sc.cameras))
+
+
+@pytest.fixture(scope="module")
+def cloud_attenuation(cloud_alone):
+    """Attenuation-only splat of the cloud, top camera."""
+    return df.SplatModel(cloud_alone, resolution=24, quadrature=4, cameras=["top"], **ATT_ONLY)
+
+
+# ------------------------------------------------------------------------------------- tests
+def test_beer_lambert_through_a_homogeneous_slab(slab_models):
     # N = 20: the slab faces z = 0.3, 0.6 fall halfway between nodes, so the tent-kernel
     # reconstruction integrates to exactly 0.3 of fog across the slab
     # (a kink of the tent reconstruction inside a footprint segment is the only quadrature
     # error: it falls as the Gauss–Legendre points per segment grow)
-    sc = slab_scene()
     # below the slab by more than a sheet: the light there has crossed whole sheets of fog
     pts = np.array([[0.5, 0.5, 0.2], [0.45, 0.55, 0.1], [0.6, 0.4, 0.15]])
     exact = 2.0 * math.exp(-4.0 * 0.3 / math.cos(math.radians(30.0)))
     errs = []
     for q in (2, 16):
-        r = df.SplatRenderer(sc, resolution=20, quadrature=q, **ATT_ONLY)
-        d, s, b = r.light_at(pts)
+        d, s, b = streams_at(slab_models[q], pts)
         errs.append(np.abs(np.log(d / exact)).max())  # optical-depth error
         assert np.all(s == 0) and np.all(b == 0)  # attenuation only
     assert errs[1] < 3e-4 and errs[1] < errs[0] < 2e-2
     # above the slab: the full sun
-    d, _, _ = r.light_at(np.array([[0.5, 0.5, 0.8]]))
+    d, _, _ = streams_at(slab_models[16], np.array([[0.5, 0.5, 0.8]]))
     np.testing.assert_allclose(d, 2.0, rtol=1e-6)
 
 
-def test_beer_lambert_through_the_cloud_grid_matches_a_ray_march():
-    sc = df.load_scene("cloud-plane")
-    sc = sc.replace(shapes=())  # the cloud alone
-    r = df.SplatRenderer(sc, resolution=24, quadrature=4, cameras=["top"], **ATT_ONLY)
+def test_beer_lambert_through_the_cloud_grid_matches_a_ray_march(cloud_alone,
+                                                                 cloud_attenuation):
+    sc, m = cloud_alone, cloud_attenuation
     # points where a texel's light ray enters a sheet: there the buffer holds exactly the light
     # that crossed the sheets before (no interpolation between rays or within a sheet)
-    (_, _, _), plan, info = r.light_buffers()
+    plan = m.passes[0]
+    info = m.settings()["passes"]["top"]
     gm = info["geometry"]
     s, a, b, L = (np.asarray(gm[k]) for k in ("s", "a", "b", "L"))
     rng = np.random.default_rng(0)
@@ -70,15 +111,15 @@ def test_beer_lambert_through_the_cloud_grid_matches_a_ray_march():
     v = gm["v_min"] + (j + 0.5) * info["texel"]
     z = gm["z_lo"] + k * gm["dz"]
     pts = u[:, None] * a + v[:, None] * b + (z / float(s @ L))[:, None] * L
-    d, _, _ = r.light_at(pts)
+    d, _, _ = streams_at(m, pts)
     tau_splat = -np.log(d / sc.sun.irradiance)
     # direct march of the same trilinear density towards the sun, 2000 steps per unit length
-    lat = r.lattice
+    lat = m.lattice
     sun = np.asarray(sc.sun.direction)
     ts = (np.arange(4000) + 0.5) / 2000.0
     P = pts[:, None, :] + ts[None, :, None] * sun
-    dens = np.asarray(_trilinear_np_jax(jnp.asarray(lat.density), jnp.asarray(lat.origin),
-                                        lat.h, jnp.asarray(P, jnp.float32)))
+    dens = np.asarray(trilinear(jnp.asarray(lat.density), jnp.asarray(lat.origin), lat.h,
+                                jnp.asarray(P, jnp.float32)))
     tau_march = sc.fog.extinction * dens.sum(1) / 2000.0
     assert (tau_march > 3.0).sum() >= 10  # a good number lie deep in the cloud's shadow
     # quadrature of the tent kernel's kinks (4 Gauss points per segment): ≤ 0.3% measured
@@ -90,9 +131,11 @@ def test_forward_scattering_recurrence_conserves_the_forward_fraction():
     # T_k + f_A(1 − T_k) of its light (eq. 3 with a kernel that sums to f_A).  Sun at the
     # zenith and a camera looking down: horizontal sheets, each laterally uniform
     sc = slab_scene(zeta=5.0, gamma=0.0, g=0.85, zenith=0.0)
-    r = df.SplatRenderer(sc, resolution=16, back_scatter=False, soft_shadows=False,
-                         similarity=False)
-    (Fd, Fs, B), plan, info = r.light_buffers()
+    m = df.SplatModel(sc, resolution=16, back_scatter=False, soft_shadows=False,
+                      similarity=False)
+    light = light_of(m)
+    Fd, Fs = light.direct[0], light.forward[0]
+    plan = m.passes[0]
     K = plan.K
     D = np.asarray(plan.light_D[:K], np.float64)
     i, j = np.array(Fd.shape[1:]) // 2
@@ -105,14 +148,13 @@ def test_forward_scattering_recurrence_conserves_the_forward_fraction():
     assert abs(fa - 0.9641) < 1e-3  # HG g = 0.85: 96.4% of the phase in the forward hemisphere
 
 
-def test_scattering_switches_order_the_brightness():
+def test_scattering_switches_order_the_brightness(cloud_alone):
     # the paper's Figs. 1, 2, 4: attenuation only < + forward < + forward and back
-    sc = df.load_scene("cloud-plane").replace(shapes=())
     means = []
     for kw in (ATT_ONLY, dict(back_scatter=False, soft_shadows=False, similarity=False),
                dict(soft_shadows=False, similarity=False)):
-        r = df.SplatRenderer(sc, resolution=16, cameras=["top"], **kw)
-        means.append(float(r()["top"].mean()))
+        m = df.SplatModel(cloud_alone, resolution=16, cameras=["top"], **kw)
+        means.append(float(m(m.params())["top"].mean()))
     assert means[0] < means[1] < means[2]
 
 
@@ -123,8 +165,8 @@ def test_lit_ground_pixel_is_lambertian():
     sc = slab_scene(z0=0.7, z1=0.8, sky=0.2, shapes=(ground,)).replace(
         fog=Fog(scattering=3.0, absorption=1.0, region=((0.4, 0.4, 0.7), (0.5, 0.5, 0.8))))
     for soft in (False, True):
-        r = df.SplatRenderer(sc, resolution=16, soft_shadows=soft)
-        img = np.asarray(r()["top"])
+        m = df.SplatModel(sc, resolution=16, soft_shadows=soft)
+        img = np.asarray(m(m.params())["top"])
         expect = 0.6 / math.pi * (2.0 * math.cos(math.radians(30.0)) + math.pi * 0.2)
         # the corner pixel (row 0 = +y, col 0 = −x) lies away from the fog box and its shadow
         assert img[0, 0] == pytest.approx(expect, rel=1e-4)
@@ -132,41 +174,70 @@ def test_lit_ground_pixel_is_lambertian():
 
 def test_scenes_the_splat_cannot_handle_raise_scene_errors():
     with pytest.raises(df.SceneError, match="no \\[sun\\]"):
-        df.SplatRenderer(df.load_scene("furnace"), resolution=8)
+        df.SplatModel(df.load_scene("furnace"), resolution=8)
     with pytest.raises(df.SceneError, match="periodic-xy"):
-        df.SplatRenderer(df.load_scene("slab"), resolution=8)
-    with pytest.raises(df.SceneError, match="sheets"):
-        df.SplatRenderer(df.load_scene("cloud-plane"), resolution=8, sheets=0)
+        df.SplatModel(df.load_scene("slab"), resolution=8)
+    with pytest.raises(df.SceneError, match="^splat: sheets"):
+        df.SplatModel(df.load_scene("cloud-plane"), resolution=8, sheets=0)
+    # the same checks through the registry
+    with pytest.raises(df.SceneError, match="^splat: sheets"):
+        df.forward_model(df.load_scene("cloud-plane"), "splat", accuracy=None, resolution=8,
+                         sheets=0)
 
 
-def test_render_returns_images_and_plan_summary():
+def test_render_returns_images_and_pass_summary():
     sc = df.load_scene("translucent-cube")
-    r = df.SplatRenderer(sc, resolution=16, sheets=12, soft_shadows=False)
-    out = r.render()
+    sc = sc.replace(cameras=(_small(sc.cameras[0], (32, 32)), _small(sc.cameras[1], (40, 30))))
+    m = df.forward_model(sc, "splat", accuracy=None, resolution=16, sheets=12,
+                         soft_shadows=False)
+    assert isinstance(m, df.SplatModel)
+    out = df.render(m)
     assert set(out.images) == {"top", "oblique"}
-    assert out.images["oblique"].shape == (120, 160) and out.images["top"].dtype == np.float32
-    assert out.light["top"]["sheets"] == 12
-    regions = out.light["top"]["regions"]
+    assert out.images["oblique"].shape == (30, 40) and out.images["top"].dtype == np.float32
+    assert isinstance(out.light, df.SheetLight)
+    # one pass per camera, in camera order, each with its 12 sheets
+    assert len(m.passes) == 2 and [p.K for p in m.passes] == [12, 12]
+    assert [int(x.shape[0]) for x in out.light.direct] == [12, 12]
+    passes = out.settings["passes"]
+    assert passes == m.settings()["passes"]
+    assert passes["top"]["sheets"] == 12
+    regions = passes["top"]["regions"]
     assert regions["inside"] > 0 and regions["behind"] > 0  # the ring / the ground
-    assert {"render_compile_s", "render_s", "prepare_s"} <= set(out.timings)
-    assert r.settings()["solver"] == "splat"
+    assert {"light_compile_s", "light_s", "images_compile_s", "images_s", "voxelize_s",
+            "prepare_s"} <= set(out.timings)
+    assert m.settings()["solver"] == "splat"
 
 
-@pytest.mark.parametrize("similarity", [True, pytest.param(False, marks=pytest.mark.slow)])
-def test_gradients_match_finite_differences(x64, similarity):
+def _small(c, size=(12, 10)):
+    return dataclasses.replace(c, resolution=size)
+
+
+@pytest.mark.parametrize("similarity, cameras", [
+    (True, ("top",)),
+    pytest.param(True, None, marks=pytest.mark.slow),  # + the perspective camera
+    pytest.param(False, None, marks=pytest.mark.slow),
+])
+def test_gradients_match_finite_differences(x64, similarity, cameras):
+    # every parameter kind: fog, both shapes' albedos, the sun and the sky (the top camera
+    # sees the ground, the airplane and the sky's light on both)
     sc = df.load_scene("cloud-plane", ["fog.scattering=20"])
     sc = sc.replace(cameras=tuple(_small(c) for c in sc.cameras))
-    r = df.SplatRenderer(sc, resolution=10, sheets=10, similarity=similarity)
-    p0 = r.params(jnp.float64)
-    w = {n: jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, (c.height, c.width)))
-         for n, c in zip([c.name for c in r.cameras], r.cameras)}
+    m = df.SplatModel(sc, resolution=10, sheets=10, similarity=similarity, cameras=cameras)
+    p0 = m.params(jnp.float64)
+    w = {c.name: jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, (c.height, c.width)))
+         for c in m.cameras}
 
     def loss(p):
-        imgs = r(p)
+        imgs = m(p)
         return sum(jnp.sum(w[n] * imgs[n]) for n in imgs)
 
-    grad = jax.jit(jax.grad(loss))(p0)
-    f = jax.jit(loss)
+    # one compiled function for the gradient and the finite differences' values
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    grad = value_and_grad(p0)[1]
+
+    def f(p):
+        return value_and_grad(p)[0]
+
     paths = ["fog.scattering", "fog.absorption", "fog.g", "shape.ground.albedo",
              "shape.airplane.albedo", "sun.irradiance", "sky.radiance"]
     for path in paths:
@@ -175,27 +246,20 @@ def test_gradients_match_finite_differences(x64, similarity):
         fd = (f(df.set_param(p0, sc, path, x + eps)) - f(df.set_param(p0, sc, path, x - eps))) / (
             2 * eps)
         g = float(df.get_param(grad, sc, path))
+        assert abs(g) > 1e-3, path  # the camera sees what this parameter changes
         assert g == pytest.approx(float(fd), rel=1e-5, abs=1e-8), path
-
-
-def _small(c):
-    import dataclasses
-
-    return dataclasses.replace(c, resolution=(12, 10))
 
 
 @pytest.mark.parametrize("name", ["fog-balls", "ring-box"])
 def test_culled_ray_casting_is_bit_identical_to_brute_force(name):
     # the bounding-volume hierarchy only skips faces a ray cannot hit first: same t, face and
     # barycentrics, bit for bit, as testing every ray against every face (ties: lowest face)
-    from difffog._camera import camera_rays
-    from difffog._raster import _cast_rays_brute, cast_rays, scene_triangles
+    from difffog.forward._camera import camera_rays
+    from difffog.geometry._rays import _cast_rays_brute, cast_rays, scene_triangles
 
     sc = df.load_scene(name)
     tris = scene_triangles(sc)
     rng = np.random.default_rng(0)
-    import dataclasses
-
     o, d = camera_rays(dataclasses.replace(sc.cameras[1], resolution=(24, 18)), 1)
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     # random rays from inside and around the domain, some along the axes and some starting on
@@ -218,11 +282,11 @@ def test_culled_ray_casting_is_bit_identical_to_brute_force(name):
 
 # ---------------------------------------------------------------- against Mitsuba 3 (slow)
 # The default splat (similarity-scaled sheets, forward + back scattering, one sheet per voxel,
-# N = 64) against the shared Mitsuba 3 references: relative RMSE with the reference noise removed
-# in quadrature and the bias of the mean, as `benchmarks/validate_splat.py` measured them
+# N = 64) against the Mitsuba 3 references shipped with the package
+# (``difffog.study.references``): relative RMSE with the reference noise removed in quadrature
+# and the bias of the mean, as `benchmarks/validate_splat.py` measured them
 # (`benchmarks/results/splat_references.md`), with a margin of one point.  The render is
 # deterministic; the margin covers XLA/CPU differences, not noise.
-REFS = Path(__file__).resolve().parents[2] / "shared" / "references"
 SPLAT_VS_MITSUBA = {  # (scene, camera): (rel. RMSE corr. bound, |bias| bound); measured
     ("cloud-plane", "top"): (0.143, 0.019),  # 0.1328, -0.0094
     ("cloud-plane", "oblique"): (0.377, 0.066),  # 0.3670, -0.0556
@@ -234,13 +298,13 @@ SPLAT_VS_MITSUBA = {  # (scene, camera): (rel. RMSE corr. bound, |bias| bound); 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["cloud-plane", "translucent-cube"])
 def test_default_splat_matches_the_monte_carlo_references(name):
-    if not REFS.exists():
-        pytest.skip(f"shared references not available ({REFS})")
-    images = df.SplatRenderer(df.load_scene(name), resolution=64).render().images
+    images = df.render(df.SplatModel(df.load_scene(name), resolution=64)).images
     for cam, img in images.items():
-        ref = np.load(REFS / name / f"{cam}.npy").astype(np.float64)
-        with open(REFS / name / f"{cam}_stats.json") as f:
-            noise = float(json.load(f)["ref_noise_rmse"])
+        got = reference(name, cam)
+        assert got is not None, (name, cam)  # shipped with the package: never missing
+        ref, noise = got
+        ref = ref.astype(np.float64)
+        noise = float(noise)
         img = np.asarray(img, np.float64)
         assert img.shape == ref.shape
         mean = ref.mean()

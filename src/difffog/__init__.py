@@ -1,48 +1,79 @@
 """difffog: a differentiable JAX solver for inverse fog estimation.
 
-Pipeline: ``load_scene`` (scene file → :class:`Scene`) → ``voxelize`` (→ :class:`Lattice`) →
-a light solver (``SweepSolver``) → :class:`LightField` → cameras → images; :func:`render` runs
-it all with one light solve for every camera, :class:`Renderer` keeps the host-side work for
-repeated, differentiable renders.  :class:`SplatRenderer` is the fast, approximate alternative
-(Zhang & Crawfis' sheet-based splatting) for forward-scattering clouds and polygon meshes.
+The pipeline, one sub-package each: ``scene`` (the description: files, Python objects,
+parameters) → ``geometry`` (lattice, directions, rays) → ``forward`` (the forward models:
+``sweep`` and ``splat`` behind one interface, cameras) → ``fit`` (inverse estimation) →
+``cli`` (the command line); ``study`` is the speed–accuracy study and the shipped references;
+``plot`` draws.
+
+    scene = difffog.load_scene("fog-balls")            # or difffog.Scene(...) in Python
+    model = difffog.forward_model(scene, "sweep")        # or "splat"; accuracy="draft"|"high"
+    images = model(model.params())                       # {camera: (H, W)}, jit/vmap/grad-able
+    out = difffog.render(model)                          # timed, checked, with the light
+    result = difffog.fit(scene, targets, ["fog.scattering"])
 """
 
-from ._batch import (
+from ._errors import (
+    AdjointWarning as AdjointWarning,
+    DifffogError as DifffogError,
+    SceneError as SceneError,
+    SolverError as SolverError,
+)
+from ._progress import (
+    AbstractProgressMeter as AbstractProgressMeter,
+    NoProgress as NoProgress,
+    TextProgress as TextProgress,
+    TqdmProgress as TqdmProgress,
+)
+from ._results import RESULTS as RESULTS
+from .fit._driver import fit as fit, fit_batch as fit_batch
+from .fit._result import FitResult as FitResult, IdentifiabilityWarning as IdentifiabilityWarning
+from .fit._unknowns import Unknown as Unknown
+from .forward._model import (
+    AbstractForwardModel as AbstractForwardModel,
+    AbstractLight as AbstractLight,
+    Rendered as Rendered,
     map_batch as map_batch,
+    render as render,
     render_batch as render_batch,
     stack_params as stack_params,
     unstack_params as unstack_params,
 )
-from ._directions import DirectionSet as DirectionSet, direction_set as direction_set
-from ._errors import DifffogError as DifffogError, SceneError as SceneError, SolverError as SolverError
-from ._fit import (
-    FitResult as FitResult,
-    IdentifiabilityWarning as IdentifiabilityWarning,
-    Unknown as Unknown,
-    fit as fit,
-    fit_batch as fit_batch,
+from .forward._registry import SOLVERS as SOLVERS, forward_model as forward_model
+from .forward.splat._model import SheetLight as SheetLight, SplatModel as SplatModel
+from .forward.sweep._lightfield import LightField as LightField
+from .forward.sweep._model import SweepModel as SweepModel
+from .forward.sweep._solver import SweepSolver as SweepSolver
+from .geometry._directions import DirectionSet as DirectionSet, direction_set as direction_set
+from .geometry._lattice import Lattice as Lattice, voxelize as voxelize
+from .scene._description import (
+    Box as Box,
+    Camera as Camera,
+    Domain as Domain,
+    Fog as Fog,
+    Mesh as Mesh,
+    OpenBox as OpenBox,
+    Quad as Quad,
+    Scene as Scene,
+    Sky as Sky,
+    Sphere as Sphere,
+    Sun as Sun,
+    Torus as Torus,
 )
-from ._lattice import Lattice as Lattice, voxelize as voxelize
-from ._lightfield import LightField as LightField
-from ._params import (
+from .scene._params import (
     Params as Params,
     get_param as get_param,
     param_paths as param_paths,
     set_param as set_param,
 )
-from ._plan import Plan as Plan, plan as plan
-from ._render import Rendered as Rendered, Renderer as Renderer, render as render
-from ._scene import Camera as Camera, Scene as Scene
-from ._scene_io import (
+from .scene._toml import (
     apply_overrides as apply_overrides,
     builtin_scenes as builtin_scenes,
     load_scene as load_scene,
     scalar_paths as scalar_paths,
 )
-from ._solver import AbstractLightSolver as AbstractLightSolver, SweepSolver as SweepSolver
-from ._splat import SplatRenderer as SplatRenderer
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 def __getattr__(name):

@@ -1,4 +1,5 @@
-"""Errors a user can act on: each message names the input, the bad value and the fix."""
+"""Errors and warnings a user can act on: each message names the input, the bad value and the
+fix."""
 
 
 class DifffogError(Exception):
@@ -6,8 +7,13 @@ class DifffogError(Exception):
 
 
 class SceneError(DifffogError, ValueError):
-    """A scene file, a built-in scene name or a ``--set`` override is invalid."""
+    """A scene file, a built-in scene name, a scene object or a ``--set`` override is invalid."""
 
 
 class SolverError(DifffogError, RuntimeError):
-    """A light solve cannot produce a meaningful answer (e.g. no steady state exists)."""
+    """A light solve cannot produce a meaningful answer (no steady state, not converged)."""
+
+
+class AdjointWarning(UserWarning):
+    """A tangent or adjoint light solve (a derivative of the light field) did not converge:
+    the gradient is inaccurate."""

@@ -1,0 +1,74 @@
+"""Result codes of light solves, in optimistix' style: a code per outcome, a message per code.
+
+A light solve returns its code (an int32 array, so that it can live inside ``jit`` and
+``vmap``) in ``light.result``.  ``render`` and ``model.images`` raise by default when it is not
+``successful`` (``throw=True``); ``throw=False`` returns the images and the code for the caller
+to inspect.  Inside ``jit`` the raise is :func:`equinox.branched_error_if`, whose message is
+the static one below; outside (``difffog.render``, the command line) the message also names
+the estimated error and the iterations.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import equinox as eqx
+import jax.numpy as jnp
+
+
+class RESULTS(enum.IntEnum):
+    """How a light solve ended.  ``RESULTS(code).message`` says what it means and what to do."""
+
+    successful = 0
+    max_iterations_reached = 1
+    stagnated = 2
+    nonfinite = 3
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    RESULTS.successful: "",
+    RESULTS.max_iterations_reached: (
+        "the light solve reached its iteration cap before its tolerance; raise max_iterations "
+        "(--max-iterations), loosen tol, or check the lattice step's optical depth "
+        "(difffog info)"),
+    RESULTS.stagnated: (
+        "the light solve stagnated: its iteration stopped making progress (a region that keeps "
+        "its light, such as conservative fog enclosed by albedo-1 walls, has no steady state); "
+        "add absorption or lower an albedo"),
+    RESULTS.nonfinite: (
+        "the light solve produced non-finite values; check the scene's numbers (very large "
+        "coefficients or intensities) and use float64 (jax_enable_x64) if they are legitimate"),
+}
+
+
+def combine(*codes):
+    """The first failure among several codes (int32 arrays of one shape), else successful."""
+    out = jnp.asarray(codes[0], jnp.int32)
+    for c in codes[1:]:
+        out = jnp.where(out == RESULTS.successful, jnp.asarray(c, jnp.int32), out)
+    return out
+
+
+def error_if_failed(x, result):
+    """``x``, raising at run time (inside ``jit``) with the code's message if ``result`` (an
+    int32 scalar or array) is not successful."""
+    result = jnp.asarray(result, jnp.int32)
+    msgs = tuple(f"difffog: {m}" if m else "" for m in (r.message for r in RESULTS))
+    pred = jnp.any(result != RESULTS.successful)
+    index = jnp.max(result)
+    return eqx.branched_error_if(x, pred, index, msgs)
+
+
+def check(result, what: str = "light solve", details: str = "") -> None:
+    """Raise a one-line :class:`SolverError` on the host if a concrete ``result`` failed."""
+    from ._errors import SolverError
+
+    code = int(jnp.max(jnp.asarray(result)))
+    if code != RESULTS.successful:
+        r = RESULTS(code)
+        extra = f" ({details})" if details else ""
+        raise SolverError(f"{what}: {r.name}{extra}: {r.message}")

@@ -1,0 +1,226 @@
+"""``difffog fit``: fit fog and surface parameters to target images, with a checkpoint after
+every step, ``fit.json``, the fitted/target/residual images and convergence plots."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from .._errors import DifffogError
+from ..fit._stepper import OPTIMIZERS
+from ..forward._registry import SOLVERS
+from ._main import add_scene_args, model_settings, peak_memory_mb, positive_int, solver_help
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("fit", help="fit fog and surface parameters to target images")
+    add_scene_args(p)
+    p.add_argument("--target", action="append", metavar="CAMERA=PATH.npy",
+                   help="a target image (H, W) of a scene camera (repeatable: several views)")
+    p.add_argument("--unknown", action="append", metavar="PATH[=INIT]",
+                   help="a parameter to fit, e.g. fog.scattering=1.0 (repeatable; default "
+                        "initial value: the scene's)")
+    p.add_argument("--bounds", action="append", metavar="PATH=LOWER,UPPER",
+                   help="bounds of an unknown (default: (0, inf) for coefficients, (0, 1) "
+                        "for albedo)")
+    p.add_argument("--mask", action="append", metavar="CAMERA=PATH.npy",
+                   help="per-pixel weights >= 0 (or a 0/1 mask) for a target")
+    p.add_argument("--solver", default="sweep", choices=list(SOLVERS),
+                   help="forward model (default sweep); " + solver_help())
+    p.add_argument("--optimizer", default="lm", choices=list(OPTIMIZERS),
+                   help="Levenberg-Marquardt (lm, default), Gauss-Newton or BFGS")
+    p.add_argument("--loss", default="linear", choices=["linear", "huber", "soft_l1", "cauchy"],
+                   help="residual loss (default linear = least squares)")
+    p.add_argument("--downsample", type=int, default=None,
+                   help="render the cameras at 1/K width and height, box-averaging the "
+                        "targets to match (default: the largest of 4, 2, 1 that divides)")
+    p.add_argument("--max-steps", type=int, default=50, help="optimizer steps (default 50)")
+    p.add_argument("--devices", type=int, default=None, metavar="N",
+                   help="sweep: share each light solve over N devices (on a CPU, N host "
+                        "devices sharing its cores; the same estimates; default 1)")
+    # without --accuracy a fit uses the solver's fit defaults (the sweep: N = 32, M = 3)
+    p.set_defaults(accuracy=None)
+    p.add_argument("--resume", action="store_true",
+                   help="continue a killed fit from its checkpoint (.OUT.fit-checkpoint.npz)")
+    p.add_argument("--out", default="fit", help="output folder (default: fit)")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
+    p.set_defaults(func=run)
+
+
+def _parse_kv(items, flag: str) -> list[tuple[str, str]]:
+    out = []
+    for it in items or []:
+        if "=" not in it:
+            raise DifffogError(f"{flag} {it!r}: expected NAME=VALUE")
+        k, v = it.split("=", 1)
+        out.append((k.strip(), v.strip()))
+    return out
+
+
+def _float(flag: str, key: str, text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise DifffogError(f"{flag} {key}={text}: {text!r} is not a number") from None
+
+
+def _load_image(flag: str, cam: str, path: str):
+    import numpy as np
+
+    p = Path(path)
+    if p.suffix != ".npy":
+        raise DifffogError(f"{flag} {cam}={path}: give a .npy file of the (H, W) image")
+    if not p.is_file():
+        raise DifffogError(f"{flag} {cam}={path}: no such file")
+    try:
+        a = np.load(p, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001 - any unreadable file gets the same one-line answer
+        raise DifffogError(f"{flag} {cam}={path}: cannot read it as .npy ({e})") from None
+    if a.ndim != 2:
+        raise DifffogError(f"{flag} {cam}={path}: expected an (H, W) image, got shape {a.shape}")
+    return a
+
+
+def _fit_plots(result, tmp: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    hist = result.history
+    steps = [h["step"] for h in hist]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    a1.semilogy(steps, [max(h["loss"], 1e-30) for h in hist], "o-")
+    a1.set_xlabel("step")
+    a1.set_ylabel("loss ½Σr² (residual / target RMS)")
+    a1.set_title("convergence")
+    for p in result.paths:
+        a2.plot(steps, [h["values"][p] / result.estimates[p] for h in hist], "o-", label=p)
+    a2.set_xlabel("step")
+    a2.set_ylabel("value / final estimate")
+    a2.set_title("unknowns")
+    a2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(tmp / "convergence.png", dpi=100)
+    plt.close(fig)
+    for name, fitted in result.images.items():
+        target = result.targets[name]
+        res = fitted - target
+        fig, ax = plt.subplots(1, 3, figsize=(12, 3.6))
+        vmax = float(np.percentile(target, 99.5)) or 1.0
+        for a, img, title in ((ax[0], target, "target"), (ax[1], fitted, "fitted")):
+            im = a.imshow(img, vmin=0, vmax=vmax, cmap="gray")
+            a.set_title(f"{name}: {title}")
+            fig.colorbar(im, ax=a, label="radiance")
+        r = float(np.percentile(np.abs(res), 99.5)) or 1.0
+        im = ax[2].imshow(res, vmin=-r, vmax=r, cmap="RdBu_r")
+        ax[2].set_title(f"{name}: fitted − target")
+        fig.colorbar(im, ax=ax[2], label="radiance")
+        for a in ax:
+            a.set_xlabel("pixel column")
+            a.set_ylabel("pixel row")
+        fig.tight_layout()
+        fig.savefig(tmp / f"{name}_fit.png", dpi=100)
+        plt.close(fig)
+
+
+def run(args) -> int:
+    import warnings
+
+    import numpy as np
+
+    from .._output import atomic_folder, check_out_dir
+    from .._progress import NoProgress, TqdmProgress
+    from ..fit._driver import fit
+    from ..fit._result import IdentifiabilityWarning
+    from ..fit._unknowns import Unknown
+    from ..scene._toml import load_scene
+
+    for flag, v in (("--resolution", args.resolution), ("--directions", args.directions),
+                    ("--max-steps", args.max_steps), ("--devices", args.devices)):
+        positive_int(flag, v)
+    # without --accuracy a fit uses the solver's fit defaults (the sweep: N = 32, M = 3; a
+    # step is 1 + n light solves), else that preset; single flags override either
+    settings = model_settings(args, args.solver, accuracy=args.accuracy)
+    resolution = settings.pop("resolution", None)
+    scene = load_scene(args.scene, args.overrides)
+    targets = {}
+    for cam, path in _parse_kv(args.target, "--target"):
+        scene.camera(cam)
+        targets[cam] = _load_image("--target", cam, path)
+    if not targets:
+        raise DifffogError("give at least one --target CAMERA=PATH.npy")
+    weights = {}
+    for cam, path in _parse_kv(args.mask, "--mask"):
+        if cam not in targets:
+            raise DifffogError(f"--mask {cam}=…: camera '{cam}' has no --target")
+        weights[cam] = _load_image("--mask", cam, path).astype(float)
+    bounds = {}
+    for key, val in _parse_kv(args.bounds, "--bounds"):
+        parts = val.split(",")
+        if len(parts) != 2:
+            raise DifffogError(f"--bounds {key}={val}: expected LOWER,UPPER")
+        bounds[key] = tuple(_float("--bounds", key, x) for x in parts)
+    unknowns = []
+    for item in args.unknown or []:
+        path, _, init = item.partition("=")
+        lo, hi = bounds.pop(path.strip(), (None, None))
+        unknowns.append(Unknown(path.strip(), _float("--unknown", path, init) if init else None,
+                                lo, hi))
+    if not unknowns:
+        raise DifffogError("give at least one --unknown PATH[=INIT], e.g. "
+                           "--unknown fog.scattering=1.0")
+    if bounds:
+        raise DifffogError(f"--bounds {next(iter(bounds))}: not among the --unknown paths")
+    if args.downsample is None:  # the largest of 4, 2, 1 dividing every target camera
+        cams = [scene.camera(c) for c in targets]
+        down = next(k for k in (4, 2, 1) if all(c.width % k == 0 and c.height % k == 0
+                                                for c in cams))
+    else:
+        down = positive_int("--downsample", args.downsample)
+    out = check_out_dir(args.out)
+    ckpt = out.parent / f".{out.name}.fit-checkpoint.npz"
+    if args.resume and not ckpt.exists():
+        raise DifffogError(f"--resume: no checkpoint {ckpt} (a killed `difffog fit --out {out}` "
+                           f"leaves one); run without --resume")
+    progress = TqdmProgress("fit") if sys.stderr.isatty() and not args.quiet else NoProgress()
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", IdentifiabilityWarning)
+        result = fit(scene, targets, unknowns, optimizer=args.optimizer, forward=args.solver,
+                     resolution=resolution, model_settings=settings or None, downsample=down,
+                     weights=weights or None, loss=args.loss, max_steps=args.max_steps,
+                     checkpoint=ckpt, resume=args.resume, progress=progress)
+    del caught  # the warnings are in result.warnings (and fit.json)
+    with atomic_folder(out) as tmp:
+        report = result.to_json()
+        report.update({
+            "scene": scene.title,
+            "source": str(scene.source) if scene.source else None,
+            "overrides": args.overrides,
+            "targets": {c: str(p) for c, p in _parse_kv(args.target, "--target")},
+            "total_s": round(time.perf_counter() - t0, 3),
+            "peak_memory_mb": peak_memory_mb(),
+            "resumed": bool(args.resume),
+        })
+        (tmp / "fit.json").write_text(json.dumps(report, indent=1))
+        for name, img in result.images.items():
+            # .npy only: {name}_fit.png is the target/fitted/residual figure (_fit_plots)
+            np.save(tmp / f"{name}_fit.npy", img)
+            np.save(tmp / f"{name}_target.npy", result.targets[name])
+            np.save(tmp / f"{name}_residual.npy", img - result.targets[name])
+        _fit_plots(result, tmp)
+    if result.converged and ckpt.exists():
+        ckpt.unlink()
+    if not args.quiet:
+        print(result.summary())
+        print(f"{out / 'fit.json'}: {result.iterations} steps, {report['total_s']:.1f} s")
+        if not result.converged:
+            print(f"the checkpoint {ckpt} is kept: add --resume (and a larger --max-steps) to "
+                  f"continue")
+    return 0 if result.converged else 1
+
+

@@ -1,0 +1,104 @@
+"""``difffog info``: a readable summary of a scene, its lattice and the physics it needs."""
+
+from __future__ import annotations
+
+import time
+
+from ..forward.sweep._terms import choose_terms
+from ..geometry._lattice import voxelize
+from ..scene._description import Scene
+from ._main import add_scene_args
+
+
+def physics_needed(scene: Scene) -> dict[str, bool]:
+    """Which terms a solver must model for this scene (the basis of the sweep's terms)."""
+    return {
+        "fog": scene.has_fog,
+        "anisotropic phase": scene.anisotropic,
+        "surfaces": bool(scene.shapes),
+        "meshes": scene.has_meshes,
+        "sun": scene.sun is not None and scene.sun.irradiance > 0,
+        "sky": scene.sky is not None and scene.sky.radiance > 0,
+        "emission": any(s.emission > 0 for s in scene.shapes),
+        "periodic boundary": scene.domain.boundary == "periodic-xy",
+    }
+
+
+def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
+    d = scene.domain
+    t = time.perf_counter()
+    lat = voxelize(scene, resolution, M, margin=M + 1)
+    tv = time.perf_counter() - t
+    c = lat.counts()
+    total = sum(c.values())
+    fmt = lambda v: "[" + ", ".join(f"{x:g}" for x in v) + "]"  # noqa: E731
+    lines = [f"scene      {scene.title}" + (f"  ({scene.source})" if scene.source else "")]
+    lines.append(f"domain     {fmt(d.min)} .. {fmt(d.max)}  boundary: {d.boundary}")
+    lines.append(
+        f"lattice    {lat.shape[0]}x{lat.shape[1]}x{lat.shape[2]} nodes, voxel {lat.h:.4g}, "
+        f"M = {M} ({(2 * M + 1) ** 2} directions per face; {M + 1} vacuum nodes around open "
+        f"sides), voxelized in {tv:.2f} s"
+    )
+    lines.append(
+        "nodes      "
+        + ", ".join(f"{k} {v} ({100 * v / total:.1f}%)" for k, v in c.items())
+    )
+    if scene.fog is not None:
+        f = scene.fog
+        ph = f.phase + (f" g={f.g:g}" if f.phase == "henyey-greenstein" else "")
+        extra = []
+        if f.density_path:
+            extra.append(f"density {f.density_path} {tuple(f.density.shape)}")
+        if f.region:
+            extra.append(f"region {fmt(f.region[0])} .. {fmt(f.region[1])}")
+        lines.append(
+            f"fog        ζ = {f.scattering:g}, γ = {f.absorption:g} per unit, albedo "
+            f"{f.single_scattering_albedo:.4g}, {ph}" + ("; " + "; ".join(extra) if extra else "")
+        )
+        tau = lat.optical_depth_range(f.scattering, f.absorption)
+        lines.append(
+            "opt.depth  across the domain: "
+            + ", ".join(f"{a}: {lo:.3g}..{hi:.3g}" for a, (lo, hi) in tau.items())
+        )
+        seg = lat.max_segment_optical_depth(f.scattering, f.absorption)
+        warn = "  (> 0.3: accuracy suffers, raise --resolution)" if seg > 0.3 else ""
+        lines.append(f"segment    max optical depth of one lattice step σ_t·h·M = {seg:.3g}{warn}")
+    else:
+        lines.append("fog        none")
+    if scene.sun is not None:
+        s = scene.sun
+        lines.append(
+            f"sun        irradiance {s.irradiance:g}, zenith {s.zenith_deg:g}°, azimuth "
+            f"{s.azimuth_deg:g}°" + (f", radius {s.angular_radius_deg:g}°" if s.angular_radius_deg else "")
+        )
+    if scene.sky is not None:
+        lines.append(f"sky        radiance {scene.sky.radiance:g}")
+    for s in scene.shapes:
+        lines.append(f"shape      {s.name}: {s.kind}, albedo {s.albedo:g}"
+                     + (f", emission {s.emission:g}" if s.emission else ""))
+    for cam in scene.cameras:
+        what = f"fov {cam.fov_deg:g}°" if cam.kind == "perspective" else f"extent {fmt(cam.extent)}"
+        lines.append(f"camera     {cam.name}: {cam.kind} {cam.width}x{cam.height}, {what}")
+    needs = physics_needed(scene)
+    lines.append("needs      " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in needs.items()))
+    lines.append("terms      (what the sweep solver builds; SweepSolver(terms='all') keeps every "
+                 "term)")
+    lines += ["  " + ln for ln in choose_terms(scene, lat).lines(lat.shape)]
+    return "\n".join(lines)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("info", help="summarize a scene: domain, lattice, node counts, physics")
+    add_scene_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..forward._registry import preset
+    from ..scene._toml import load_scene
+
+    s = preset("sweep", args.accuracy)
+    scene = load_scene(args.scene, args.overrides)
+    print(scene_info(scene, resolution=args.resolution or s["resolution"],
+                     M=args.directions or s["M"]))
+    return 0

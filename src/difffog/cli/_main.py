@@ -1,0 +1,118 @@
+"""The parser and the entry point.  Errors a user can fix print one line (``difffog: error:
+…``) and exit with status 2; a light solve or fit that did not converge exits with status 1;
+nothing is left half-written (outputs go through ``difffog._output.atomic_folder``)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from .._errors import DifffogError
+from ..forward._registry import LEVELS, SOLVERS, preset, solver_entry
+
+DEFAULT_SCENE = "fog-balls"
+
+
+def add_scene_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", nargs="?", default=DEFAULT_SCENE,
+                   help=f"a scene file (.toml) or a built-in scene name (default: {DEFAULT_SCENE})")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a scalar of the scene, e.g. fog.scattering=2.5 (repeatable)")
+    p.add_argument("--accuracy", choices=LEVELS, default="default",
+                   help="preset of the solver's settings (resolution, directions, tolerance, "
+                        "sheets) from the measured speed-accuracy study (default: default); the "
+                        "options below override single settings")
+    p.add_argument("--resolution", "-N", type=int, default=None,
+                   help="lattice nodes along the longest domain axis (default: from --accuracy, "
+                        f"{preset('sweep')['resolution']} at default)")
+    p.add_argument("--directions", "-M", type=int, default=None,
+                   help="sweep: direction half-width M, (2M+1)^2 directions per cube face "
+                        f"(default: from --accuracy, {preset('sweep')['M']} at default)")
+
+
+def positive_int(name: str, value: int | None) -> int | None:
+    if value is not None and value < 1:
+        raise DifffogError(f"{name} must be a positive integer, got {value}")
+    return value
+
+
+def model_settings(args, solver: str, *, accuracy: str | None) -> dict:
+    """The forward model's settings from the command line: the preset of ``accuracy`` (None:
+    none) overridden by the flags that were given, each checked against what the solver
+    takes (a flag for another solver is a one-line error naming the flag)."""
+    flags = {"resolution": ("--resolution", getattr(args, "resolution", None)),
+             "M": ("--directions", getattr(args, "directions", None)),
+             "sheets": ("--sheets", getattr(args, "sheets", None)),
+             "method": ("--method", getattr(args, "method", None)),
+             "tol": ("--tol", getattr(args, "tol", None)),
+             "max_iterations": ("--max-iterations", getattr(args, "max_iterations", None)),
+             "supersample": ("--supersample", getattr(args, "supersample", None)),
+             "devices": ("--devices", getattr(args, "devices", None))}
+    if getattr(args, "iterations", None) is not None:
+        flags["max_iterations"] = ("--iterations", args.iterations)
+        flags["tol"] = ("--iterations", 0.0)  # exactly K iterations
+    takes = solver_entry(solver).settings
+    out = {} if accuracy is None else preset(solver, accuracy)
+    for key, (flag, value) in flags.items():
+        if value is None:
+            continue
+        if key not in takes:
+            raise DifffogError(f"{flag} does not apply to --solver {solver}; its settings "
+                               f"are {', '.join(takes)}")
+        out[key] = value
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import _bench, _fit, _info, _render
+
+    parser = argparse.ArgumentParser(
+        prog="difffog",
+        description="Differentiable fog rendering and inverse fog estimation.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in (_info, _render, _fit, _bench):
+        mod.add_parser(sub)
+    return parser
+
+
+def solver_help() -> str:
+    return "; ".join(f"{n}: {e.summary}" for n, e in SOLVERS.items())
+
+
+def _host_devices(n: int) -> None:
+    """Ask XLA for n host (CPU) devices if JAX has not started yet and nobody chose a count;
+    on a GPU machine the flag only concerns the host platform, so it is harmless."""
+    try:  # XLA reads the flag when the first backend starts, not at ``import jax``
+        from jax._src import xla_bridge
+
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        started = "jax" in sys.modules
+    if n > 1 and not started:
+        flags = os.environ.get("XLA_FLAGS", "")
+        if "xla_force_host_platform_device_count" not in flags:
+            os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _host_devices(getattr(args, "devices", None) or 1)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    try:
+        return args.func(args)
+    except DifffogError as e:
+        print(f"difffog: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("difffog: interrupted", file=sys.stderr)
+        return 130
+
+
+def peak_memory_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -1,0 +1,435 @@
+"""Inverse fog estimation: fit ζ, γ, albedo (and nuisance parameters) to images.
+
+``fit(scene, targets, unknowns)`` renders every target camera from one light solve per step,
+compares with the targets and lets optimistix (Levenberg–Marquardt by default, Gauss–Newton or
+BFGS on request) move the unknowns in unconstrained coordinates (``_unknowns.py``).
+``fit_batch`` steps many fits of the same unknowns together, vmapped over devices.  Both run
+the same per-step bookkeeping (:class:`_Tracker`): history, stall test, light-solve check.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._errors import AdjointWarning, DifffogError
+from .._progress import as_meter
+from .._results import RESULTS
+from ..forward._model import AbstractForwardModel, batch_devices, map_batch
+from ..forward._registry import check_settings, solver_entry
+from ..scene._description import Scene
+from . import _checkpoint
+from ._result import FitResult, IdentifiabilityWarning, result_name, statistics
+from ._residuals import LOSSES
+from ._stepper import make_optimizer, stepper_for
+from ._targets import prepare_targets, reduced_scene
+from ._unknowns import as_unknowns, coordinates
+
+
+def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample: int = 1,
+               resolution: int | None = None, model_settings: Mapping | None = None):
+    """The forward model of a fit: ``forward`` as it is if it is a model, else the registry's
+    solver of that name at its fit defaults (overridden by ``resolution`` and
+    ``model_settings``), rendering the target cameras reduced by ``downsample``."""
+    if isinstance(forward, AbstractForwardModel):
+        if model_settings or resolution is not None:
+            raise DifffogError("fit: resolution and model_settings apply when forward is a "
+                               "solver name; the forward model given is already built")
+        return forward
+    if not isinstance(forward, str):
+        raise DifffogError(f"forward: {type(forward).__name__} is not a forward model; pass a "
+                           f"solver name ('sweep', 'splat') or difffog.forward_model(...)")
+    entry = solver_entry(forward)
+    settings = dict(model_settings or {})
+    check_settings(forward, settings, "fit: model_settings")
+    if resolution is not None:
+        settings["resolution"] = resolution
+    small = reduced_scene(scene, cameras, downsample)
+    return entry.build(small, **{**entry.fit_defaults, **settings})
+
+
+@dataclass
+class _Setup:
+    """Everything a fit needs before its first step (shared by fit and fit_batch)."""
+
+    model: Any
+    names: list[str]
+    tgt: dict
+    flat_t: np.ndarray
+    m: int
+    data: tuple
+    u0: Any
+    coords: list
+    inits: list
+    stepper: Any
+    settings: dict
+    fingerprint: str
+
+    @property
+    def args(self):
+        return (self.model, self.data)
+
+    def values(self, u) -> dict[str, float]:
+        return {c.path: float(c.to_v(x)) for c, x in zip(self.coords, np.asarray(u))}
+
+
+def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, downsample,
+           model_settings, weights, loss, loss_scale, rtol, atol, max_steps, stall_steps,
+           dtype) -> _Setup:
+    unknowns = as_unknowns(unknowns)
+    if loss not in LOSSES:
+        raise DifffogError(f"loss '{loss}': choose one of {', '.join(LOSSES)}")
+    for name, v in (("downsample", downsample), ("max_steps", max_steps)) + (
+            (("resolution", resolution),) if resolution is not None else ()):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise DifffogError(f"{name} must be a positive integer, got {v!r}")
+    if isinstance(stall_steps, bool) or not isinstance(stall_steps, (int, np.integer)) \
+            or stall_steps < 0:
+        raise DifffogError(f"stall_steps must be an integer >= 0, got {stall_steps!r}")
+    if not loss_scale > 0:
+        raise DifffogError(f"loss_scale must be positive, got {loss_scale}")
+    opt = make_optimizer(optimizer, rtol, atol)
+    if not isinstance(targets, Mapping) or not targets:
+        raise DifffogError("targets: give a dict {camera name: (H, W) image}, at least one")
+    for name in targets:
+        scene.camera(name)
+    names = sorted(targets)  # a fixed order: fits of the same views share one compiled step
+    model = make_model(scene, forward, cameras=names, downsample=downsample,
+                       resolution=resolution, model_settings=model_settings)
+    tgt, wts = prepare_targets(scene, model, targets, weights, downsample)
+    dtype = dtype or jnp.result_type(float)
+    base = model.params(dtype)
+    coords, inits = coordinates(model.scene, base, unknowns)
+    flat_t = np.concatenate([tgt[n].ravel() for n in names])
+    flat_w = np.concatenate([wts[n].ravel() for n in names])
+    m = int(np.count_nonzero(flat_w))
+    scale = float(np.sqrt(np.sum(flat_w * flat_t ** 2) / np.sum(flat_w))) or 1.0
+    data = (jnp.asarray(flat_t, dtype), jnp.asarray(np.sqrt(flat_w), dtype),
+            jnp.asarray(scale, dtype), jnp.asarray(loss_scale, dtype), base)
+    u0 = jnp.asarray([c.to_u(v) for c, v in zip(coords, inits)], dtype)
+    settings = {
+        "forward": forward if isinstance(forward, str) else type(forward).__name__,
+        "optimizer": optimizer if isinstance(optimizer, str) else type(optimizer).__name__,
+        "model": {k: v for k, v in model.settings().items()
+                  if k in ("solver", "solver_options", "resolution", "supersample")},
+        "downsample": downsample, "loss": loss, "loss_scale": loss_scale, "rtol": rtol,
+        "atol": atol, "max_steps": max_steps, "stall_steps": stall_steps,
+        "dtype": str(np.dtype(dtype)), "cameras": names,
+        "image_shapes": {n: list(tgt[n].shape) for n in names},
+        "unknowns": [dataclasses.asdict(c) for c in coords],
+    }
+    # the fingerprint leaves out the device count (a checkpoint resumes on any number of them)
+    # and max_steps (a stopped fit resumes with a larger one)
+    fp_settings = dict(settings, model={k: v for k, v in settings["model"].items()
+                                        if k != "solver_options"})
+    del fp_settings["max_steps"]
+    fp = _checkpoint.fingerprint(
+        scene=repr(scene), settings=fp_settings,
+        solver_options={k: v for k, v in settings["model"].get("solver_options", {}).items()
+                        if k != "devices"},
+        init=inits, t=_checkpoint.digest(flat_t), w=_checkpoint.digest(flat_w))
+    return _Setup(model, names, tgt, flat_t, m, data, u0, coords, inits,
+                  stepper_for(model, coords, names, loss, opt), settings, fp)
+
+
+class _Tracker:
+    """One fit's per-step bookkeeping, the same for :func:`fit` and :func:`fit_batch`:
+    the history, the optimizer's result, the stall test and the light-solve check."""
+
+    def __init__(self, setup: _Setup, history: list | None = None, k: int = 0):
+        self.setup = setup
+        self.history = list(history or [])
+        self.k = k
+        self.done = False
+        self.stalled = False
+        self.code = optx.RESULTS.successful
+
+    def record(self, u, state, done, code, *, now: float, stall_steps: int, rtol: float):
+        """After a step: append its history entry and decide whether the fit is over."""
+        self.k += 1
+        aux = getattr(state, "aux", None)
+        loss, light = (aux if isinstance(aux, tuple) else (np.nan, RESULTS.successful))
+        entry = {"step": self.k, "values": self.setup.values(u), "loss": float(loss),
+                 "accepted_steps": (int(state.num_accepted_steps)
+                                    if hasattr(state, "num_accepted_steps") else None),
+                 "light_result": RESULTS(int(light)).name,
+                 "time_s": now}
+        self.history.append(entry)
+        self.code = code
+        if bool(done):
+            self.done = True
+        elif not np.all(np.isfinite(np.asarray(u))) or not math.isfinite(entry["loss"]):
+            self.code, self.done = optx.RESULTS.nonfinite, True
+        elif _stalled(self.history, stall_steps, rtol):
+            self.stalled = self.done = True
+        return entry
+
+
+def _stalled(history: list[dict], stall_steps: int, rtol: float) -> bool:
+    """The unknowns moved but the loss fell by less than rtol over ``stall_steps`` steps: the
+    optimum to the precision of the forward model (its light solve stops at its tolerance).
+    LM would keep shrinking its trust region without meeting the step-size criterion."""
+    if not stall_steps or len(history) <= stall_steps:
+        return False
+    old, new = history[-1 - stall_steps], history[-1]
+    return old["values"] != new["values"] and old["loss"] - new["loss"] <= rtol * max(
+        new["loss"], 1e-30)
+
+
+def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
+            max_steps: int, stall_steps: int, extra_warnings=()) -> FitResult:
+    st = tr.setup
+    name = result_name(tr.code)
+    message = "" if name == "successful" else str(optx.RESULTS[tr.code])
+    if tr.stalled and name == "successful":
+        name = "loss_stalled"
+        message = (f"stopped: the loss fell by less than rtol = {rtol} (relative) over the last "
+                   f"{stall_steps} steps — the optimum to the forward model's precision")
+    if not tr.done and tr.k >= max_steps:
+        name = "nonlinear_max_steps_reached"
+        message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
+                   f"atol = {atol}; raise max_steps or start closer")
+    r, J, y, light = (np.asarray(a) for a in st.stepper.final(u, state, st.args))
+    r, J, y = (a.astype(np.float64) for a in (r, J, y))
+    if int(light) != RESULTS.successful:
+        failed = RESULTS(int(light))
+        name = "light_solve_failed"
+        message = (f"the light solve at the estimate did not converge ({failed.name}): "
+                   f"{failed.message}; the estimate and its errors are not reliable")
+    mask = np.asarray(st.data[1]) > 0
+    se, corr, cond, msgs, _ = statistics(r[mask], J[mask], st.m, st.coords, np.asarray(u))
+    for msg in msgs:
+        warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
+    msgs = list(msgs) + [str(w) for w in extra_warnings]
+    raw = (y - st.flat_t) * np.sqrt(np.asarray(st.data[1], np.float64) ** 2)
+    images, off = {}, 0
+    for n in st.names:
+        size = st.tgt[n].size
+        images[n] = y[off:off + size].reshape(st.tgt[n].shape).astype(np.float32)
+        off += size
+    return FitResult(
+        paths=[c.path for c in st.coords],
+        estimates=st.values(u),
+        stderr={c.path: float(s) for c, s in zip(st.coords, se)},
+        correlation=corr,
+        initial={c.path: v for c, v in zip(st.coords, st.inits)},
+        residual_rms=float(np.sqrt(np.sum(raw ** 2) / st.m)),
+        loss=float(0.5 * np.sum(r * r)),
+        iterations=tr.k,
+        time_s=time_s,
+        result=name,
+        message=message,
+        warnings=msgs,
+        history=tr.history,
+        images=images,
+        targets={n: st.tgt[n].astype(np.float32) for n in st.names},
+        condition=cond,
+        settings=st.settings,
+    )
+
+
+def _postfix(entry: dict) -> dict:
+    out = {"loss": entry["loss"]}
+    out.update({p.split(".")[-1]: v for p, v in entry["values"].items()})
+    return out
+
+
+def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
+        resolution: int | None = None, downsample: int = 1,
+        model_settings: Mapping | None = None, optimizer="lm",
+        weights: Mapping[str, Any] | None = None, loss: str = "linear",
+        loss_scale: float = 0.05, rtol: float = 1e-4, atol: float = 1e-4, max_steps: int = 50,
+        stall_steps: int = 3, dtype=None, checkpoint: str | os.PathLike | None = None,
+        resume: bool = False, progress=None,
+        callback: Callable[[dict], None] | None = None) -> FitResult:
+    """Fit the unknowns of ``scene`` to target images.
+
+    targets: {camera name: (H, W) image}, one or several views, at the scene camera's
+        resolution or already reduced by ``downsample``.
+    unknowns: dotted parameter paths (``fog.scattering``, ``fog.absorption``,
+        ``shape.<name>.albedo``; ``fog.g``, ``sun.irradiance``, ``sky.radiance`` as nuisance
+        parameters): a list, a dict {path: init | (init, lower, upper) | None} or
+        :class:`Unknown` objects.
+    forward: a solver name ("sweep", default, or "splat": built from the registry at its fit
+        defaults, e.g. the sweep at N = 32, M = 3, light tol 1e-5) or a forward model
+        (``difffog.forward_model(...)``, used as it is: its cameras must match the targets).
+    resolution: the forward model's lattice resolution (default: the solver's fit default).
+    downsample: render every camera at 1/k of its width and height (the target is box-averaged
+        to match: a reduced pixel's footprint is k×k full pixels).
+    model_settings: other settings of the named solver, e.g. ``{"M": 4, "devices": 2}``.
+    optimizer: "lm" (Levenberg–Marquardt, default), "gauss-newton", "bfgs" or an optimistix
+        least-squares solver / minimiser.
+    weights: {camera: (H, W)} per-pixel weights ≥ 0 (a boolean mask works); the residual is
+        √w·(model − target) / RMS(target).
+    loss: "linear" (least squares) or a robust "huber", "soft_l1", "cauchy" with threshold
+        ``loss_scale`` in units of the target's RMS.
+    rtol, atol: optimistix' termination on the unconstrained unknowns and the residuals; the
+        fit also stops ("loss_stalled", converged) when the unknowns moved but the loss fell
+        by less than rtol over ``stall_steps`` steps (0: never).
+    dtype: of the parameters (default float32, or float64 with x64 on).
+    checkpoint: a file written (atomically) after every step; ``resume=True`` continues from
+        it and reaches the same answer as an uninterrupted fit.
+    progress: True, a progress meter (``difffog.TqdmProgress("fit")``) or None/False.
+    callback: called after every step with that step's history entry.
+
+    The result is "light_solve_failed" (not converged) when the light solve at the estimate
+    did not converge; an unconverged tangent solve (the Jacobian) is listed in its warnings.
+    See :func:`fit_batch` for many target sets at once.
+    """
+    t_start = time.perf_counter()
+    st = _setup(scene, targets, unknowns, optimizer=optimizer, forward=forward,
+                resolution=resolution, downsample=downsample, model_settings=model_settings,
+                weights=weights, loss=loss, loss_scale=loss_scale, rtol=rtol, atol=atol,
+                max_steps=max_steps, stall_steps=stall_steps, dtype=dtype)
+    stepper, args = st.stepper, st.args
+    state = stepper.init(st.u0, args)
+    u = st.u0
+    history, k0, elapsed0 = [], 0, 0.0
+    ckpt = Path(checkpoint) if checkpoint is not None else None
+    if resume:
+        if ckpt is None:
+            raise DifffogError("resume=True needs checkpoint=PATH (the file a killed fit wrote)")
+        u, state, k0, history, elapsed0 = _checkpoint.load_checkpoint(ckpt, st.u0, state,
+                                                                      st.fingerprint)
+    tr = _Tracker(st, history, k0)
+    meter = as_meter(progress, "fit")
+    if k0 > 0:
+        done_arr, tr.code = stepper.terminate(u, state, args)
+        tr.done = bool(done_arr)
+    t_loop = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", AdjointWarning)
+        while not tr.done and tr.k < max_steps:
+            u, state, _ = stepper.step(u, state, args)
+            done_arr, code = stepper.terminate(u, state, args)
+            entry = tr.record(u, state, done_arr, code, stall_steps=stall_steps, rtol=rtol,
+                              now=round(elapsed0 + time.perf_counter() - t_loop, 3))
+            if ckpt is not None:
+                _checkpoint.save_checkpoint(ckpt, u, state, tr.k, tr.history, st.fingerprint,
+                                            entry["time_s"])
+            meter.update(tr.k, max_steps, **_postfix(entry))
+            if callback is not None:
+                callback(entry)
+    meter.close()
+    extra = _rewarn(caught)
+    return _finish(tr, u, state, time_s=elapsed0 + time.perf_counter() - t_start, rtol=rtol,
+                   atol=atol, max_steps=max_steps, stall_steps=stall_steps,
+                   extra_warnings=extra)
+
+
+def _rewarn(caught) -> list[str]:
+    """Adjoint warnings caught during the steps (one line each, deduplicated); any other
+    warning is re-issued as it was."""
+    out = []
+    for w in caught:
+        if issubclass(w.category, AdjointWarning):
+            if str(w.message) not in out:
+                out.append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return out
+
+
+def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
+              devices: int = 1, max_steps: int = 50, rtol: float = 1e-4, atol: float = 1e-4,
+              stall_steps: int = 3, progress=None, **kwargs) -> list[FitResult]:
+    """Fit the same unknowns to many target sets at once (a parameter study, a time series, a
+    set of images): one forward model and one compiled step, ``vmap``-ed over the fits and
+    split over ``devices`` JAX devices (each device steps its share, no communication).
+
+    targets: a list of {camera: image} dicts, all with the same cameras.
+    devices: JAX devices sharing the fits (on a CPU, N host devices need
+        ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` before JAX starts).
+    kwargs: :func:`fit`'s other arguments (not checkpoint, resume or callback).
+    All fits step together; a fit that has converged (or stalled, or failed) is frozen while
+    the others go on, so every result equals what :func:`fit` returns for that target set.
+    """
+    for bad in ("checkpoint", "resume", "callback"):
+        if bad in kwargs:
+            raise DifffogError(f"fit_batch: {bad} is not supported; run fit() per target set "
+                               f"for checkpoints and callbacks")
+    unknown = set(kwargs) - set(_SETUP_DEFAULTS)
+    if unknown:
+        raise DifffogError(f"fit_batch: unknown keyword {', '.join(sorted(unknown))}; it takes "
+                           f"fit()'s: {', '.join(sorted(_SETUP_DEFAULTS))}")
+    targets = list(targets)
+    if not targets:
+        raise DifffogError("fit_batch: targets is empty; give a list of {camera: image} dicts")
+    if len({tuple(sorted(t)) for t in targets}) != 1:
+        raise DifffogError("fit_batch: every target set must have the same cameras "
+                           f"(got {sorted({tuple(sorted(t)) for t in targets})})")
+    if devices > 1:
+        batch_devices(devices)  # a clear error when there are not enough devices
+    t_start = time.perf_counter()
+    setups = []
+    opts = {**_SETUP_DEFAULTS, **kwargs}
+    for t in targets:  # the first builds the forward model, the others reuse it
+        st = _setup(scene, t, unknowns, max_steps=max_steps, rtol=rtol, atol=atol,
+                    stall_steps=stall_steps, **opts)
+        opts.update(forward=st.model, resolution=None, model_settings=None)
+        setups.append(st)
+    model = setups[0].model
+    stepper = setups[0].stepper
+    states = [stepper.init(s.u0, s.args) for s in setups]
+    static = eqx.partition(states[0], eqx.is_array)[1]
+    stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    x = stack([(s.u0, eqx.partition(q, eqx.is_array)[0], s.data) for s, q in zip(setups, states)])
+
+    def one(model, xi):
+        u, dyn, data = xi
+        u2, state2, _ = stepper.step_impl(u, eqx.combine(dyn, static), (model, data))
+        done, code = stepper.term_impl(u2, state2, (model, data))
+        return u2, eqx.partition(state2, eqx.is_array)[0], done, code
+
+    trackers = [_Tracker(s) for s in setups]
+    meter = as_meter(progress, f"fit x{len(setups)}")
+    t_loop = time.perf_counter()
+    step = 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", AdjointWarning)
+        while not all(t.done for t in trackers) and step < max_steps:
+            u2, dyn2, done2, code2 = map_batch(one, model, x, devices)
+            step += 1
+            keep = jnp.asarray([t.done for t in trackers])
+            x = (jax.tree.map(lambda a, b: jnp.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)),
+                                                     a, b), (x[0], x[1]), (u2, dyn2)) + (x[2],))
+            now = round(time.perf_counter() - t_loop, 3)
+            for i, tr in enumerate(trackers):
+                if tr.done:
+                    continue
+                state_i = eqx.combine(jax.tree.map(lambda a: a[i], x[1]), static)
+                tr.record(x[0][i], state_i, done2[i], jax.tree.map(lambda a: a[i], code2),
+                          now=now, stall_steps=stall_steps, rtol=rtol)
+            meter.update(sum(t.done for t in trackers), len(trackers), step=step)
+    meter.close()
+    extra = _rewarn(caught)
+    elapsed = time.perf_counter() - t_start
+    out = []
+    for i, tr in enumerate(trackers):
+        state_i = eqx.combine(jax.tree.map(lambda a: a[i], x[1]), static)
+        res = _finish(tr, x[0][i], state_i, time_s=elapsed, rtol=rtol, atol=atol,
+                      max_steps=max_steps, stall_steps=stall_steps, extra_warnings=extra)
+        res.settings = dict(res.settings, devices=devices, batch=len(trackers))
+        out.append(res)
+    return out
+
+
+# fit()'s keywords that fit_batch passes through, with fit()'s own defaults
+import inspect as _inspect  # noqa: E402
+
+_SETUP_DEFAULTS = {k: _inspect.signature(fit).parameters[k].default
+                   for k in ("optimizer", "forward", "resolution", "downsample",
+                             "model_settings", "weights", "loss", "loss_scale", "dtype")}

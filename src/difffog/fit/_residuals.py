@@ -1,0 +1,131 @@
+"""The fit's residuals and their Jacobian.
+
+The residual is √w·(model − target)/RMS(target) over every target pixel of every view,
+optionally rescaled by a robust loss.  Its Jacobian (pixels × unknowns) is computed once per
+evaluated point by forward mode: each of its n columns costs one tangent light solve (the
+implicit derivative of the fixed point) and one pass of the camera.  The sweep's camera march
+has a hand-written reverse pass (``jax.custom_vjp``), so a column J·t is obtained as the
+transpose of the (linear) vector–Jacobian product, ``jax.linear_transpose(vjp)``; reverse mode
+would need one adjoint solve per *pixel*.  The residual handed to optimistix is a
+``jax.custom_jvp`` function whose tangent is ``J @ t`` with that J, so optimistix materialises
+J once per step and its state stays a small array pytree (what a checkpoint stores).
+
+The forward model travels in the optimizer's ``args`` (its arrays are arguments of the
+compiled step, not constants), beside the per-fit data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene._description import Scene
+from ..scene._params import Params, set_param
+from ._unknowns import Coordinate
+
+LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+
+
+def robust_factor(z, loss: str):
+    """sqrt(ρ(z)/z) for z = (r/c)² ≥ 0: the residual r becomes r·factor so that Σ r̃² = c²Σρ."""
+    if loss == "linear":
+        return jnp.ones_like(z)
+    if loss == "soft_l1":  # ρ = 2(√(1+z) − 1) → ρ/z = 2/(√(1+z) + 1)
+        return jnp.sqrt(2.0 / (jnp.sqrt(1.0 + z) + 1.0))
+    if loss == "huber":  # ρ = z (z ≤ 1), 2√z − 1
+        big = z > 1.0
+        zs = jnp.where(big, z, 1.0)
+        return jnp.sqrt(jnp.where(big, (2.0 * jnp.sqrt(zs) - 1.0) / zs, 1.0))
+    if loss == "cauchy":  # ρ = log(1+z)
+        small = z < 1e-6
+        zs = jnp.where(small, 1.0, z)
+        return jnp.sqrt(jnp.where(small, 1.0 - z / 2.0, jnp.log1p(zs) / zs))
+    raise AssertionError(loss)
+
+
+@dataclass(frozen=True, eq=False)
+class FitProblem:
+    """The static part of a fit (hashed by identity): which parameters the unknowns u set, the
+    cameras in the order their images are flattened, and the loss.
+
+    scene: the forward model's scene (for the dotted paths).
+    coords: one :class:`Coordinate` per unknown.
+    names: target cameras, in the order of the flattened images.
+    loss: one of ``LOSSES``.
+    """
+
+    scene: Scene
+    coords: tuple[Coordinate, ...]
+    names: tuple[str, ...]
+    loss: str
+
+    def params(self, u, base: Params) -> Params:
+        p = base
+        for i, c in enumerate(self.coords):
+            p = set_param(p, self.scene, c.path, c.to_v(u[i]))
+        return p
+
+    def model(self, model, u, base: Params):
+        """(flattened images (P,), the light solve's result code) at unknowns u."""
+        p = self.params(u, base)
+        light = model.light(p)
+        imgs = model.images_from(light, p)
+        return jnp.concatenate([jnp.ravel(imgs[n]) for n in self.names]), light.result
+
+    def model_and_jacobian(self, model, u, base: Params):
+        """(images (P,), J (P, n), result code) by forward mode: J·e_i as the transpose of
+        the VJP."""
+        y, vjp, code = jax.vjp(lambda x: self.model(model, x, base), u, has_aux=True)
+        jvp = jax.linear_transpose(vjp, y)
+        eye = jnp.eye(u.shape[0], dtype=u.dtype)
+        cols = jax.vmap(lambda e: jvp((e,))[0])(eye)
+        return y, cols.T, code
+
+
+def _model_cj(problem: FitProblem, model, u, base: Params):
+    """The images and result code at u, with the tangent J·t of the images from
+    :meth:`FitProblem.model_and_jacobian` (the result code has no tangent)."""
+
+    @jax.custom_jvp
+    def f(u, base):
+        return problem.model(model, u, base)
+
+    @f.defjvp
+    def _jvp(primals, tangents):
+        (u_, base_), (t, _) = primals, tangents  # base is data: its tangent is ignored
+        y, J, code = problem.model_and_jacobian(model, u_, base_)
+        return (y, code), (J @ t, np.zeros(np.shape(code), jax.dtypes.float0))
+
+    return f(u, base)
+
+
+def residual(problem: FitProblem, u, args):
+    """(weighted, normalised, robustly rescaled residuals (P,), light result code).
+
+    args = (model, (target, sqrt_w, scale, loss_scale, base)): the images flattened over the
+    cameras, the weights' square roots, the target's RMS, the robust loss's threshold and the
+    parameters that are not fitted."""
+    model, (target, sw, scale, c, base) = args
+    y, code = _model_cj(problem, model, u, base)
+    r = sw * (y - target) / scale
+    if problem.loss != "linear":
+        r = r * robust_factor((r / c) ** 2, problem.loss)
+    return r, code
+
+
+def residual_and_jacobian(problem: FitProblem, u, args):
+    """Residual, its Jacobian and the model images at u (for the statistics)."""
+    model, (target, sw, scale, c, base) = args
+    y, J, code = problem.model_and_jacobian(model, u, base)
+    r = sw * (y - target) / scale
+    Jr = (sw / scale)[:, None] * J
+    if problem.loss != "linear":
+        f = robust_factor((r / c) ** 2, problem.loss)
+        # d(r·f(r))/dr, by autodiff of the scalar map
+        dfr = jax.vmap(jax.grad(lambda x: x * robust_factor((x / c) ** 2, problem.loss)))(r)
+        Jr = dfr[:, None] * Jr
+        r = r * f
+    return r, Jr, y, code

@@ -1,0 +1,165 @@
+"""What a fit returns: the estimates, their standard errors and correlation (Gauss–Newton
+covariance at the optimum, mapped to physical units by the delta method), the result code and
+the history."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import optimistix as optx
+
+
+class IdentifiabilityWarning(UserWarning):
+    """The unknowns are not (well) determined by the given views: near-singular JᵀJ or a
+    correlation above 0.99 between two estimates."""
+
+
+@dataclass
+class FitResult:
+    """What a fit found and how sure it is.
+
+    paths: the unknowns' dotted paths, in order.
+    estimates, stderr, initial: {path: value} in physical units; stderr from the Gauss–Newton
+        covariance s²(JᵀJ)⁻¹ at the optimum (s² the residual variance), NaN where JᵀJ is
+        singular.  It covers the noise only, not the forward model's own error.
+    correlation: (n, n) in the order of ``paths``.
+    residual_rms: root mean square of the weighted image residual (radiance) over pixels with
+        weight > 0.
+    loss: ½Σr² of the normalised residual at the optimum.
+    iterations: optimizer steps; time_s: wall time.
+    result: optimistix' result name ("successful", "nonlinear_max_steps_reached", ...),
+        "loss_stalled" (the loss stopped falling: converged to the forward model's precision)
+        or "light_solve_failed" (the light solve at the estimate did not converge).
+    message: what the result means, when it is not plain success.
+    warnings: identifiability and accuracy warnings.
+    history: one dict per step (step, values, loss, accepted_steps, light_result, time_s).
+    images, targets: fitted and target images per camera (the forward model's resolution).
+    condition: of the column-normalised J (√ of JᵀJ's).
+    settings: the fit's settings (JSON-able).
+    """
+
+    paths: list[str]
+    estimates: dict[str, float]
+    stderr: dict[str, float]
+    correlation: np.ndarray
+    initial: dict[str, float]
+    residual_rms: float
+    loss: float
+    iterations: int
+    time_s: float
+    result: str
+    message: str
+    warnings: list[str]
+    history: list[dict]
+    images: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+    targets: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
+    condition: float = float("nan")  # of the column-normalised J (√ of JᵀJ's)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def converged(self) -> bool:
+        return self.result in ("successful", "loss_stalled")
+
+    def relative_error(self, truth: Mapping[str, float]) -> dict[str, float]:
+        return {p: (self.estimates[p] - truth[p]) / truth[p] for p in self.paths if p in truth}
+
+    def summary(self, truth: Mapping[str, float] | None = None) -> str:
+        w = max(len(p) for p in self.paths)
+        head = f"{'unknown':<{w}}  {'initial':>10}  {'estimate':>10}  {'std err':>9}"
+        if truth:
+            head += f"  {'truth':>10}  {'error %':>8}"
+        lines = [head, "-" * len(head)]
+        for p in self.paths:
+            s = (f"{p:<{w}}  {self.initial[p]:>10.4g}  {self.estimates[p]:>10.4g}  "
+                 f"{self.stderr[p]:>9.2g}")
+            if truth and p in truth:
+                s += f"  {truth[p]:>10.4g}  {100 * (self.estimates[p] / truth[p] - 1):>+8.3f}"
+            lines.append(s)
+        lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
+                     f"residual RMS {self.residual_rms:.3g}")
+        if len(self.paths) > 1:
+            lines.append("correlation:")
+            for i, p in enumerate(self.paths):
+                lines.append(f"  {p:<{w}} " + " ".join(f"{x:+.3f}" for x in self.correlation[i]))
+        if not self.converged:
+            lines.append(f"not converged: {self.message}")
+        elif self.message:
+            lines.append(self.message)
+        lines += [f"warning: {m}" for m in self.warnings]
+        return "\n".join(lines)
+
+    __str__ = summary
+
+    def to_json(self) -> dict:
+        return {
+            "estimates": self.estimates,
+            "stderr": {k: (None if not math.isfinite(v) else v) for k, v in self.stderr.items()},
+            "correlation": [[None if not math.isfinite(x) else float(x) for x in row]
+                            for row in np.asarray(self.correlation)],
+            "paths": self.paths,
+            "initial": self.initial,
+            "residual_rms": self.residual_rms,
+            "loss": self.loss,
+            "iterations": self.iterations,
+            "time_s": self.time_s,
+            "result": self.result,
+            "converged": self.converged,
+            "message": self.message,
+            "warnings": self.warnings,
+            "condition": None if not math.isfinite(self.condition) else self.condition,
+            "history": self.history,
+            "settings": self.settings,
+        }
+
+
+def result_name(code) -> str:
+    for name in ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence",
+                 "nonfinite", "singular", "breakdown", "stagnation", "max_steps_reached"):
+        try:
+            if bool(code == getattr(optx.RESULTS, name)):
+                return name
+        except AttributeError:
+            continue
+    return "failed"
+
+
+
+def statistics(r: np.ndarray, J: np.ndarray, m: int, coords, u: np.ndarray):
+    """Standard errors (physical units), correlation, condition and warnings."""
+    n = J.shape[1]
+    dof = max(m - n, 1)
+    s2 = float(np.sum(r * r)) / dof
+    norms = np.linalg.norm(J, axis=0)
+    msgs = []
+    if np.any(norms == 0):
+        zero = [c.path for c, nm in zip(coords, norms) if nm == 0]
+        msgs.append(f"the images do not depend on {', '.join(zero)} (zero Jacobian column): "
+                    f"it cannot be estimated from these views")
+    Jn = J / np.where(norms > 0, norms, 1.0)
+    sv = np.linalg.svd(Jn, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    JtJ = J.T @ J
+    if cond < 1e7 and not np.any(norms == 0):
+        cov_u = s2 * np.linalg.inv(JtJ)
+    else:
+        cov_u = np.full((n, n), np.nan)
+    d = np.array([c.dv_du(float(x)) for c, x in zip(coords, u)])
+    cov = cov_u * np.outer(d, d)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    np.fill_diagonal(corr, 1.0)
+    if cond >= 1e4:
+        msgs.append(f"JᵀJ is near-singular (condition {cond ** 2:.2g} after scaling the "
+                    f"columns): some combination of the unknowns is not determined by these "
+                    f"views; add a view, fix a nuisance parameter or give bounds")
+    for i in range(n):
+        for j in range(i + 1, n):
+            if abs(corr[i, j]) > 0.99:
+                msgs.append(f"{coords[i].path} and {coords[j].path} are correlated "
+                            f"{corr[i, j]:+.3f}: the views determine a combination of them, not "
+                            f"each; their standard errors are large")
+    return se, corr, cond, msgs, s2

@@ -1,0 +1,109 @@
+"""The optimizer, stepped from Python: jitted init/step/terminate of an optimistix solver on
+the fit problem, so that every step can be checkpointed, reported and checked."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from .._errors import DifffogError
+from ._residuals import FitProblem, residual, residual_and_jacobian
+
+OPTIMIZERS = ("lm", "gauss-newton", "bfgs")
+
+
+def make_optimizer(optimizer, rtol: float, atol: float):
+    """An optimistix solver from a name ("lm", "gauss-newton", "bfgs") or as given."""
+    if isinstance(optimizer, (optx.AbstractLeastSquaresSolver, optx.AbstractMinimiser)):
+        return optimizer
+    table = {
+        "lm": lambda: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+        "gauss-newton": lambda: optx.GaussNewton(rtol=rtol, atol=atol),
+        "bfgs": lambda: optx.BFGS(rtol=rtol, atol=atol),
+    }
+    if optimizer not in table:
+        raise DifffogError(f"optimizer {optimizer!r}: choose 'lm' (Levenberg–Marquardt, "
+                           f"default), 'gauss-newton', 'bfgs' or an optimistix solver instance")
+    return table[optimizer]()
+
+
+class Stepper:
+    """init / step / terminate of ``optimizer`` on ``problem``, each compiled once.
+
+    The residual function returns aux = (loss, light result code) so that the driver sees,
+    at every accepted point, whether the light solve behind it converged.  ``args`` is
+    (model, data): the forward model and the per-fit data (:func:`residual`).
+    """
+
+    def __init__(self, problem: FitProblem, optimizer):
+        self.problem = problem
+        self.optimizer = optimizer
+        self.minimise = isinstance(optimizer, optx.AbstractMinimiser)
+        self.options = {} if self.minimise else {"jac": "fwd"}
+
+        def fn(u, args):
+            r, code = residual(problem, u, args)
+            loss = 0.5 * jnp.sum(r * r)
+            return (loss, (loss, code)) if self.minimise else (r, (loss, code))
+
+        self.fn = fn
+        self._static = None
+        self._step = eqx.filter_jit(self.step_impl)
+        self._term = eqx.filter_jit(self.term_impl)
+        self._rj = eqx.filter_jit(lambda u, args: residual_and_jacobian(problem, u, args))
+        self._from_state = eqx.filter_jit(lambda info: (info.residual, info.jac.as_matrix()))
+        self._model = eqx.filter_jit(lambda u, args: problem.model(args[0], u, args[1][4]))
+
+    def init(self, u0, args):
+        f_struct, aux_struct = jax.eval_shape(self.fn, u0, args)
+        state = self.optimizer.init(self.fn, u0, args, self.options, f_struct, aux_struct,
+                                    frozenset())
+        # The state's static part holds a closure-converted jaxpr (the linearised residual)
+        # that compares by identity: reuse the first fit's so that later fits with this
+        # stepper hit the compilation cache instead of compiling the step again.
+        dyn, static = eqx.partition(state, eqx.is_array)
+        if self._static is None:
+            self._static = static
+        return eqx.combine(dyn, self._static)
+
+    def step_impl(self, u, state, args):
+        return self.optimizer.step(self.fn, u, args, self.options, state, frozenset())
+
+    def term_impl(self, u, state, args):
+        return self.optimizer.terminate(self.fn, u, args, self.options, state, frozenset())
+
+    def step(self, u, state, args):
+        return self._step(u, state, args)
+
+    def terminate(self, u, state, args):
+        return self._term(u, state, args)
+
+    def final(self, u, state, args):
+        """Residual, Jacobian, images and light result code at the final u.  A least-squares
+        solver's state holds the residual and the (linearised) Jacobian at u already: reuse
+        them, so only the images' forward pass is computed again (BFGS: everything)."""
+        info = getattr(state, "f_info", None)
+        if isinstance(info, optx.FunctionInfo.ResidualJac):
+            r, J = self._from_state(info)
+            y, code = self._model(u, args)
+            return r, J, y, code
+        return self._rj(u, args)
+
+
+# Compiled steppers of recent fits, so that fitting new targets (or from a new start) with
+# the same forward model, unknowns and optimizer does not compile again.
+_STEPPERS: dict = {}
+
+
+def stepper_for(model, coords, names, loss, optimizer) -> Stepper:
+    key = (id(model), tuple(coords), tuple(names), loss, repr(optimizer))
+    hit = _STEPPERS.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    st = Stepper(FitProblem(model.scene, tuple(coords), tuple(names), loss), optimizer)
+    _STEPPERS[key] = (model, st)
+    while len(_STEPPERS) > 4:
+        _STEPPERS.pop(next(iter(_STEPPERS)))
+    return st

@@ -1,0 +1,131 @@
+"""Differentiating a converged fixed point x* = F(x*, θ) by the implicit function theorem.
+
+With G(x, θ) = x − F(x, θ) = 0 at the root, its tangent is
+    ẋ = −(∂G/∂x)⁻¹ (∂G/∂θ) θ̇,
+one linear solve with the operator I − ∂F/∂x (matrix-free: a Jacobian–vector product of one
+Jacobi step), whatever the number of iterations the forward solve took.  Reverse mode
+transposes that linear solve (``lineax`` transposes ``linear_solve``), so a gradient costs one
+adjoint solve with (I − ∂F/∂x)ᵀ and its memory does not grow with the iterations.
+
+Written on the public APIs of equinox (``filter_custom_jvp``) and lineax (``linear_solve``,
+``JacobianLinearOperator``), so that difffog does not depend on optimistix' internals.
+
+:class:`CheckedSolver` wraps the linear solver of these tangent and adjoint solves and says
+when one did not converge: it raises at run time (``throw=True``) or warns with an
+:class:`AdjointWarning` (``throw=False``); it never passes an unconverged gradient silently.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+
+from ..._errors import AdjointWarning
+
+
+def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver):
+    """``solve(inputs) -> (root, aux)``, differentiated implicitly through ``rewrite``.
+
+    solve: inputs → (root, aux); root is the fixed point, aux anything (no gradient flows
+        through it).  Must not close over JAX arrays (pass them in ``inputs``).
+    rewrite: (root, inputs) → G(root, inputs), zero at the fixed point, with the root's
+        structure.
+    inputs: a pytree; its floating-point arrays get tangents.
+    linear_solver: solves the tangent system (and its transpose, for reverse mode).
+    """
+    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver)
+    return root, jax.tree.map(jax.lax.stop_gradient, aux)
+
+
+@eqx.filter_custom_jvp
+def _fixed_point(solve, rewrite, inputs, linear_solver):
+    del rewrite, linear_solver
+    return jax.tree.map(jnp.asarray, solve(inputs))
+
+
+def _for_operator(root, args):
+    rewrite, inputs = args
+    return rewrite(root, inputs)
+
+
+@_fixed_point.def_jvp
+def _fixed_point_jvp(primals, tangents):
+    solve, rewrite, inputs, linear_solver = primals
+    _, _, t_inputs, _ = tangents
+    root, aux = fixed_point(solve, rewrite, inputs, linear_solver)
+    # inputs without a tangent (integer masks, static geometry) are held fixed
+    no_tangent = jax.tree.map(lambda t: t is None, t_inputs, is_leaf=lambda t: t is None)
+    fixed, moving = eqx.partition(inputs, no_tangent, is_leaf=lambda t: t is None)
+
+    def g_of_inputs(m):
+        return rewrite(root, eqx.combine(m, fixed))
+
+    _, g_dot = jax.jvp(g_of_inputs, (moving,), (t_inputs,))
+    operator = lx.JacobianLinearOperator(_for_operator, root, (rewrite, inputs))
+    x_dot = lx.linear_solve(operator, g_dot, linear_solver).value
+    t_root = jax.tree.map(jnp.negative, x_dot)
+    t_aux = jax.tree.map(_zero_tangent, aux)
+    return (root, aux), (t_root, t_aux)
+
+
+def _zero_tangent(x):
+    """A zero tangent for ``x``: float0 for integer and boolean arrays, as JAX requires."""
+    if jnp.issubdtype(x.dtype, jnp.inexact):
+        return jnp.zeros_like(x)
+    return np.zeros(x.shape, jax.dtypes.float0)
+
+
+def _warn(bad, steps):
+    if bool(bad):
+        warnings.warn(AdjointWarning(
+            f"a tangent/adjoint light solve (the derivative of the light field) did not "
+            f"converge in {int(steps)} steps: the gradient is inaccurate; raise the solver's "
+            f"max_iterations or adjoint_rtol, or check that the forward solve converged"),
+            stacklevel=2)
+
+
+class CheckedSolver(lx.AbstractLinearSolver):
+    """A lineax solver that checks its inner solver's result code on every solve.
+
+    inner: the solver doing the work (GMRES on the sweep's operator).
+    throw: True → an unconverged solve raises at run time (``eqx.error_if``); False → it
+        warns (:class:`difffog.AdjointWarning`) and returns the inner solver's best effort
+        with non-finite entries zeroed.
+    """
+
+    inner: lx.AbstractLinearSolver
+    throw: bool = eqx.field(static=True, default=True)
+
+    def init(self, operator, options):
+        return self.inner.init(operator, options)
+
+    def compute(self, state, vector, options):
+        sol, result, stats = self.inner.compute(state, vector, options)
+        bad = result != lx.RESULTS.successful
+        steps = stats.get("num_steps", jnp.asarray(-1))
+        if self.throw:
+            sol = eqx.error_if(sol, bad, "difffog: a tangent/adjoint light solve (the "
+                               "derivative of the light field) did not converge; raise the "
+                               "solver's max_iterations or adjoint_rtol, or check that the "
+                               "forward solve converged (SweepSolver(throw=False) warns "
+                               "instead)")
+        else:
+            jax.debug.callback(_warn, bad, steps)
+            sol = jax.tree.map(lambda a: jnp.where(jnp.isfinite(a), a, 0.0), sol)
+        # reported as successful either way: the check above has raised or warned already
+        return sol, lx.RESULTS.successful, stats
+
+    def transpose(self, state, options):
+        return self.inner.transpose(state, options)
+
+    def conj(self, state, options):
+        return self.inner.conj(state, options)
+
+    def assume_full_rank(self):
+        return self.inner.assume_full_rank()

@@ -1,0 +1,56 @@
+"""What the sweep's light solve returns: the converged light on the lattice, for any camera."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from ..._numerics import trilinear
+from .._model import AbstractLight
+
+
+class LightField(AbstractLight):
+    """The converged light of a scene on its lattice (all fields (nx, ny, nz), node (i, j, k)
+    at ``origin + (idx + 0.5)·h``).
+
+    fluence: Λ = Σ_L w_L R(x, L), the scattered (collided) light arriving at FREE nodes (W m⁻²
+        for a sun irradiance in W m⁻²); the mean diffuse radiance is Λ/4π.
+    sun_fluence: F·T_sun, the uncollided sun arriving at each node (irradiance on a plane
+        perpendicular to the beam).
+    sky_fluence: Σ_k w_k·sky·T_k, the uncollided sky arriving at each node (first-collision
+        sky; zero when the sky is propagated through the lattice directions instead).
+    radiosity: B, the Lambertian exitant radiance of SURFACE nodes (0 elsewhere).
+    source: Q = (ζ/(ζ+γ))·J, the step source radiance at FREE nodes (isotropic part).
+    residuals: (max_iterations,) relative change per iteration (NaN past ``iterations``).
+    iterations: applications of the one-bounce operator (six sweeps each).
+    error_estimate: the estimated remaining relative error when the iteration stopped.
+    result: a :class:`difffog.RESULTS` code (int32).
+    origin, h: the lattice's lower corner and spacing (static).
+    """
+
+    fluence: Float[Array, "nx ny nz"]
+    sun_fluence: Float[Array, "nx ny nz"]
+    sky_fluence: Float[Array, "nx ny nz"]
+    radiosity: Float[Array, "nx ny nz"]
+    source: Float[Array, "nx ny nz"]
+    residuals: Float[Array, " max_iters"]
+    iterations: Int[Array, ""]
+    error_estimate: Float[Array, ""]
+    result: Int[Array, ""]
+    origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
+    h: float = eqx.field(static=True, default=1.0)
+
+    def fluence_at(self, points: Float[Array, "... 3"]) -> Float[Array, "..."]:
+        """Total fluence (collided Λ + uncollided sun + uncollided sky) at world points,
+        trilinear between nodes, 0 outside the lattice."""
+        total = self.fluence + self.sun_fluence + self.sky_fluence
+        pts = jnp.asarray(points, total.dtype)
+        return trilinear(total, self.origin, self.h, pts)
+
+    def report(self) -> dict:
+        k = int(self.iterations)
+        return {"iterations": k,
+                "residuals": [float(x) for x in jax.device_get(self.residuals)[:k]],
+                "error_estimate": float(self.error_estimate)}

@@ -1,0 +1,74 @@
+"""Shared test helpers: small scenes, the list of forward models every interface test runs,
+finite differences, and reference values that need test-only packages (iadpython)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+import difffog as df
+
+
+def small_scene(name: str = "fog-balls", overrides=(), size=(12, 10)):
+    """A built-in scene with every camera at ``size`` (width, height) pixels.  fog-balls gets
+    walls thick enough for a 12-node lattice."""
+    extra = ["shape.walls.thickness=0.1"] if name == "fog-balls" else []
+    scene = df.load_scene(name, extra + list(overrides))
+    cams = tuple(dataclasses.replace(c, resolution=size) for c in scene.cameras)
+    return scene.replace(cameras=cams)
+
+
+#: (solver name, settings) of the small models every interface test runs; fixture ``model``
+#: (conftest.py) builds each once per test session
+MODELS = {
+    "sweep": dict(resolution=12, M=2, tol=1e-6, supersample=1),
+    "splat": dict(resolution=12, supersample=1),
+}
+
+#: the fit's view of fog-balls: both cameras reduced 8× (16×16 and 20×15 pixels)
+FIT_DOWNSAMPLE = 8
+#: the parameters the shared fit tests recover
+FIT_TRUTH = {"fog.scattering": 2.0, "fog.absorption": 0.5, "shape.walls.albedo": 0.7}
+
+
+def build_model(solver: str, scene=None, **extra):
+    scene = small_scene() if scene is None else scene
+    return df.forward_model(scene, solver, accuracy=None, **{**MODELS[solver], **extra})
+
+
+def build_fit_model(solver: str):
+    """The model ``df.fit(forward=solver, resolution=12, downsample=8)`` builds for fog-balls
+    (the solver's fit defaults, M = 2 and tol 1e-6 for the sweep): the models every fit test
+    shares, so that their compiled steps are shared too."""
+    from difffog.fit._driver import make_model
+
+    settings = {"M": 2, "tol": 1e-6} if solver == "sweep" else {}
+    return make_model(fit_scene(), solver, cameras=["top", "oblique"], resolution=12,
+                      downsample=FIT_DOWNSAMPLE, model_settings=settings)
+
+
+def fit_scene():
+    return df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])  # > one voxel at N = 12
+
+
+def central_difference(f, params, scene, path, rel_step=1e-5):
+    """(f(p + ε) − f(p − ε)) / 2ε along the dotted parameter ``path`` (ε relative)."""
+    v = float(df.get_param(params, scene, path))
+    eps = rel_step * max(abs(v), 1e-3)
+    hi = f(df.set_param(params, scene, path, v + eps))
+    lo = f(df.set_param(params, scene, path, v - eps))
+    return jax.tree.map(lambda a, b: (np.asarray(a, np.float64) - np.asarray(b, np.float64))
+                        / (2 * eps), hi, lo)
+
+
+def adding_doubling(albedo: float, tau: float, g: float = 0.0, *, quad_pts: int = 16):
+    """(R, T) of a slab under a uniform (diffuse) sky by adding-doubling (iadpython, a test
+    dependency; ``difffog/data/references/slab_adding_doubling.csv`` holds a 64-point table)."""
+    import iadpython
+
+    s = iadpython.Sample(a=albedo, b=tau, g=g, n=1.0, n_above=1.0, n_below=1.0,
+                         quad_pts=quad_pts)
+    ur1, ut1, uru, utu = s.rt()
+    return float(uru), float(utu)
