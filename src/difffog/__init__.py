@@ -15,6 +15,7 @@ parameters) → ``geometry`` (lattice, directions, rays) → ``forward`` (the fo
 
 from ._errors import (
     AdjointWarning as AdjointWarning,
+    ThickStepWarning as ThickStepWarning,
     DifffogError as DifffogError,
     SceneError as SceneError,
     SolverError as SolverError,

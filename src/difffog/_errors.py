@@ -17,3 +17,9 @@ class SolverError(DifffogError, RuntimeError):
 class AdjointWarning(UserWarning):
     """A tangent or adjoint light solve (a derivative of the light field) did not converge:
     the gradient is inaccurate."""
+
+
+class ThickStepWarning(UserWarning):
+    """One lattice step of the light solve spans more than a mean free path: energy is
+    conserved, but the light's distribution inside the fog (and what a camera sees of thick
+    fog) is coarse.  The message names the step depth and the resolution that brings it to 1."""

@@ -7,8 +7,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
-from .._errors import DifffogError
+from .._errors import AdjointWarning, DifffogError, ThickStepWarning
+from ..fit._result import IdentifiabilityWarning
 from ..forward._registry import LEVELS, SOLVERS, preset, solver_entry
 
 DEFAULT_SCENE = "fog-balls"
@@ -102,8 +104,22 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    # difffog's own warnings (thick steps, unconverged adjoints, identifiability) as one line
+    # each, like its errors, rather than Python's file:line and source line
+    shown = warnings.showwarning
+
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, (ThickStepWarning, AdjointWarning, IdentifiabilityWarning)):
+            print(f"difffog: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = one_line
+            for category in (ThickStepWarning, AdjointWarning, IdentifiabilityWarning):
+                warnings.simplefilter("always", category)  # said, never raised
+            return args.func(args)
     except DifffogError as e:
         print(f"difffog: error: {e}", file=sys.stderr)
         return 2

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._errors import AdjointWarning, DifffogError
+from .._errors import AdjointWarning, DifffogError, ThickStepWarning
 from .._progress import as_meter
 from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
@@ -214,6 +214,10 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
     for msg in msgs:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
     msgs = list(msgs) + [str(w) for w in extra_warnings]
+    thick = _step_warning(st, u)
+    if thick:
+        warnings.warn(f"at the estimate, {thick}", ThickStepWarning, stacklevel=3)
+        msgs.append(f"at the estimate, {thick}")
     raw = (y - st.flat_t) * np.sqrt(np.asarray(st.data[1], np.float64) ** 2)
     images, off = {}, 0
     for n in st.names:
@@ -239,6 +243,19 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         condition=cond,
         settings=st.settings,
     )
+
+
+def _step_warning(st: _Setup, u) -> str | None:
+    """The model's step warning (``ThickStepWarning``) at the estimate ``u``."""
+    from ..scene._params import set_param
+
+    p = st.model.params()
+    try:
+        for path, v in st.values(u).items():
+            p = set_param(p, st.model.scene, path, v)
+    except DifffogError:  # an unknown the parameters do not hold (e.g. a density grid)
+        return None
+    return st.model.step_warning(p)
 
 
 def _postfix(entry: dict) -> dict:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import abc
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -27,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._errors import SolverError
+from .._errors import SolverError, ThickStepWarning
 from .._results import RESULTS, check, error_if_failed
 from ..scene._description import Camera, Scene
 from ..scene._params import Params
@@ -94,6 +95,11 @@ class AbstractForwardModel(eqx.Module):
     @abc.abstractmethod
     def settings(self) -> dict:
         """The model's settings and sizes, JSON-able (``report.json``, benchmarks)."""
+
+    def step_warning(self, params: Params) -> str | None:
+        """A one-line warning when these concrete parameters make the model's discretization
+        optically coarse (``ThickStepWarning``), else None.  Default: none."""
+        return None
 
     # -- the same for every model ---------------------------------------------------------
     def params(self, dtype=None) -> Params:
@@ -196,6 +202,7 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
                           f"{type(model).__name__}")
     params = model.params() if params is None else params
     model.check(params)
+    warn_thick_steps(model, params, stacklevel=3)
     timings = dict(model.settings().get("setup_s", {}))
     t = time.perf_counter()
     light_fn = light_jit.lower(model, params).compile()
@@ -229,6 +236,13 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
 # ------------------------------------------------------------------------------------------
 # many parameter sets at once
 # ------------------------------------------------------------------------------------------
+def warn_thick_steps(model: AbstractForwardModel, params: Params, stacklevel: int = 2) -> None:
+    """Warn (``ThickStepWarning``) when ``model.step_warning(params)`` has something to say."""
+    msg = model.step_warning(params)
+    if msg:
+        warnings.warn(msg, ThickStepWarning, stacklevel=stacklevel + 1)
+
+
 def stack_params(params) -> Params:
     """One ``Params`` whose leaves have a leading axis of ``len(params)``."""
     params = list(params)

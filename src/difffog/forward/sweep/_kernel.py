@@ -30,8 +30,17 @@ negative (the paper's first-order factor (1 − γ − ζ) does, once a step is 
 Q = (ζ/(ζ+γ))·J is the source radiance, J the mean radiance (Λ/4π) of the previous iteration plus
 the first-collision source of the sun.
 
-Λ(y) += Σ_L w_L R(y, L) accumulates the fluence at FREE nodes (the paper's "isotropic
-luminescence"); E(y) += c(y) Σ_L w_L R(y, L) max(0, −L̂·N(y)) the irradiance of SURFACE nodes with
+Λ(y) += Σ_L w_L R̄(y, L) accumulates the fluence at FREE nodes (the paper's "isotropic
+luminescence") from the radiance averaged over the node's segment,
+    R̄ = Q + (R_in − Q)·(1 − e^(−2τ))/(2τ)      (R_in entering the node's segment of depth 2τ),
+not from the radiance at the node: the step update gives R_out − R_in = 2τ·(Q − R̄) exactly, and
+the chains of direction L through the lattice carry a cross-section h²/|L| each, so the power a
+node's beams lose is σ_t h³ Σ_L w_L (R̄ − Q) whatever |L|; with Q = (ζ/σ_t)·Λ/4π a purely
+scattering node then re-emits exactly what it removes, for any step optical depth.  (With the
+point value R(y, L) a thick node (τ ≫ 1) saw its own source from every direction, Λ → 4πQ, and
+a conservative medium's light grew without bound: ×11 at ζ = 100, N = 12.)  The first-collision
+source adds the uncollided sun and sky averaged over the node's segment the same way
+(``_uncollided.py``).  After a blocked arrival only the departure half lies in the fog: R̄ = Q + (B − Q)(1 − e^(−τ))/τ.  E(y) += c(y) Σ_L w_L R(y, L) max(0, −L̂·N(y)) the irradiance of SURFACE nodes with
 the per-node cosine normalization c (so that a Lambertian hemisphere integrates to π).  One
 Jacobi iteration = six sweeps = one more bounce.
 """
@@ -143,6 +152,14 @@ class Halo(eqx.Module):
             hi = jnp.where(i == ndev - 1, jax.lax.slice_in_dim(xp, n + M, n + 2 * M, axis=axis), hi)
         xp = jax.lax.dynamic_update_slice_in_dim(xp, lo, 0, axis=axis)
         return jax.lax.dynamic_update_slice_in_dim(xp, hi, n + M, axis=axis)
+
+
+def _phi(x, em):
+    """(1 − e^(−x))/x, the mean of e^(−s) over s ∈ [0, x], given em = expm1(−x): 1 at x = 0,
+    differentiable there (a series below 1e-3, where the quotient loses digits)."""
+    small = x < 1e-3
+    xs = jnp.where(small, 1.0, x)
+    return jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -em / xs)
 
 
 def _tile_rows(nu: int, target: int = _TILE_ROWS) -> int:
@@ -339,7 +356,11 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
             Qt, Bt, pt = rows(Qs_), rows(Bs_), rows(pass_s)
             # half-segment factor expm1(-τ|L|) for each distinct |L|: (K, M, tu, nv)
             if attenuate:
-                em_k = jnp.expm1(-rows(ts_)[None] * length_k[:, None, None, None])
+                tau_k = rows(ts_)[None] * length_k[:, None, None, None]  # half-segment depth
+                em_k = jnp.expm1(-tau_k)
+                # segment averages (Λ): the whole node segment [2τ], or its departure half [τ]
+                # after a blocked arrival; φ(x) = (1 − e^(−x))/x
+                avg2_k, avg1_k = _phi(2.0 * tau_k, em_k * (em_k + 2.0)), _phi(tau_k, em_k)
             if surfaces:
                 nt, bt = rows(ns_s), rows(bits_s)
             zero = jnp.zeros((M, tu, nv), dt)
@@ -354,22 +375,29 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                     em = jax.lax.dynamic_index_in_dim(em_k, kidx[d], 0, keepdims=False)
                     # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off fog
                     r_arr = r_mid + em * (r_mid - Qt)
+                    # the radiance averaged over the node's segment, for Λ (conservative)
+                    r_avg = Qt + (r_mid - Qt) * jax.lax.dynamic_index_in_dim(
+                        avg2_k, kidx[d], 0, keepdims=False)
                 else:
-                    r_arr = r_mid
+                    r_arr = r_avg = r_mid
                 w = weight[d]
                 if surfaces:
                     byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
                     blocked = (byte >> bit_of[d]) & 1
                     r_arr = jnp.where(blocked > 0, Bt, r_arr)
+                    if attenuate and fluence:  # blocked: only the departure half is in fog
+                        r_avg = jnp.where(blocked > 0, Qt + (Bt - Qt) * jax.lax.dynamic_index_in_dim(
+                            avg1_k, kidx[d], 0, keepdims=False), r_avg)
+                    else:
+                        r_avg = r_arr
                     ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
                     cos_w = jnp.maximum(-ldotn, 0.0) * w
                     if both:
-                        acc = acc + r_arr * jax.lax.complex(jnp.broadcast_to(w, cos_w.shape),
-                                                            cos_w)
+                        acc = acc + jax.lax.complex(r_avg * w, r_arr * cos_w)
                     else:
                         acc = acc + r_arr * cos_w
                 elif fluence:
-                    acc = acc + r_arr * w
+                    acc = acc + r_avg * w
                 # second half-segment
                 r_through = r_arr + em * (r_arr - Qt) if attenuate else r_arr
                 r_out = jnp.where(pt, r_through, 0.0)
@@ -469,13 +497,17 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off the fog.
         # (Written with broadcasts rather than einsum: XLA on CPU then fuses each reduction
         # with the elementwise work, 2-3x faster than dot_general here.)
-        em = jnp.expm1(-ts[:, None] * len4)
+        tau = ts[:, None] * len4
+        em = jnp.expm1(-tau)
         q4 = Qs[:, None]
         r_arr = r_mid + em * (r_mid - q4)
+        # Λ from the radiance averaged over the node's segment (conservative; see module doc)
+        r_avg = q4 + (r_mid - q4) * _phi(2.0 * tau, em * (em + 2.0))
         if surfaces:
             blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
             r_arr = jnp.where(blocked > 0, Bs[:, None], r_arr)
-        lam = (r_arr * w4).sum(1) if fluence else jnp.zeros_like(Qs)
+            r_avg = jnp.where(blocked > 0, q4 + (Bs[:, None] - q4) * _phi(tau, em), r_avg)
+        lam = (r_avg * w4).sum(1) if fluence else jnp.zeros_like(Qs)
         r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:
             ldotn = ns[0][:, None] * u4[0] + ns[1][:, None] * u4[1] + ns[2][:, None] * u4[2]

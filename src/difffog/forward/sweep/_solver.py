@@ -177,7 +177,7 @@ class _Problem(eqx.Module):
     tau_half: tuple[jax.Array, ...]  # per face, in the face frame: σ̄_t·h/2 (per unit |L|), 0 in solids
     sigma_t: jax.Array  # (ζ'+γ)·density per node
     ssa: jax.Array  # single-scattering albedo ζ'/(ζ'+γ)
-    sun_fluence: jax.Array  # F·T_sun
+    sun_fluence: jax.Array  # F·T̄_sun, T averaged over the node's segment of the beam
     sky_fluence: jax.Array  # uncollided sky Σ_k w_k sky T_k (0 if the sky goes through the lattice)
     rho: jax.Array  # albedo per node (SURFACE)
     emission: jax.Array  # emission per node (SURFACE)
@@ -510,11 +510,13 @@ class SweepSolver(eqx.Module):
         ext = zeta + params.absorption
         sigma_t = ext * geom.density.astype(dt)
         if geom.sun_dir is not None:
-            t_sun = sun_transmittance(sigma_t, geom.solid, np.array(geom.sun_dir), geom.h,
-                                      geom.periodic_xy)
-            sun_fluence = params.sun_irradiance * t_sun
+            # the point value lights surfaces; the segment average feeds the fog's source
+            t_sun, t_sun_avg = sun_transmittance(sigma_t, geom.solid, np.array(geom.sun_dir),
+                                                 geom.h, geom.periodic_xy, average=True)
+            sun_point = params.sun_irradiance * t_sun
+            sun_fluence = params.sun_irradiance * t_sun_avg
         else:
-            sun_fluence = jnp.zeros(geom.shape, dt)
+            sun_point = sun_fluence = jnp.zeros(geom.shape, dt)
         n_mu, n_phi = self.sky_quadrature or ((0, 0) if geom.periodic_xy else (8, 16))
         no_sky = geom.terms is not None and geom.terms.sky == "none"
         if no_sky:  # the terms: no [sky], no sky pass
@@ -555,7 +557,7 @@ class SweepSolver(eqx.Module):
             sky_fluence=sky_fluence,
             rho=rho,
             emission=emis,
-            direct=sun_fluence * geom.sun_cos.astype(dt) + sky_direct,
+            direct=sun_point * geom.sun_cos.astype(dt) + sky_direct,
             sky=lattice_sky,
             max_iterations=self.max_iterations,
             tol=self.tol,

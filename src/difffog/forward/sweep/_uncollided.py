@@ -28,12 +28,17 @@ def sun_sweep_axis(sun_dir: np.ndarray, periodic_xy: bool) -> tuple[int, int]:
     return a, (-1 if sun_dir[a] > 0 else 1)
 
 
-def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy):
+def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
     """Transmittance of the direct sun beam arriving at every node.
 
     sigma_t: (nx, ny, nz) extinction per unit length (ζ+γ)·density; opaque: (nx, ny, nz) bool
-    (SOLID nodes); sun_dir: unit vector *towards* the sun (static); h: voxel size.
-    Returns (nx, ny, nz) in [0, 1].
+    (SOLID nodes); sun_dir: unit vector *towards* the sun (static); h: voxel size;
+    average: also return the transmittance averaged over each node's segment of the beam.
+    Returns (nx, ny, nz) in [0, 1] (the point value at the node), and with ``average`` the pair
+    (point, segment average).  The average is what the node's first-collision source needs:
+    σ_t·F·average is exactly the power the beam loses in the node's segment, whatever its
+    optical depth (the point value is e^(−τ/2) of the segment's entry value: 6e-4 of it at
+    τ = 15, where the average is 0.067, and the node's source vanished in thick fog).
     """
     sun_dir = np.asarray(sun_dir, dtype=np.float64)
     axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
@@ -52,8 +57,6 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy):
     ipart = [math.floor(x) for x in src]
     frac = [x - i for x, i in zip(src, ipart)]
     lateral_periodic = (periodic_xy and u in (0, 1), periodic_xy and v in (0, 1))
-    half = jnp.exp(-s * (h / (2.0 * along)))  # half-segment transmittance per node
-
     def resample(t):
         for ax, (i0, f, per) in enumerate(zip(ipart, frac, lateral_periodic)):
             n = t.shape[ax]
@@ -69,17 +72,30 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy):
             t = a0 if f == 0.0 else (1.0 - f) * a0 + f * a1
         return t
 
+    tau = s * (h / (2.0 * along))  # half-segment optical depth per node
+    half = jnp.exp(-tau)
+    mean = segment_mean(2.0 * tau)  # mean of e^(−s) over the node's whole segment
+
     def step(t_out_prev, sheet):
-        half_k, opaque_k = sheet
-        t_arr = resample(t_out_prev) * half_k
+        half_k, mean_k, opaque_k = sheet
+        t_in = resample(t_out_prev)
+        t_arr = t_in * half_k
         t_out = jnp.where(opaque_k, 0.0, t_arr * half_k)
-        return t_out, t_arr
+        return t_out, (t_arr, t_in * mean_k)
 
     init = jnp.ones(s.shape[1:], s.dtype)
-    _, t_arr = jax.lax.scan(step, init, (half, o))
+    _, out = jax.lax.scan(step, init, (half, mean, o))
     if sign < 0:
-        t_arr = t_arr[::-1]
-    return jnp.transpose(t_arr, np.argsort(perm))
+        out = jax.tree.map(lambda a: a[::-1], out)
+    t_arr, t_avg = (jnp.transpose(a, np.argsort(perm)) for a in out)
+    return (t_arr, t_avg) if average else t_arr
+
+
+def segment_mean(x):
+    """(1 − e^(−x))/x: the mean of e^(−s) over s ∈ [0, x] (1 at x = 0, smooth there)."""
+    small = x < 1e-3
+    xs = jnp.where(small, 1.0, x)
+    return jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -jnp.expm1(-xs) / xs)
 
 
 def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
@@ -126,7 +142,7 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
     For each quadrature direction ω_k (towards the sky) the transmittance T_k(x) from the top
     of the domain (or from its open sides) to x is carried sheet by sheet from the top down,
     with bilinear resampling at the direction's lateral offset per sheet.  Returns per node
-      fluence: Σ_k w_k T_k(x)        (×sky radiance = the uncollided sky's 4π·J)
+      fluence: Σ_k w_k T̄_k(x), T̄ averaged over the node's segment (×sky = the source's 4π·J)
       irradiance: Σ_k w_k T_k(x) max(0, ω_k·N(x))   (× sky = direct sky on a surface node).
     sigma_t, opaque: (nx, ny, nz); normal: (nx, ny, nz, 3); sky_dirs (K, 3) static.
     """
@@ -167,10 +183,13 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
 
     def step(t_prev, sheet):
         s_k, o_k, n_k = sheet  # (nx, ny), (nx, ny), (nx, ny, 3)
-        half = jnp.exp(-s_k[None] * path)
-        t_arr = resample(t_prev) * half
+        tau = s_k[None] * path
+        half = jnp.exp(-tau)
+        t_in = resample(t_prev)
+        t_arr = t_in * half
         t_out = jnp.where(o_k[None], 0.0, t_arr * half)
-        flu = jnp.einsum("kij,k->ij", t_arr, w)
+        # the source's fluence: averaged over the node's segment (see sun_transmittance)
+        flu = jnp.einsum("kij,k->ij", t_in * segment_mean(2.0 * tau), w)
         cos = jnp.maximum(jnp.einsum("ijc,kc->kij", n_k, wd), 0.0)
         irr = jnp.einsum("kij,k->ij", t_arr * cos, w)
         return t_out, (flu, irr)
