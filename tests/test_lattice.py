@@ -26,8 +26,11 @@ from difffog import (
     voxelize,
 )
 from difffog.geometry._lattice import FREE, SOLID, SURFACE
+from difffog.scene._toml import _scene_dir
 
-SHARED = "/work/shared/scenes"
+# the built-in scenes difffog ships (copies of the benchmark scenes, with their meshes): a clone
+# or an installed difffog has them, not the benchmark folder beside the repository
+SCENES = str(_scene_dir())
 UNIT = Domain((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 RING_AXIS = (0.0, -0.5, 0.866)
 
@@ -49,7 +52,7 @@ def ring():
 def load_shared_mesh(fname, translate):
     import trimesh
 
-    m = trimesh.load(os.path.join(SHARED, "meshes", fname), force="mesh")
+    m = trimesh.load(os.path.join(SCENES, "meshes", fname), force="mesh")
     t = np.asarray(translate, float)
     # a shape name has no dots: "ring.obj" -> "ring"
     name = os.path.splitext(fname)[0]
@@ -562,7 +565,7 @@ def test_thin_shapes_warn():
         voxelize(scene(OpenBox(name="walls", thickness=0.05)), 16, 2)
 
 
-SHARED_SCENES = sorted(glob.glob(os.path.join(SHARED, "*.toml")))
+SHARED_SCENES = sorted(glob.glob(os.path.join(SCENES, "*.toml")))
 
 
 @pytest.mark.parametrize("path", SHARED_SCENES, ids=[os.path.basename(p) for p in SHARED_SCENES])
