@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._errors import SolverError
+from ..._numerics import one_minus_exp_over
 from ...geometry._directions import FACE_AXES, DirectionSet, direction_set, face_plane_axes
 
 # Rows of the plane processed per tile (see sweep_face): a tile's per-node data and expm1 table
@@ -152,14 +153,6 @@ class Halo(eqx.Module):
             hi = jnp.where(i == ndev - 1, jax.lax.slice_in_dim(xp, n + M, n + 2 * M, axis=axis), hi)
         xp = jax.lax.dynamic_update_slice_in_dim(xp, lo, 0, axis=axis)
         return jax.lax.dynamic_update_slice_in_dim(xp, hi, n + M, axis=axis)
-
-
-def _phi(x, em):
-    """(1 − e^(−x))/x, the mean of e^(−s) over s ∈ [0, x], given em = expm1(−x): 1 at x = 0,
-    differentiable there (a series below 1e-3, where the quotient loses digits)."""
-    small = x < 1e-3
-    xs = jnp.where(small, 1.0, x)
-    return jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -em / xs)
 
 
 def _tile_rows(nu: int, target: int = _TILE_ROWS) -> int:
@@ -359,8 +352,8 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 tau_k = rows(ts_)[None] * length_k[:, None, None, None]  # half-segment depth
                 em_k = jnp.expm1(-tau_k)
                 # segment averages (Λ): the whole node segment [2τ], or its departure half [τ]
-                # after a blocked arrival; φ(x) = (1 − e^(−x))/x
-                avg2_k, avg1_k = _phi(2.0 * tau_k, em_k * (em_k + 2.0)), _phi(tau_k, em_k)
+                # after a blocked arrival
+                avg2_k, avg1_k = one_minus_exp_over(2.0 * tau_k), one_minus_exp_over(tau_k)
             if surfaces:
                 nt, bt = rows(ns_s), rows(bits_s)
             zero = jnp.zeros((M, tu, nv), dt)
@@ -502,11 +495,11 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         q4 = Qs[:, None]
         r_arr = r_mid + em * (r_mid - q4)
         # Λ from the radiance averaged over the node's segment (conservative; see module doc)
-        r_avg = q4 + (r_mid - q4) * _phi(2.0 * tau, em * (em + 2.0))
+        r_avg = q4 + (r_mid - q4) * one_minus_exp_over(2.0 * tau)
         if surfaces:
             blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
             r_arr = jnp.where(blocked > 0, Bs[:, None], r_arr)
-            r_avg = jnp.where(blocked > 0, q4 + (Bs[:, None] - q4) * _phi(tau, em), r_avg)
+            r_avg = jnp.where(blocked > 0, q4 + (Bs[:, None] - q4) * one_minus_exp_over(tau), r_avg)
         lam = (r_avg * w4).sum(1) if fluence else jnp.zeros_like(Qs)
         r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._numerics import one_minus_exp_over
 from ...geometry._directions import face_plane_axes
 
 
@@ -74,7 +75,7 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
 
     tau = s * (h / (2.0 * along))  # half-segment optical depth per node
     half = jnp.exp(-tau)
-    mean = segment_mean(2.0 * tau)  # mean of e^(−s) over the node's whole segment
+    mean = one_minus_exp_over(2.0 * tau)  # mean of e^(−s) over the node's whole segment
 
     def step(t_out_prev, sheet):
         half_k, mean_k, opaque_k = sheet
@@ -89,13 +90,6 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
         out = jax.tree.map(lambda a: a[::-1], out)
     t_arr, t_avg = (jnp.transpose(a, np.argsort(perm)) for a in out)
     return (t_arr, t_avg) if average else t_arr
-
-
-def segment_mean(x):
-    """(1 − e^(−x))/x: the mean of e^(−s) over s ∈ [0, x] (1 at x = 0, smooth there)."""
-    small = x < 1e-3
-    xs = jnp.where(small, 1.0, x)
-    return jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0, -jnp.expm1(-xs) / xs)
 
 
 def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
@@ -189,7 +183,7 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
         t_arr = t_in * half
         t_out = jnp.where(o_k[None], 0.0, t_arr * half)
         # the source's fluence: averaged over the node's segment (see sun_transmittance)
-        flu = jnp.einsum("kij,k->ij", t_in * segment_mean(2.0 * tau), w)
+        flu = jnp.einsum("kij,k->ij", t_in * one_minus_exp_over(2.0 * tau), w)
         cos = jnp.maximum(jnp.einsum("ijc,kc->kij", n_k, wd), 0.0)
         irr = jnp.einsum("kij,k->ij", t_arr * cos, w)
         return t_out, (flu, irr)
