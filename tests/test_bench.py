@@ -96,7 +96,10 @@ STUDY_SETTINGS = {"splat": dict(resolution=12, sheets=None),
                   "sweep": dict(resolution=12, M=2, tol=1e-3)}
 
 
-@pytest.mark.parametrize("solver", ["splat", pytest.param("sweep", marks=pytest.mark.slow)])
+# slow (both): ~30 s for the splat, 4× that for the sweep; the default suite keeps the bench
+# command's own tests
+@pytest.mark.slow
+@pytest.mark.parametrize("solver", ["splat", "sweep"])
 def test_bench_study_rows_match_an_independent_render(solver, tmp_path, monkeypatch):
     """A one-setting study on fog-balls against the shipped references: the CSV's error is the
     error of the same render computed here, Mitsuba's curve is included, and the Pareto plot

@@ -11,6 +11,7 @@ from difffog import Camera, SceneError
 from difffog.forward._camera import camera_basis, camera_rays, hg_phase
 from difffog.forward.sweep._march import (
     LatticeFields,
+    camera_hits,
     march_steps,
     render_camera,
     render_rays,
@@ -292,6 +293,49 @@ def test_gradients_match_finite_differences(x64):
     gf = jax.jit(jax.grad(lambda f: render_camera(f, cams[0]).sum()))(base)
     for name in ("sigma_t", "j_iso", "j_sun", "radiosity_ext", "sdf", "g", "sky"):
         assert np.isfinite(getattr(gf, name)).all(), name
+
+
+def test_exact_hit_gradients_match_finite_differences(x64):
+    """The march with exact hits (fog up to the hit, the hit's irradiance, albedo, emission and
+    its sun through the fog) against central differences, camera inside the fog."""
+    import difffog as df
+
+    rng = np.random.default_rng(1)
+    n, h = (10, 9, 8), 0.1
+    scene = df.Scene(title="t", domain=df.Domain((0, 0, 0), (1.0, 0.9, 0.8)),
+                     sun=df.Sun(2.0, 30.0, 40.0),
+                     shapes=[df.Sphere("ball", center=(0.5, 0.45, 0.3), radius=0.2),
+                             df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05),
+                                                       (1, 0.9, 0.05), (0, 0.9, 0.05)))])
+    cam = persp(position=(0.2, 0.1, 0.6), look_at=(0.5, 0.45, 0.2), fov=70, res=(6, 5))
+    density = 0.5 + rng.random(n)
+    hits = camera_hits(scene, cam, 2, density, (0, 0, 0), h, n)
+    assert {0, 1} <= set(np.unique(np.asarray(hits.shape)).tolist())  # both shapes and the sky
+    nrm = rng.normal(size=n + (3,))
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    base = LatticeFields(
+        sigma_t=density, j_iso=0.3 * rng.random(n), j_sun=rng.random(n),
+        radiosity_ext=np.zeros(n), sdf=np.full(n, 10.0), origin=(0, 0, 0), h=h, g=0.5,
+        sun_dir=tuple(scene.sun.direction), sky=1.5, surface_normal=nrm,
+        irradiance=0.5 + rng.random(n), albedo=np.array([0.6, 0.3]),
+        emission=np.array([0.1, 0.0]), sun_irradiance=2.0, sun_extinction=1.0)
+
+    def loss(a, e, alb, em):
+        f = eqx_replace(base, sigma_t=a * base.sigma_t, irradiance=e * base.irradiance,
+                        albedo=alb * base.albedo, emission=em * base.emission,
+                        sun_extinction=a * base.sun_extinction)
+        return render_camera(f, cam, supersample=2, hits=hits).sum()
+
+    args = (1.0, 1.0, 1.0, 1.0)
+    value_and_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3)))
+    _, grads = value_and_grad(*args)
+    for i, gr in enumerate(grads):
+        eps = 1e-6
+        hi = list(args); hi[i] += eps  # noqa: E702
+        lo = list(args); lo[i] -= eps  # noqa: E702
+        fd = (value_and_grad(*hi)[0] - value_and_grad(*lo)[0]) / (2 * eps)
+        assert float(gr) == pytest.approx(float(fd), rel=1e-6), i
+        assert abs(float(gr)) > 1e-3
 
 
 # ------------------------------------------------------------------------------------------

@@ -80,9 +80,38 @@ def camera_rays(camera: Camera, supersample: int = 2) -> tuple[np.ndarray, np.nd
     if width < 1 or height < 1:
         raise SceneError(f"camera '{camera.name}': resolution {camera.resolution} must be "
                          "positive [width, height]")
-    fwd, right, up = camera_basis(camera)
     x, y = _subpixel_ndc(width, height, s)
-    x, y = x[..., None], y[..., None]
+    return rays_at(camera, x, y)
+
+
+def hammersley_ndc(camera: Camera, pixels, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """NDC coordinates (P, n) of n Hammersley points in each of the given pixels (P, 2) as
+    (row, column): x = (i + 1/2)/n, y = the base-2 radical inverse of i (shifted by 1/2n).
+    Both projections are stratified into n bins, so an axis-aligned edge's coverage is right to
+    1/n (a regular s×s grid: 1/2s), and any straight edge's to O(log n / n)."""
+    width, height = (int(v) for v in camera.resolution)
+    pixels = np.asarray(pixels, np.int64).reshape(-1, 2)
+    i = np.arange(n)
+    rad = np.zeros(n)
+    f, k = 0.5, i.copy()
+    while k.any():
+        rad += f * (k & 1)
+        k >>= 1
+        f *= 0.5
+    sx = (i + 0.5) / n
+    sy = (rad + 0.5 / n) % 1.0
+    x = 2.0 * (pixels[:, 1:2] + sx[None, :]) / width - 1.0
+    y = 1.0 - 2.0 * (pixels[:, 0:1] + sy[None, :]) / height
+    return x, y
+
+
+def rays_at(camera: Camera, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Rays (origins, unit directions), shape x.shape + (3,), of a camera through the image
+    points of NDC coordinates x (left→right) and y (bottom→top) in [-1, 1]; see
+    :func:`camera_rays`."""
+    width, height = (int(v) for v in camera.resolution)
+    fwd, right, up = camera_basis(camera)
+    x, y = np.asarray(x, np.float64)[..., None], np.asarray(y, np.float64)[..., None]
     pos = np.asarray(camera.position, np.float64)
     if camera.kind == "perspective":
         if camera.fov_deg is None or not 0.0 < camera.fov_deg < 180.0:

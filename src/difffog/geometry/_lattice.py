@@ -85,6 +85,11 @@ class Lattice:
     normal: np.ndarray  # float32 (nx, ny, nz, 3): unit outward normal at SURFACE nodes, 0 elsewhere
     density: np.ndarray  # float32: fog density multiplier (0 at SOLID nodes and outside the fog)
     sdf: np.ndarray  # float32: signed distance to the solid geometry, < 0 exactly at SOLID nodes
+    # float32: the fog's density as if there were no solids (grid × region), for what samples
+    # the fog between nodes right up to an exact surface (the cameras' march, the sun's depth
+    # at a hit): trilinear between the last fog node and a SOLID node it does not fall to 0
+    # half-way; None: ``density``
+    fog_density: np.ndarray | None = None
 
     def counts(self) -> dict[str, int]:
         """Number of nodes of each type: ``{"free": …, "surface": …, "solid": …}``."""
@@ -200,6 +205,7 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
         normal[idx] = nv
 
     density = _density(scene, grid, solid)
+    fog_density = _density(scene, grid, np.zeros_like(solid)) if solid.any() else density
     return Lattice(
         shape=n,
         h=grid.h,
@@ -211,6 +217,7 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
         normal=normal,
         density=density,
         sdf=sdf,
+        fog_density=fog_density,
     )
 
 

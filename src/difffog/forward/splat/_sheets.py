@@ -16,7 +16,8 @@ import numpy as np
 
 from ..._errors import SceneError
 from ..._numerics import trilinear
-from ...geometry._rays import cast_rays, hit_normals
+from ...geometry._hits import first_hits
+from ...geometry._rays import cast_rays
 from ...scene._description import Scene
 from .._camera import camera_basis, camera_rays
 from ...geometry._directions import sky_quadrature
@@ -308,21 +309,17 @@ def build_sheets(scene: Scene, lattice, tris, camera, *, sheets: int | None, sup
     H, Wd, S, _ = o.shape
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     Pn = len(o)
-    if len(tris):
-        th, fh, b1, b2 = cast_rays(tris, o, d)
-    else:
-        th, fh = np.full(Pn, np.inf), np.full(Pn, -1)
-        b1 = b2 = np.zeros(Pn)
-    hit = np.isfinite(th)
+    # the eye's z-buffer and the shadow test, exactly: the first hit on the exact shapes (the
+    # same hits as the sweep's cameras) and a shadow ray towards the sun from it
+    eh = first_hits(scene, o, d)
+    th, hit, n = eh.t, eh.hit, eh.normal
     xh = o + np.where(hit, th, 0.0)[:, None] * d
-    n = hit_normals(tris, fh, b1, b2) if len(tris) else np.zeros((Pn, 3))
-    n = np.where(((n * d).sum(-1) > 0)[:, None], -n, n)  # the side facing the viewer
-    # the shadow z-buffer test, done exactly: a shadow ray towards the sun from the hit
     vis = np.ones(Pn)
-    if len(tris) and hit.any():
-        eps = 1e-5 * float(np.linalg.norm(hi - lo))
-        ts, _, _, _ = cast_rays(tris, xh[hit] + eps * n[hit], np.broadcast_to(sdir, (hit.sum(), 3)))
-        vis[hit] = (~np.isfinite(ts)).astype(float)
+    if hit.any():
+        eps = 1e-7 * float(np.linalg.norm(hi - lo))
+        vis[hit] = (~first_hits(scene, xh[hit] + eps * n[hit],
+                                np.broadcast_to(sdir, (hit.sum(), 3)), t_min=eps).hit
+                    ).astype(float)
     zh = xh @ s
     ksh = np.floor((zh - z_lo) / dz)
     hit_sheet = np.where(hit, np.clip(ksh, -1, K), K + 1).astype(np.int32)
@@ -368,8 +365,7 @@ def build_sheets(scene: Scene, lattice, tris, camera, *, sheets: int | None, sup
         light_D=f32(light_D), occ_first=jnp.asarray(occ_first), occ_sheets=jnp.asarray(occ_sheets),
         eye_D=f32(eye_D), eye_up=f32(eye_up), eye_uv=f32(eye_uv), eye_dir=f32(d),
         hit_sheet=jnp.asarray(hit_sheet), hit_frac=f32(hit_frac), hit_uv=f32(to_uv(xh)),
-        hit_shape=jnp.asarray(np.where(hit, tris.shape[np.maximum(fh, 0)] if len(tris) else 0,
-                                       0).astype(np.int32)),
+        hit_shape=jnp.asarray(np.where(hit, eh.shape, 0).astype(np.int32)),
         hit_cos_sun=f32(np.maximum(0.0, n @ sdir)), hit_cos_back=f32(np.maximum(0.0, -(n @ sdir))),
         hit_sky=f32((1.0 + n[:, 2]) / 2.0), hit_vis=f32(vis), hit_up=f32(hit_up),
         sky_escape=f32((~hit) & (d[:, 2] > 0)),

@@ -22,6 +22,9 @@ class LightField(AbstractLight):
     sky_fluence: Σ_k w_k·sky·T_k, the uncollided sky arriving at each node (first-collision
         sky; zero when the sky is propagated through the lattice directions instead).
     radiosity: B, the Lambertian exitant radiance of SURFACE nodes (0 elsewhere).
+    irradiance: the diffuse irradiance of SURFACE nodes (W m⁻²): all but the direct sun (the
+        scattered light, the other surfaces, the uncollided sky), 0 elsewhere; the cameras'
+        exact hits rebuild the radiosity from it with the exact direct sun.
     source: Q = (ζ/(ζ+γ))·J, the step source radiance at FREE nodes (isotropic part).
     residuals: (max_iterations,) relative change per iteration (NaN past ``iterations``).
     iterations: applications of the one-bounce operator (six sweeps each).
@@ -34,6 +37,7 @@ class LightField(AbstractLight):
     sun_fluence: Float[Array, "nx ny nz"]
     sky_fluence: Float[Array, "nx ny nz"]
     radiosity: Float[Array, "nx ny nz"]
+    irradiance: Float[Array, "nx ny nz"]
     source: Float[Array, "nx ny nz"]
     residuals: Float[Array, " max_iters"]
     iterations: Int[Array, ""]

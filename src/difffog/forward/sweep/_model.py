@@ -22,7 +22,7 @@ from ...scene._description import Camera, Scene
 from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
-from ._march import LatticeFields, render_camera
+from ._march import LatticeFields, RayHits, camera_hits, render_camera
 from ._solver import SweepGeometry, SweepSolver
 from ._terms import check_terms
 
@@ -44,6 +44,7 @@ class CameraGeometry(eqx.Module):
     """Static maps that extend solver fields to every node for trilinear camera lookups."""
 
     near_fluid: jax.Array  # flat index of the nearest non-SOLID node
+    fog_density: jax.Array | None  # exact hits: the density ignoring solids (Lattice.fog_density)
     near_surface: jax.Array  # flat index of the nearest SURFACE node
     normal: jax.Array  # (nx, ny, nz, 3) unit normals at SURFACE nodes, 0 elsewhere
     sdf: jax.Array
@@ -54,12 +55,14 @@ class CameraGeometry(eqx.Module):
     has_surfaces: bool = eqx.field(static=True)
 
     @classmethod
-    def build(cls, scene: Scene, lattice) -> "CameraGeometry":
+    def build(cls, scene: Scene, lattice, exact_hits: bool = False) -> "CameraGeometry":
         nt = np.asarray(lattice.node_type)
         periodic = lattice.boundary == "periodic-xy"
         surf = nt == SURFACE
         return cls(
             near_fluid=jnp.asarray(_nearest_index(nt != SOLID)),
+            fog_density=(jnp.asarray(lattice.fog_density, jnp.float32) if exact_hits
+                         and lattice.fog_density is not None else None),
             near_surface=jnp.asarray(_nearest_index(surf)),
             sdf=jnp.asarray(lattice.sdf, jnp.float32),
             normal=jnp.asarray(np.where(surf[..., None], lattice.normal, 0.0), jnp.float32),
@@ -78,18 +81,24 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     for g = 0); the sun's single scattering uses the full ζ with the Henyey–Greenstein phase.
     Values are extended from the nearest fluid node into solids and from the nearest SURFACE
     node for the radiosity, so that trilinear interpolation near a surface stays sensible.
+    With exact hits the density is the fog's own, ignoring solids (``cam.fog_density``): the
+    march stops at the exact surface, and the fog reaches it.
     """
     dt = params.scattering.dtype
     ext = lambda a, idx: a.reshape(-1)[idx]  # noqa: E731
-    dens = ext(density.astype(dt), cam.near_fluid)
+    if cam.fog_density is not None:
+        dens = cam.fog_density.astype(dt)
+    else:
+        dens = ext(density.astype(dt), cam.near_fluid)
     zeta_r = params.scattering * (1.0 - params.g)
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
     j_sun = params.scattering * dens * ext(light.sun_fluence, cam.near_fluid)
     if cam.has_surfaces:
         rad = ext(light.radiosity, cam.near_surface)
+        irr = ext(light.irradiance, cam.near_surface)
     else:
-        rad = jnp.zeros_like(sigma_t)
+        rad = irr = jnp.zeros_like(sigma_t)
     return LatticeFields(
         sigma_t=sigma_t,
         j_iso=j_iso,
@@ -103,6 +112,11 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         sky=params.sky_radiance,
         periodic_xy=cam.periodic_xy,
         surface_normal=cam.normal.astype(dt) if cam.has_surfaces else None,
+        irradiance=irr if cam.has_surfaces else None,
+        albedo=params.albedo,
+        emission=params.emission,
+        sun_irradiance=params.sun_irradiance,
+        sun_extinction=zeta_r + params.absorption,
     )
 
 
@@ -116,6 +130,10 @@ class SweepModel(AbstractForwardModel):
     solver: the light solve's configuration (default ``SweepSolver(M=3)``).
     supersample: s×s stratified rays per pixel (box filter).
     cameras: names of the cameras to render (default: all), or Camera objects (e.g. reduced).
+
+    Camera rays meet the shapes exactly (``hits``: cast on the host once per camera, see
+    ``_march.RayHits``); only a periodic-xy domain with shapes (which the host caster does not
+    repeat across the periodic sides) finds its hits on the lattice's signed distance instead.
     """
 
     scene: Scene = eqx.field(static=True)
@@ -124,6 +142,7 @@ class SweepModel(AbstractForwardModel):
     geometry: SweepGeometry
     camera_geometry: CameraGeometry
     density: jax.Array
+    hits: tuple[RayHits, ...] | None
     resolution: int = eqx.field(static=True)
     supersample: int = eqx.field(static=True)
     host: HostInfo = eqx.field(static=True)
@@ -141,10 +160,22 @@ class SweepModel(AbstractForwardModel):
         voxelize_s = time.perf_counter() - t
         t = time.perf_counter()
         self.geometry = self.solver.prepare(scene, lattice)
-        self.camera_geometry = CameraGeometry.build(scene, lattice)
+        periodic = lattice.boundary == "periodic-xy"
+        exact = not (periodic and scene.shapes)
+        self.camera_geometry = CameraGeometry.build(scene, lattice, exact)
         self.density = jnp.asarray(lattice.density, jnp.float32)
-        self.host = HostInfo(lattice=lattice, setup_s={"voxelize_s": voxelize_s,
-                                                       "prepare_s": time.perf_counter() - t})
+        prepare_s = time.perf_counter() - t
+        t = time.perf_counter()
+        if exact:
+            fog = lattice.fog_density if lattice.fog_density is not None else lattice.density
+            self.hits = tuple(
+                camera_hits(scene, c, self.supersample, fog, lattice.origin, lattice.h,
+                            lattice.shape, periodic) for c in self.cameras)
+        else:
+            self.hits = None
+        self.host = HostInfo(lattice=lattice, setup_s={
+            "voxelize_s": voxelize_s, "prepare_s": prepare_s,
+            "camera_hits_s": time.perf_counter() - t})
 
     @property
     def lattice(self) -> Lattice:
@@ -178,7 +209,9 @@ class SweepModel(AbstractForwardModel):
 
     def images_from(self, light: LightField, params: Params) -> dict[str, jax.Array]:
         f = camera_fields(self.camera_geometry, self.density, light, params)
-        return {c.name: render_camera(f, c, supersample=self.supersample) for c in self.cameras}
+        hits = self.hits if self.hits is not None else (None,) * len(self.cameras)
+        return {c.name: render_camera(f, c, supersample=self.supersample, hits=h)
+                for c, h in zip(self.cameras, hits)}
 
     def settings(self) -> dict:
         lat = self.lattice

@@ -182,6 +182,7 @@ class _Problem(eqx.Module):
     rho: jax.Array  # albedo per node (SURFACE)
     emission: jax.Array  # emission per node (SURFACE)
     direct: jax.Array  # direct (uncollided) sun and sky irradiance on SURFACE nodes
+    sky_direct: jax.Array  # its sky part (what the camera's exact hits interpolate with Λ's)
     sky: jax.Array  # sky radiance entering the lattice directions (0 with first-collision sky)
     max_iterations: int = eqx.field(static=True)
     tol: float = eqx.field(static=True)
@@ -558,6 +559,7 @@ class SweepSolver(eqx.Module):
             rho=rho,
             emission=emis,
             direct=sun_point * geom.sun_cos.astype(dt) + sky_direct,
+            sky_direct=sky_direct,
             sky=lattice_sky,
             max_iterations=self.max_iterations,
             tol=self.tol,
@@ -585,12 +587,14 @@ class SweepSolver(eqx.Module):
             max_steps=max(cycles, -(-2 * self.max_iterations // 40))), throw=self.throw)
         root, (hist, k, err) = fixed_point(_solve_fixed_point, _rewrite, pb, linear_solver)
         q, b = _sources(root, pb)
+        irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
         fluence = root[0] if pb.fog_mask is None else jnp.where(pb.fog_mask, root[0], 0.0)
         return LightField(
             fluence=fluence,
             sun_fluence=pb.sun_fluence,
             sky_fluence=pb.sky_fluence,
             radiosity=b,
+            irradiance=irradiance,
             source=q,
             residuals=hist,
             iterations=k,

@@ -1,0 +1,158 @@
+"""Exact geometry where camera rays meet surfaces: hits on the exact shapes, edge pixels with the
+right mix of their surfaces, and the direct sun at a hit exact (shadow edges, Beer–Lambert)."""
+
+import math
+
+import numpy as np
+import pytest
+
+import difffog as df
+from difffog.geometry._hits import first_hits
+from difffog.geometry._rays import cast_rays, scene_triangles
+
+
+def _rays_towards(center, spread, n, seed):
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(n, 3))
+    o = center + 3.0 * o / np.linalg.norm(o, axis=1, keepdims=True)
+    target = center + spread * rng.uniform(-1, 1, size=(n, 3))
+    d = target - o
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _scene(shapes, **kw):
+    return df.Scene(title="t", domain=df.Domain((0, 0, 0), (1, 1, 1)), shapes=shapes, **kw)
+
+
+SHAPES = {
+    "sphere": (df.Sphere("s", center=(0.5, 0.5, 0.5), radius=0.3),
+               lambda p: np.linalg.norm(p - 0.5, axis=-1) - 0.3),
+    "torus": (df.Torus("t", center=(0.5, 0.5, 0.5), major_radius=0.3, minor_radius=0.1,
+                       axis=(0.3, -0.2, 1.0)), None),
+    "box": (df.Box("b", min=(0.3, 0.2, 0.4), max=(0.7, 0.6, 0.5)), None),
+}
+
+
+def _torus_sdf(p, s):
+    a = np.asarray(s.axis) / np.linalg.norm(s.axis)
+    v = p - np.asarray(s.center)
+    z = v @ a
+    rho = np.sqrt(np.maximum((v * v).sum(-1) - z * z, 0))
+    return np.hypot(rho - s.major_radius, z) - s.minor_radius
+
+
+def _box_sdf(p, s):
+    lo, hi = np.asarray(s.min), np.asarray(s.max)
+    q = np.abs(p - (lo + hi) / 2) - (hi - lo) / 2
+    return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0)
+
+
+@pytest.mark.parametrize("kind", sorted(SHAPES))
+def test_hits_lie_on_the_exact_shape(kind):
+    shape = SHAPES[kind][0]
+    scene = _scene([shape])
+    o, d = _rays_towards(np.full(3, 0.5), 0.45, 4000, seed=1)
+    hits = first_hits(scene, o, d)
+    p = o + np.where(hits.hit, hits.t, 0)[:, None] * d
+    sdf = {"sphere": SHAPES["sphere"][1], "torus": lambda q: _torus_sdf(q, shape),
+           "box": lambda q: _box_sdf(q, shape)}[kind]
+    assert 0.1 < hits.hit.mean() < 0.95  # the rays sample hits and misses
+    assert np.abs(sdf(p[hits.hit])).max() < 1e-9
+    # the ray is outside the shape just before its hit (the first hit, not a later one)
+    before = o + (hits.t - 1e-6)[:, None] * d
+    assert (sdf(before[hits.hit]) > 0).all()
+    # the normal is the shape's outward unit normal, facing the ray
+    assert np.allclose(np.linalg.norm(hits.normal[hits.hit], axis=1), 1.0)
+    assert ((hits.normal[hits.hit] * d[hits.hit]).sum(-1) <= 0).all()
+    # against a fine tessellation (vertices on the shape)
+    tris = scene_triangles(scene, sphere_subdivisions=5, torus_sections=(256, 96))
+    t_mesh, face, _, _ = cast_rays(tris, o, d)
+    met = face >= 0
+    if kind == "box":  # the box's 12 triangles are the box
+        assert np.array_equal(met, hits.hit)
+        assert np.allclose(t_mesh[met], hits.t[met], atol=1e-12)
+    elif kind == "sphere":  # convex: the mesh lies inside, so meeting it means meeting the shape
+        assert hits.hit[met].all()
+        assert (hits.t[met] <= t_mesh[met] + 1e-12).all()
+        assert (hits.hit & ~met).mean() < 0.01  # the mesh misses a sliver at the silhouette
+    else:  # the torus's saddle bulges out of its mesh: they agree to the mesh's chord error
+        both = met & hits.hit
+        dt = np.abs(hits.t[both] - t_mesh[both])  # chord error / the grazing cosine
+        assert np.quantile(dt, 0.99) < 1e-3 and dt.max() < 1e-2
+        assert (met != hits.hit).mean() < 0.01
+
+
+def _top_camera(x0, x1, width):
+    """An orthographic camera looking straight down at x ∈ [x0, x1] (pixels along x), one row."""
+    span = x1 - x0
+    return df.Camera("top", "orthographic", position=((x0 + x1) / 2, 0.5, 1.5),
+                     look_at=((x0 + x1) / 2, 0.5, 0.0), up=(0.0, 1.0, 0.0),
+                     resolution=(width, 1), extent=(span, span / width))
+
+
+def test_an_edge_pixel_mixes_its_two_surfaces_by_their_coverage():
+    # an emitting quad (radiance 1) whose edge x = 0.5 + 0.3·(pixel width) lies inside a pixel,
+    # over black: the pixel's value is the quad's share of its footprint
+    px = 0.05
+    edge = 0.5 + 0.3 * px
+    quad = df.Quad("q", corners=((edge, 0.0, 0.3), (1.0, 0.0, 0.3), (1.0, 1.0, 0.3),
+                                 (edge, 1.0, 0.3)), albedo=0.0, emission=1.0)
+    scene = _scene([quad], cameras=(_top_camera(0.5 - 2 * px, 0.5 + 2 * px, 4),))
+    img = df.render(df.forward_model(scene, "sweep", resolution=16, M=2)).images["top"][0]
+    np.testing.assert_allclose(img, [0.0, 0.0, 0.7, 1.0], atol=1.0 / 32)
+    # with 2×2 samples per pixel and nothing else, this pixel would read 0.5
+    assert abs(img[2] - 0.7) < 0.05
+
+
+def test_a_shadow_edge_and_the_sun_through_absorbing_fog_are_exact():
+    # a black box above purely absorbing fog (γ = 2, 0.4 deep) over a grey floor, no sky, the
+    # sun in the xz-plane: the lit floor's radiance is exactly albedo/π·F·cos θ·e^(-γ·0.4/cos θ)
+    # seen through e^(-γ·0.4) (Beer–Lambert on both paths, nothing else lights it), the box's
+    # shadow is black, and the pixel the shadow's edge crosses at 0.6 of its width reads 0.6
+    zen, gamma, a, F = 30.0, 2.0, 0.5, 2.0
+    floor = df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05), (1, 1, 0.05), (0, 1, 0.05)),
+                    albedo=a)
+    box = df.Box("box", min=(0.55, 0.2, 0.7), max=(0.9, 0.8, 0.8), albedo=0.0)
+    x_edge = 0.55 - (0.8 - 0.05) * math.tan(math.radians(zen))  # the shadow's left edge
+    px = 0.02
+    x0 = x_edge - 2.6 * px
+    fog = df.Fog(scattering=0.0, absorption=gamma, region=((0, 0, 0.1), (1, 1, 0.5)))
+    scene = _scene([floor, box], sun=df.Sun(F, zen, 0.0), fog=fog,
+                   cameras=(_top_camera(x0, x0 + 5 * px, 5),))
+    img = df.render(df.forward_model(scene, "sweep", resolution=20, M=2)).images["top"][0]
+    mu = math.cos(math.radians(zen))
+    lit = a / math.pi * F * mu * math.exp(-gamma * 0.4 / mu) * math.exp(-gamma * 0.4)
+    # the fog's depth is integrated by the midpoint rule in steps of h/2 through the trilinear
+    # density (towards the sun and along the camera's march): a few 1e-3 here
+    np.testing.assert_allclose(img[:2], lit, rtol=5e-3)
+    np.testing.assert_allclose(img / lit, [1.0, 1.0, 0.6, 0.0, 0.0], atol=1.0 / 32)
+
+
+@pytest.mark.slow  # compiles the float64 light solve and its adjoint (~40 s); the march with
+# exact hits has its default-suite check in test_camera.py
+def test_image_gradient_with_a_camera_inside_the_fog_matches_finite_differences(x64):
+    # the exact-hit path (the hit's albedo, its exact sun through the fog, the march up to the
+    # hit) differentiated through the implicit light solve, against central differences
+    import jax
+    import jax.numpy as jnp
+
+    from helpers import build_model, central_difference, small_scene
+
+    scene = small_scene(size=(8, 6))
+    inside = df.Camera("inside", "perspective", position=(0.2, 0.25, 0.45),
+                       look_at=(0.5, 0.5, 0.3), resolution=(8, 6), fov_deg=70.0)
+    scene = scene.replace(cameras=(inside,))
+    m = build_model("sweep", scene, max_iterations=1000, tol=1e-12, adjoint_rtol=1e-11)
+    hits = m.hits[0]
+    assert np.asarray(hits.shape).min() >= 0  # every ray of this camera ends on a surface
+    p0 = m.params(jnp.float64)
+    w = np.random.default_rng(3).random((6, 8))
+
+    def loss(p):
+        return jnp.sum(w * m(p)["inside"])
+
+    g = jax.jit(jax.grad(loss))(p0)
+    f = jax.jit(loss)
+    for path in ("fog.scattering", "fog.absorption", "shape.ball-mid.albedo", "sun.irradiance"):
+        fd = float(central_difference(f, p0, scene, path))
+        assert float(df.get_param(g, scene, path)) == pytest.approx(fd, rel=1e-6), path
