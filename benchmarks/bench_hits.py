@@ -2,7 +2,7 @@
 
 For each scene's cameras at 128² and 256² pixels (the camera's aspect kept), supersample 2, on
 the lattice of the default preset (N = 64, M = 3): the seconds to cast every sub-pixel ray
-against the exact shapes, find the edge pixels, cast their 32 Hammersley rays, and cast the
+against the exact shapes, find the edge pixels, cast their 16 Hammersley rays, and cast the
 shadow rays and integrate the sun's depth at every hit; the share of edge pixels and the rays
 per pixel.  The output starts with the machine (copy bandwidth measured in the same run).
 
@@ -55,7 +55,7 @@ def main(argv=None) -> None:
                 rows.append(row)
                 print(*row, flush=True)
     lines = ["# Exact camera hits: host set-up per camera", "", *C.machine_lines(info), "",
-             f"Lattice N = {args.resolution}, M = 3; supersample 2; edge pixels get 32 rays.", ""]
+             f"Lattice N = {args.resolution}, M = 3; supersample 2; edge pixels get 16 rays.", ""]
     lines += C.md_table(["scene", "camera", "pixels", "set-up s", "edge pixels %",
                          "rays / pixel"], rows, "lllrrr")
     text = "\n".join(lines) + "\n"

@@ -78,25 +78,20 @@ def test_furnace_image_is_ten_and_matches_mitsuba():
 
 
 # ---------------------------------------------------------------- 3. benchmark scenes (slow)
-# (scene, camera): (noise-corrected rel. RMSE, bias) measured at N = 64, M = 3, tol = 1e-3
-# (benchmarks/results/references.md).  fog-balls oblique is dominated by a one-pixel offset of the
-# bright wall-top rim (8.9% after a 3×3 smoothing).
-MEASURED = {
-    ("fog-balls", "top"): (0.0354, 0.0017),
-    ("fog-balls", "oblique"): (0.2017, -0.0057),
-    ("ring-box", "top"): (0.0556, 0.0034),
-    ("ring-box", "oblique"): (0.0789, -0.0039),
-}
+# Every camera of fog-balls, ring-box and translucent-cube within 5% relative RMSE of the
+# Monte Carlo reference (its noise removed) at the default preset (N = 64, M = 3), the bias of
+# the mean within 2%: the exact-geometry issue's aim (measured 1.4-3.2% and ≤ 0.5%,
+# benchmarks/results/references.md).  Not a tuned bound: the same for every camera.
+AIMED = [(s, c) for s in ("fog-balls", "ring-box", "translucent-cube") for c in ("top", "oblique")]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("scene,camera", list(MEASURED))
+@pytest.mark.parametrize("scene,camera", AIMED)
 def test_scene_against_mitsuba(scene, camera):
     img = _render(scene, 64, 3, 1e-3)[camera]
     bias, _, rel_corr = _errors(img, scene, camera)
-    rmse_bound, bias_measured = MEASURED[(scene, camera)]
-    assert rel_corr < 1.25 * rmse_bound, rel_corr
-    assert abs(bias) < abs(bias_measured) + 0.02, bias
+    assert rel_corr < 0.05, rel_corr
+    assert abs(bias) < 0.02, bias
 
 
 # ---------------------------------------------------------------- 4. slab convergence (slow)

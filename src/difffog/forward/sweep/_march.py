@@ -748,7 +748,7 @@ def render_camera(fields: LatticeFields, camera: Camera, *, supersample: int = 2
 
 
 #: samples in a pixel that an edge crosses (Hammersley points, see :func:`camera_hits`)
-EDGE_SAMPLES = 32
+EDGE_SAMPLES = 16
 #: normals closer than this (cosine) count as one surface when looking for edges
 EDGE_NORMAL_COS = 0.99
 #: hit points farther apart than this along their normal (in domain diagonals) are two surfaces
@@ -799,7 +799,7 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
     along their normal: an occluding edge of one shape) straddles an edge: its samples are
     replaced by ``edge_samples`` Hammersley points (``_camera.hammersley_ndc``), so that the
     pixel gets the right mix of the surfaces in it (with 2×2 samples an edge pixel's coverage
-    is off by up to 1/4, with 32 Hammersley points by ~1/32).
+    is off by up to 1/4, with 16 Hammersley points by ~1/16).
     ``density``, ``origin``, ``h``, ``shape``: the lattice's (the sun's depth integrates its
     density field; the longest fog segment is clipped to its box).
     """
