@@ -52,7 +52,8 @@ def _render(scene: str, N: int, M: int, tol: float):
 def test_references_are_shipped():
     """Every benchmark scene's reference image, with its noise estimate, and the slab table."""
     assert (references.references_dir() / "slab_adding_doubling.csv").is_file()
-    for scene, camera in [("furnace", "inside"), *MEASURED]:
+    for scene, camera in [("furnace", "inside"), *AIMED, ("cloud-plane", "top"),
+                          ("cloud-plane", "oblique")]:
         img, noise = _reference(scene, camera)
         assert img.ndim == 2 and np.all(np.isfinite(img)) and noise > 0
 

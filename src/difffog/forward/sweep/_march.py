@@ -505,11 +505,10 @@ def _march_bwd(cfg, res, ct):
 _march.defvjp(_march_fwd, _march_bwd)
 
 
-def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
-                 step: float) -> TraceResult:
-    """March one chunk of rays o, d (R, 3) (d unit) through the flat tables of ``fields``
-    (``table``: σ_t, j_iso, [j_sun,] sdf; ``rad_table``: radiosity_ext); returns a
-    TraceResult of (R,) arrays."""
+def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
+    """What a chunk's march needs: (geo, has_sun, phase (R,), t0, t_end, reached).  The
+    marched segment of each ray runs from its box entry to min(box exit, ``stop``) (``stop``:
+    (R,) or None), capped at n_steps·step; ``reached``: the march gets to its segment's end."""
     dtype = o.dtype
     lo = jnp.asarray(fields.lo, dtype)
     hi = jnp.asarray(fields.hi, dtype)
@@ -519,18 +518,27 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
         phase = hg_phase(d @ jnp.asarray(fields.sun_dir, dtype), jnp.asarray(fields.g, dtype))
     else:
         phase = jnp.zeros(o.shape[0], dtype)
-
     t0, t1 = _clip(lo, hi, o, d, fields.periodic_xy, jnp)
-    valid = t1 > t0
-    reached = ~valid | (t1 <= t0 + n_steps * step)  # the march gets to the box exit
+    seg_end = t1 if stop is None else jnp.minimum(t1, stop)
+    valid = seg_end > t0
+    reached = ~valid | (seg_end <= t0 + n_steps * step)
     # keep every sample point finite (NaN weights would poison the gathers' gradients)
     t0 = jnp.where(valid, t0, 0.0)
-    t_end = jnp.where(valid, jnp.minimum(t1, t0 + n_steps * step), 0.0)
+    t_end = jnp.where(valid, jnp.minimum(seg_end, t0 + n_steps * step), 0.0)
+    return geo, has_sun, phase, t0, t_end, reached
 
+
+def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
+                 step: float) -> TraceResult:
+    """March one chunk of rays o, d (R, 3) (d unit) through the flat tables of ``fields``
+    (``table``: σ_t, j_iso, [j_sun,] sdf; ``rad_table``: radiosity_ext); returns a
+    TraceResult of (R,) arrays."""
+    dtype = o.dtype
+    geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, None, n_steps, step)
     cfg = _MarchConfig(geo, has_sun, int(n_steps), float(step))
     T, L, t_hit = _march(table, phase, o, d, t0, t_end, cfg)
 
-    hit = valid & jnp.isfinite(t_hit)
+    hit = (t_end > t0) & jnp.isfinite(t_hit)  # t_end > t0: the ray meets the box
     t_safe = jnp.where(hit, t_hit, t0)
     p_hit = o + (t_safe - HIT_BACKOFF * fields.h)[:, None] * d
     rad = _interp(rad_table, p_hit, geo)
@@ -580,20 +588,7 @@ def _trace_chunk_exact(fields: LatticeFields, table, surf_table, o, d, hits, *, 
     and direct sun."""
     t_hit, n_hit, shape, sun_cos, sun_depth = hits
     dtype = o.dtype
-    lo = jnp.asarray(fields.lo, dtype)
-    hi = jnp.asarray(fields.hi, dtype)
-    geo = (tuple(fields.lo.tolist()), fields.h, fields.shape, fields.periodic_xy)
-    has_sun = fields.sun_dir is not None
-    if has_sun:
-        phase = hg_phase(d @ jnp.asarray(fields.sun_dir, dtype), jnp.asarray(fields.g, dtype))
-    else:
-        phase = jnp.zeros(o.shape[0], dtype)
-    t0, t1 = _clip(lo, hi, o, d, fields.periodic_xy, jnp)
-    seg_end = jnp.minimum(t1, t_hit)
-    valid = seg_end > t0
-    reached = ~valid | (seg_end <= t0 + n_steps * step)
-    t0 = jnp.where(valid, t0, 0.0)
-    t_end = jnp.where(valid, jnp.minimum(seg_end, t0 + n_steps * step), 0.0)
+    geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, t_hit, n_steps, step)
     cfg = _MarchConfig(geo, has_sun, int(n_steps), float(step), has_sdf=False)
     T, L, _ = _march(table, phase, o, d, t0, t_end, cfg)
 
