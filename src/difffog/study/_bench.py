@@ -68,8 +68,14 @@ def _xla_mib(model, params) -> float:
 
 def measure(solver: str, scene, setting: dict, refdir: Path, repeat: int = 2) -> dict:
     """One row of the study: build the model, time a first and ``repeat`` warm renders."""
+    import gc
+
     import jax
 
+    # every row compiles its own programs; without this a study keeps all of them, and after
+    # ~25 rows of large lattices LLVM failed to map memory for the next one (a segfault)
+    jax.clear_caches()
+    gc.collect()
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
