@@ -337,9 +337,12 @@ _F64_F32 = ["float64", "float32"]
 
 @pytest.mark.parametrize("cases", [
     # (scene, N, meshes, meshes that also check gradients, dtypes)
-    # default: one subprocess, float64 light fields: open sides with plane sizes that do not
-    # divide (vacuum padding), ± faces and u halos; periodic-xy with toroidal u and v halos
-    [("fog-balls", 11, [(2, 2, 1)], [], ["float64"]), ("slab", 8, [(1, 2, 2)], [], ["float64"])],
+    # one subprocess, float64 light fields: open sides with plane sizes that do not divide
+    # (vacuum padding), ± faces and u halos; periodic-xy with toroidal u and v halos (slow
+    # since the exact-geometry issue took its 20 s of the default suite's budget;
+    # test_batch.py keeps two host devices in the default suite)
+    pytest.param([("fog-balls", 11, [(2, 2, 1)], [], ["float64"]),
+                  ("slab", 8, [(1, 2, 2)], [], ["float64"])], marks=pytest.mark.slow),
     # the full matrix (slow: the sharded adjoint alone runs over a minute): both dtypes, open
     # u and v halos, and gradients through the mesh
     pytest.param([("fog-balls", 11, [(2, 2, 1), (1, 2, 2)], [(1, 2, 2)], _F64_F32)],
