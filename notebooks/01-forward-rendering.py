@@ -153,9 +153,10 @@ plot.lattice_slices(lat, np.asarray(out.light.fluence), axis="y", index=iy,
 #
 # The references are unbiased Monte Carlo renders of the very same scene files (4096 samples
 # per pixel), shipped with difffog (`difffog.study.references`: `reference(scene, camera)` is
-# the image and its known per-pixel noise, which the error below removes in quadrature). At the
-# small size expect 10–30% relative RMSE, mostly at edges (the wall's top rim, shadow edges);
-# at N = 64 fog-balls is within 3.5% (top) and 18% (oblique, the rim lands a pixel off).
+# the image and its known per-pixel noise, which the error below removes in quadrature). Camera
+# rays meet the exact shapes, so edges and shadows fall on the right pixels; at N = 64 fog-balls
+# is within 1.4% (top) and 1.5% (oblique), and at the small size the coarse lattice's diffuse
+# light adds a few per cent.
 
 # %%
 print("references:", references_dir() / "fog-balls")
@@ -198,9 +199,8 @@ for cam in out.images:
 # Against the Mitsuba 3 reference. In this walled box the light that bounces
 # between the walls, the floor and the fog is a fifth of what the cameras see, and the splat
 # has none of it: its images are 17–24% too dark. At N = 64 the splat is 25% / 29% off (top /
-# oblique) against the sweep's 3.5% / 18% (`benchmarks/results/splat_references.md`); at the
-# small size the coarse sweep's own error on the wall's rim can put the splat ahead in the
-# oblique view, not because the splat got better. The splat's ground is the forward-scattering
+# oblique) against the sweep's 1.4% / 1.5% (`benchmarks/results/splat_references.md`,
+# `benchmarks/results/references.md`). The splat's ground is the forward-scattering
 # cloud of `cloud-plane` and polygon meshes, and time: notebooks 03 and 04.
 
 # %%
