@@ -21,7 +21,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..scene._description import Scene, Sphere, Torus
-from ._rays import Triangles, _shape_meshes, cast_rays
+from ._lattice import _TorusS
+from ._rays import cast_rays, scene_triangles
 
 __all__ = ["Hits", "first_hits", "sun_depth"]
 
@@ -38,23 +39,6 @@ class Hits:
     @property
     def hit(self) -> np.ndarray:
         return self.shape >= 0
-
-
-def _flat_triangles(scene: Scene) -> Triangles | None:
-    """Triangles of the scene's flat-faced shapes (everything but spheres and tori)."""
-    corners, owner, part = [], [], []
-    for i, s in enumerate(scene.shapes):
-        if isinstance(s, (Sphere, Torus)):
-            continue
-        for m, _ in _shape_meshes(s, 0, (3, 3)):
-            f = np.asarray(m.faces)
-            corners.append(np.asarray(m.vertices, float)[f])
-            owner.append(np.full(len(f), i, np.int32))
-            part.append(np.full(len(f), len(part), np.int32))
-    if not corners:
-        return None
-    c = np.concatenate(corners)
-    return Triangles(c, np.concatenate(owner), np.zeros_like(c), np.concatenate(part))
 
 
 def _sphere_hits(s: Sphere, o, d, t_min):
@@ -76,16 +60,6 @@ def _torus_frame(s: Torus):
     a = np.asarray(s.axis, float)
     return np.asarray(s.center, float), a / np.linalg.norm(a), float(s.major_radius), \
         float(s.minor_radius)
-
-
-def _torus_normal(p, c, a, R):
-    v = p - c
-    z = v @ a
-    radial = v - z[:, None] * a
-    n = np.linalg.norm(radial, axis=-1, keepdims=True)
-    core = c + R * radial / np.maximum(n, 1e-300)
-    g = p - core
-    return g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-300)
 
 
 def _torus_hits(s: Torus, o, d, t_min):
@@ -125,7 +99,7 @@ def _torus_hits(s: Torus, o, d, t_min):
     t_out[live] = t
     hit = np.isfinite(t_out)
     p = o + np.where(hit, t_out, 0.0)[:, None] * d
-    return t_out, _torus_normal(p, c, a, R)
+    return t_out, _TorusS(s, -1).grad(p)  # the voxelizer's: away from the core circle
 
 
 def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits:
@@ -152,8 +126,8 @@ def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits
             take(*_sphere_hits(s, o, d, t_min), i)
         elif isinstance(s, Torus):
             take(*_torus_hits(s, o, d, t_min), i)
-    tris = _flat_triangles(scene)
-    if tris is not None:
+    tris = scene_triangles(scene, skip=(Sphere, Torus))  # spheres and tori: exact above
+    if len(tris):
         t, face, _, _ = cast_rays(tris, o, d, t_min=t_min)
         hit = face >= 0
         n = np.where(hit[:, None], tris.face_normals[np.where(hit, face, 0)], 0.0)

@@ -91,10 +91,13 @@ def _shape_meshes(s, sphere_subdivisions: int, torus_sections: tuple[int, int]):
 
 
 def scene_triangles(scene: Scene, *, sphere_subdivisions: int = 3,
-                    torus_sections: tuple[int, int] = (64, 24)) -> Triangles:
-    """Every shape of ``scene`` as triangles (world space)."""
+                    torus_sections: tuple[int, int] = (64, 24), skip: tuple = ()) -> Triangles:
+    """Every shape of ``scene`` as triangles (world space), but those of the types in
+    ``skip`` (their owner indices stay those of ``scene.shapes``)."""
     corners, owner, vnorm, part = [], [], [], []
     for i, s in enumerate(scene.shapes):
+        if isinstance(s, skip):
+            continue
         for m, smooth in _shape_meshes(s, sphere_subdivisions, torus_sections):
             f = np.asarray(m.faces)
             corners.append(np.asarray(m.vertices, float)[f])
