@@ -43,7 +43,7 @@ def _err(rel, sig):
 
 
 def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, tol: float,
-          progress: Callable | None = None):
+          progress: Callable | None = None, precondition: Callable | None = None):
     """Solve (I − K)x = b for flat vectors, with every application of the operator at one site.
 
     ``apply_k(u, with_sources)`` returns Ku + b if ``with_sources`` (a traced bool) else Ku: the
@@ -55,6 +55,11 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
 
     restart: Krylov steps per cycle; max_matvecs: cap on applications of K (b included); tol:
     stop once the estimated relative error ≤ tol (0: run to the cap).
+    precondition: a map P ≈ (I − K)⁻¹ (or None), applied to each Krylov vector: flexible GMRES
+    (Saad 1993) keeps z_j = P(v_j) and updates x by Σ y_j z_j, so the Arnoldi relation
+    (I − K)Z = VH, and with it the residual GMRES reports, stays exact also when P is an
+    inexact inner solve (not quite linear).  Memory: restart more state vectors.  The error
+    bound ‖e‖ ≤ ‖r‖/σ_min(I − K) is estimated with σ_min(H)/max‖z_j‖.
     Returns (x, hist, applications, error estimate); ``hist[k]`` is the relative residual
     ‖r‖/‖x‖ after application k + 1 (the change one more Jacobi step would make; 1 for b).
     """
@@ -77,7 +82,13 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
     def body(c):
         phase, j, x, b, V = c["phase"], c["j"], c["x"], c["b"], c["V"]
         is0, is1 = phase == 0, phase == 1  # phase 2: a restart (neither)
-        u = jnp.where(is1, V[j], x)
+        if precondition is not None:
+            z = precondition(V[j])
+            Z = c["Z"].at[jnp.minimum(j, m - 1)].set(jnp.where(is1, z, c["Z"][jnp.minimum(j, m - 1)]))
+        else:
+            z, Z = V[j], None
+        pn = jnp.where(is1, jnp.maximum(c["pn"], jnp.linalg.norm(z)), c["pn"])
+        u = jnp.where(is1, z, x)
         u = jnp.where(is0, zn, u)
         y = apply_k(u, is0)
         k = c["k"] + 1
@@ -115,7 +126,7 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
         pad = jnp.linalg.norm(H) + 1.0
         Hp = jnp.where(live_c[None, :], H, 0.0) + jnp.where(
             (idx1[:, None] == idx[None, :]) & ~live_c[None, :], pad, 0.0)
-        sig1 = jnp.minimum(c["sig"], jnp.linalg.svd(Hp, compute_uv=False)[-1])
+        sig1 = jnp.minimum(c["sig"], jnp.linalg.svd(Hp, compute_uv=False)[-1] / pn)
         yv = solve_y(R1, g1, j)
         vnew = safe_div(w, hn)
         cx = c["cx"].at[j + 1].set(vnew @ x)  # V·x₀, for ‖x₀ + Vy‖ without another pass
@@ -141,7 +152,7 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
         # -- assemble by phase (phase 0: b = x = Kb·0 + b, then a residual)
         row = jnp.where(is1, j + 1, 0)
         V = V.at[row].set(jnp.where(is1, vnew, v0))
-        x_new = jax.lax.cond(is1 & finish, lambda: x + yv @ V[:m], lambda: x)
+        x_new = jax.lax.cond(is1 & finish, lambda: x + yv @ (V[:m] if Z is None else Z), lambda: x)
         x_new = jnp.where(is0, y, x_new)
         out = dict(
             phase=jnp.where(is1, jnp.where(finish, 2, 1), jnp.where(is0, 2, 1)),
@@ -157,7 +168,9 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
             cx=jnp.where(is1, cx, jnp.zeros_like(cx).at[0].set(v0 @ x)),
             x0n2=jnp.where(is1, c["x0n2"], x0n2),
             sig=jnp.where(is1, sig1, c["sig"]),
+            pn=pn,
             k=k,
+            **({} if Z is None else {"Z": Z}),
         )
         rel = jnp.where(is0, 1.0, jnp.where(is1, rel1, rel2)).astype(dt)
         out["err"] = jnp.where(is0, jnp.inf, jnp.where(is1, err1, err2)).astype(dt)
@@ -171,9 +184,12 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
         phase=jnp.asarray(0), j=jnp.asarray(0), x=zn, b=zn, V=jnp.zeros((m + 1, n), dt),
         H=jnp.zeros((m + 1, m), dt), R=jnp.zeros((m, m), dt), cs=jnp.zeros((m,), dt),
         sn=jnp.zeros((m,), dt), g=jnp.zeros((m + 1,), dt), cx=jnp.zeros((m + 1,), dt),
-        x0n2=jnp.zeros((), dt), sig=jnp.asarray(jnp.inf, dt), k=jnp.asarray(0),
+        x0n2=jnp.zeros((), dt), sig=jnp.asarray(jnp.inf, dt), pn=jnp.asarray(1.0, dt),
+        k=jnp.asarray(0),
         err=jnp.asarray(jnp.inf, dt), stop=jnp.asarray(False),
         hist=jnp.full((max_matvecs,), jnp.nan, dt),
     )
+    if precondition is not None:
+        init["Z"] = jnp.zeros((m, n), dt)
     c = jax.lax.while_loop(cond, body, init)
     return c["x"], c["hist"], c["k"], c["err"]

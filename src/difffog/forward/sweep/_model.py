@@ -221,7 +221,8 @@ class SweepModel(AbstractForwardModel):
             "solver": "sweep",
             "solver_options": {"M": s.M, "method": s.method, "max_iterations": s.max_iterations,
                                "tol": s.tol, "sky_quadrature": s.sky_quadrature,
-                               "terms": s.terms, "devices": s.devices},
+                               "terms": s.terms, "devices": s.devices,
+                               "precondition": s.resolved_precondition(self.geometry)},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides
             "voxel_size": lat.h,
