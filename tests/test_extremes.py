@@ -316,3 +316,30 @@ def test_terms_guard_names_the_dropped_term():
     full = SOLVERS["sweep"](scene, 10, terms="all")
     x = _images(full(set_param(full.params(), scene, "fog.scattering", 1.0)))
     assert np.all(np.isfinite(x)) and x.min() >= 0
+
+
+@pytest.mark.parametrize("solver", list(SOLVERS))
+def test_open_scene_monotone_in_absorption_and_albedo(solver):
+    """Physics, not only finiteness: more absorption (γ) never brightens any pixel, and a
+    higher surface albedo never darkens one — the transport solution is monotone in both, and
+    so is the sweep's scheme (both coefficients of the step update, e^(−τ) and ζ·h·(1 −
+    e^(−τ))/τ, fall as γ grows).  Checked pixel by pixel within the solve's tolerance."""
+    c = _case(solver, "open", "float32")
+    p0 = c.model.params(jnp.float32)
+
+    def image(**kw):
+        imgs, light, _, _ = c.fwd(_with(p0, **kw))
+        assert int(light.result) == df.RESULTS.successful, kw
+        return _images(imgs)
+
+    slack = 4 * TOL  # the relative tolerance of each of the two solves, with margin
+    gammas = [0.0, 1e-3, 0.3, 3.0, 1e3]
+    imgs = [image(zeta=1.0, gamma=g, albedo=0.5) for g in gammas]
+    for g0, g1, a, b in zip(gammas, gammas[1:], imgs, imgs[1:]):
+        assert np.all(b <= a + slack * a.max()), (g0, g1, float(np.max(b - a)))
+    assert imgs[-1].max() < 0.5 * imgs[0].max()  # and the trend is real, not flat
+    albedos = [0.0, 0.3, 0.7, 1.0]
+    imgs = [image(zeta=1.0, gamma=0.1, albedo=a) for a in albedos]
+    for a0, a1, a, b in zip(albedos, albedos[1:], imgs, imgs[1:]):
+        assert np.all(b >= a - slack * b.max()), (a0, a1, float(np.min(b - a)))
+    assert imgs[-1].mean() > 1.5 * imgs[0].mean()
