@@ -17,6 +17,8 @@ from ._errors import (
     AdjointWarning as AdjointWarning,
     ThickStepWarning as ThickStepWarning,
     DifffogError as DifffogError,
+    MemoryWarning as MemoryWarning,
+    ResourceError as ResourceError,
     SceneError as SceneError,
     SolverError as SolverError,
 )
@@ -40,7 +42,12 @@ from .forward._model import (
     stack_params as stack_params,
     unstack_params as unstack_params,
 )
-from .forward._registry import SOLVERS as SOLVERS, forward_model as forward_model
+from ._cost import CostEstimate as CostEstimate
+from .forward._registry import (
+    SOLVERS as SOLVERS,
+    forward_model as forward_model,
+    model_estimate as estimate,
+)
 from .forward.splat._model import SheetLight as SheetLight, SplatModel as SplatModel
 from .forward.sweep._lightfield import LightField as LightField
 from .forward.sweep._model import SweepModel as SweepModel

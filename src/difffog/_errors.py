@@ -23,3 +23,12 @@ class ThickStepWarning(UserWarning):
     """One lattice step of the light solve spans more than a mean free path: energy is
     conserved, but the light's distribution inside the fog (and what a camera sees of thick
     fog) is coarse.  The message names the step depth and the resolution that brings it to 1."""
+
+
+class ResourceError(DifffogError, MemoryError):
+    """A run would not fit in the memory available: refused before allocating, with the
+    estimate, what is available and the setting to lower (``difffog.estimate``)."""
+
+
+class MemoryWarning(UserWarning):
+    """A run's estimated peak memory is above half of what is available."""

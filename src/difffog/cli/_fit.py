@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from .._errors import DifffogError
+from .._errors import DifffogError, MemoryWarning
 from ..fit._stepper import OPTIMIZERS
 from ..forward._registry import SOLVERS
 from ._main import add_scene_args, model_settings, peak_memory_mb, positive_int, solver_help
@@ -44,6 +44,9 @@ def add_parser(sub) -> None:
     p.set_defaults(accuracy=None)
     p.add_argument("--resume", action="store_true",
                    help="continue a killed fit from its checkpoint (.OUT.fit-checkpoint.npz)")
+    p.add_argument("--force", action="store_true",
+                   help="run even where the estimated peak memory exceeds what this machine "
+                        "has (refused otherwise, before anything is allocated)")
     p.add_argument("--out", default="fit", help="output folder (default: fit)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=run)
@@ -146,6 +149,8 @@ def run(args) -> int:
     # step is 1 + n light solves), else that preset; single flags override either
     settings = model_settings(args, args.solver, accuracy=args.accuracy)
     resolution = settings.pop("resolution", None)
+    if args.force:
+        settings["force"] = True
     scene = load_scene(args.scene, args.overrides)
     targets = {}
     for cam, path in _parse_kv(args.target, "--target"):
@@ -194,7 +199,10 @@ def run(args) -> int:
                      resolution=resolution, model_settings=settings or None, downsample=down,
                      weights=weights or None, loss=args.loss, max_steps=args.max_steps,
                      checkpoint=ckpt, resume=args.resume, progress=progress)
-    del caught  # the warnings are in result.warnings (and fit.json)
+    for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)
+        if issubclass(w.category, MemoryWarning):
+            print(f"difffog: warning: {w.message}", file=sys.stderr)
+    del caught
     with atomic_folder(out) as tmp:
         report = result.to_json()
         report.update({

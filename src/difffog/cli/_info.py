@@ -24,25 +24,42 @@ def physics_needed(scene: Scene) -> dict[str, bool]:
     }
 
 
+#: ``difffog info`` voxelizes (node counts, optical depths, terms) only up to this many nodes
+#: (~5 s on this project's CPU); beyond, it prints the estimate and says what it skipped
+INFO_VOXELIZE_MAX_NODES = 20_000_000
+
+
 def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
+    from .._cost import estimate
+
     d = scene.domain
-    t = time.perf_counter()
-    lat = voxelize(scene, resolution, M, margin=M + 1)
-    tv = time.perf_counter() - t
-    c = lat.counts()
-    total = sum(c.values())
+    est = estimate(scene, "sweep", resolution=resolution, M=M)
+    big = est.nodes > INFO_VOXELIZE_MAX_NODES
     fmt = lambda v: "[" + ", ".join(f"{x:g}" for x in v) + "]"  # noqa: E731
     lines = [f"scene      {scene.title}" + (f"  ({scene.source})" if scene.source else "")]
     lines.append(f"domain     {fmt(d.min)} .. {fmt(d.max)}  boundary: {d.boundary}")
+    h = max(b - a for a, b in zip(d.min, d.max)) / resolution
+    sx, sy, sz = est.shape
+    lat = None
+    if not big:
+        t = time.perf_counter()
+        lat = voxelize(scene, resolution, M, margin=M + 1)
+        tv = time.perf_counter() - t
+    done = (f"voxelized in {tv:.2f} s" if lat is not None else
+            f"not voxelized: {est.nodes:.3g} nodes (set-up ~{est.setup_text()})")
     lines.append(
-        f"lattice    {lat.shape[0]}x{lat.shape[1]}x{lat.shape[2]} nodes, voxel {lat.h:.4g}, "
-        f"M = {M} ({(2 * M + 1) ** 2} directions per face; {M + 1} vacuum nodes around open "
-        f"sides), voxelized in {tv:.2f} s"
+        f"lattice    {sx}x{sy}x{sz} nodes, voxel {h:.4g}, M = {M} ({(2 * M + 1) ** 2} directions "
+        f"per face; {M + 1} vacuum nodes around open sides), {done}"
     )
-    lines.append(
-        "nodes      "
-        + ", ".join(f"{k} {v} ({100 * v / total:.1f}%)" for k, v in c.items())
-    )
+    lines += ["cost       (sweep, estimated from the settings: difffog.estimate)"]
+    lines += ["  " + ln for ln in est.lines()]
+    if lat is not None:
+        c = lat.counts()
+        total = sum(c.values())
+        lines.append(
+            "nodes      "
+            + ", ".join(f"{k} {v} ({100 * v / total:.1f}%)" for k, v in c.items())
+        )
     if scene.fog is not None:
         f = scene.fog
         ph = f.phase + (f" g={f.g:g}" if f.phase == "henyey-greenstein" else "")
@@ -55,14 +72,16 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
             f"fog        ζ = {f.scattering:g}, γ = {f.absorption:g} per unit, albedo "
             f"{f.single_scattering_albedo:.4g}, {ph}" + ("; " + "; ".join(extra) if extra else "")
         )
-        tau = lat.optical_depth_range(f.scattering, f.absorption)
-        lines.append(
-            "opt.depth  across the domain: "
-            + ", ".join(f"{a}: {lo:.3g}..{hi:.3g}" for a, (lo, hi) in tau.items())
-        )
-        seg = lat.max_segment_optical_depth(f.scattering, f.absorption)
-        warn = "  (> 0.3: accuracy suffers, raise --resolution)" if seg > 0.3 else ""
-        lines.append(f"segment    max optical depth of one lattice step σ_t·h·M = {seg:.3g}{warn}")
+        if lat is not None:
+            tau = lat.optical_depth_range(f.scattering, f.absorption)
+            lines.append(
+                "opt.depth  across the domain: "
+                + ", ".join(f"{a}: {lo:.3g}..{hi:.3g}" for a, (lo, hi) in tau.items())
+            )
+            seg = lat.max_segment_optical_depth(f.scattering, f.absorption)
+            warn = "  (> 0.3: accuracy suffers, raise --resolution)" if seg > 0.3 else ""
+            lines.append(f"segment    max optical depth of one lattice step σ_t·h·M = "
+                         f"{seg:.3g}{warn}")
     else:
         lines.append("fog        none")
     if scene.sun is not None:
@@ -81,6 +100,11 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
         lines.append(f"camera     {cam.name}: {cam.kind} {cam.width}x{cam.height}, {what}")
     needs = physics_needed(scene)
     lines.append("needs      " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in needs.items()))
+    if lat is None:
+        lines.append(f"skipped    node counts, optical depths and the sweep's terms (they need "
+                     f"the lattice voxelized: {est.nodes:.3g} nodes > "
+                     f"{INFO_VOXELIZE_MAX_NODES:.3g}; ask for a lower --resolution)")
+        return "\n".join(lines)
     lines.append("terms      (what the sweep solver builds; SweepSolver(terms='all') keeps every "
                  "term)")
     lines += ["  " + ln for ln in choose_terms(scene, lat).lines(lat.shape)]

@@ -9,7 +9,8 @@ import os
 import sys
 import warnings
 
-from .._errors import AdjointWarning, DifffogError, ThickStepWarning
+from .._errors import (AdjointWarning, DifffogError, MemoryWarning, ResourceError,
+                       ThickStepWarning)
 from ..fit._result import IdentifiabilityWarning
 from ..forward._registry import LEVELS, SOLVERS, preset, solver_entry
 
@@ -109,7 +110,8 @@ def main(argv=None) -> int:
     shown = warnings.showwarning
 
     def one_line(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, (ThickStepWarning, AdjointWarning, IdentifiabilityWarning)):
+        if issubclass(category, (ThickStepWarning, AdjointWarning, IdentifiabilityWarning,
+                                 MemoryWarning)):
             print(f"difffog: warning: {message}", file=sys.stderr)
         else:
             shown(message, category, filename, lineno, file, line)
@@ -117,9 +119,13 @@ def main(argv=None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = one_line
-            for category in (ThickStepWarning, AdjointWarning, IdentifiabilityWarning):
+            for category in (ThickStepWarning, AdjointWarning, IdentifiabilityWarning,
+                             MemoryWarning):
                 warnings.simplefilter("always", category)  # said, never raised
             return args.func(args)
+    except ResourceError as e:  # a valid request this machine cannot hold: like a failed solve
+        print(f"difffog: error: {e}", file=sys.stderr)
+        return 1
     except DifffogError as e:
         print(f"difffog: error: {e}", file=sys.stderr)
         return 2

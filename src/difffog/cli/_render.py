@@ -36,6 +36,9 @@ def add_parser(sub) -> None:
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="sweep: run the sweeps on N devices (faces and plane blocks; on a CPU, "
                         "N host devices sharing its cores; default 1)")
+    p.add_argument("--force", action="store_true",
+                   help="run even where the estimated peak memory exceeds what this machine "
+                        "has (refused otherwise, before anything is allocated)")
     p.add_argument("--out", default="out", help="output folder (default: out)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=run)
@@ -45,7 +48,7 @@ def run(args) -> int:
     from .._output import atomic_folder, check_out_dir, save_image
     from .._progress import NoProgress, TextProgress
     from ..forward._model import failure_details, render
-    from ..forward._registry import forward_model
+    from ..forward._registry import forward_model, model_estimate
     from ..scene._toml import load_scene
 
     for flag, v in (("--resolution", args.resolution), ("--directions", args.directions),
@@ -77,7 +80,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     say(f"setting up '{scene.title}' for the {args.solver} at resolution "
         f"{settings.get('resolution')}…")
-    model = forward_model(scene, args.solver, accuracy=None, cameras=cameras, **settings)
+    est = model_estimate(scene, args.solver, cameras=cameras, **settings)
+    model = forward_model(scene, args.solver, accuracy=None, cameras=cameras, force=args.force,
+                          **settings)
     say("computing the light (compiling first)…")
     result = render(model, throw=False)
     light = result.light
@@ -93,6 +98,8 @@ def run(args) -> int:
         **light.report(),
         "error_estimate": float(light.error_estimate),
         "peak_memory_mb": peak_memory_mb(),
+        # the estimate made before anything was built (difffog.estimate), beside the measured
+        "estimate": {**est.as_dict(), "peak_mb": round(est.peak_bytes / 2**20, 1)},
         "images": {n: {"shape": list(v.shape), "mean": float(v.mean()), "max": float(v.max())}
                    for n, v in result.images.items()},
     }

@@ -29,7 +29,7 @@ from .._errors import AdjointWarning, DifffogError, ThickStepWarning
 from .._progress import as_meter
 from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
-from ..forward._registry import check_settings, solver_entry
+from ..forward._registry import check_settings, guard, solver_entry
 from ..scene._description import Scene
 from . import _checkpoint
 from ._result import FitResult, IdentifiabilityWarning, result_name, statistics
@@ -54,11 +54,15 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
                            f"solver name ('sweep', 'splat') or difffog.forward_model(...)")
     entry = solver_entry(forward)
     settings = dict(model_settings or {})
+    force = bool(settings.pop("force", False))
     check_settings(forward, settings, "fit: model_settings")
     if resolution is not None:
         settings["resolution"] = resolution
     small = reduced_scene(scene, cameras, downsample)
-    return entry.build(small, **{**entry.fit_defaults, **settings})
+    full = {**entry.fit_defaults, **settings}
+    # the memory guard: a fit holds the adjoint's Krylov vectors besides the forward solve
+    guard(small, forward, force=force, gradient=True, what=f"the fit's {forward} model", **full)
+    return entry.build(small, **full)
 
 
 @dataclass
@@ -286,7 +290,9 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     resolution: the forward model's lattice resolution (default: the solver's fit default).
     downsample: render every camera at 1/k of its width and height (the target is box-averaged
         to match: a reduced pixel's footprint is k×k full pixels).
-    model_settings: other settings of the named solver, e.g. ``{"M": 4, "devices": 2}``.
+    model_settings: other settings of the named solver, e.g. ``{"M": 4, "devices": 2}``;
+        ``{"force": True}`` builds the model even where its estimated memory exceeds what the
+        machine has (a :class:`difffog.ResourceError` otherwise).
     optimizer: "lm" (Levenberg–Marquardt, default), "gauss-newton", "bfgs" or an optimistix
         least-squares solver / minimiser.
     weights: {camera: (H, W)} per-pixel weights ≥ 0 (a boolean mask works); the residual is

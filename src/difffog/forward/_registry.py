@@ -158,7 +158,7 @@ def check_settings(solver: str, settings: Mapping, what: str = "forward_model") 
 
 
 def forward_model(scene: Scene, solver: str = "sweep", accuracy: str | None = "default", *,
-                  cameras=None, **settings) -> AbstractForwardModel:
+                  cameras=None, force: bool = False, **settings) -> AbstractForwardModel:
     """A forward model of ``scene``: ``model(params)`` → {camera: (H, W) image}.
 
     scene: a :class:`difffog.Scene` (``difffog.load_scene(...)`` or built in Python).
@@ -170,6 +170,9 @@ def forward_model(scene: Scene, solver: str = "sweep", accuracy: str | None = "d
     settings: single settings that override the preset (None values are ignored), e.g.
         ``resolution=48``, ``M=4``, ``tol=1e-5``, ``devices=2`` (sweep), ``sheets=64``
         (splat).  A setting the solver does not take is a one-line error.
+    force: build it even when its estimated peak memory (:func:`difffog.estimate`) exceeds
+        what the machine has; otherwise that is a :class:`difffog.ResourceError` before
+        anything is allocated (and above half of it a :class:`difffog.MemoryWarning`).
     """
     if not isinstance(scene, Scene):
         raise DifffogError(f"forward_model: expected a difffog.Scene, got {type(scene).__name__}"
@@ -178,4 +181,38 @@ def forward_model(scene: Scene, solver: str = "sweep", accuracy: str | None = "d
     settings = {k: v for k, v in settings.items() if v is not None}
     check_settings(solver, settings)
     base = {} if accuracy is None else preset(solver, accuracy)
-    return entry.build(scene, cameras=cameras, **{**base, **settings})
+    full = {**base, **settings}
+    guard(scene, solver, cameras=cameras, force=force, **full)
+    return entry.build(scene, cameras=cameras, **full)
+
+
+def model_estimate(scene: Scene, solver: str, *, cameras=None, **settings):
+    """The :class:`difffog.CostEstimate` of ``forward_model(scene, solver, ...)`` with these
+    settings (the solver's own defaults where a setting is not given)."""
+    from .._cost import estimate
+
+    entry = solver_entry(solver)
+    ps = inspect.signature(entry.build).parameters
+    defaults = {k: p.default for k, p in ps.items()
+                if p.kind == p.KEYWORD_ONLY and k != "cameras"
+                and p.default is not inspect.Parameter.empty}
+    return estimate(scene, solver, cameras=cameras, **{**defaults, **settings})
+
+
+def guard(scene: Scene, solver: str, *, cameras=None, force: bool = False, what=None,
+          **settings):
+    """Refuse (ResourceError) or warn (MemoryWarning) before building a model that will not
+    fit; returns the estimate."""
+    import warnings
+
+    from .._cost import check_fits
+    from .._errors import MemoryWarning
+
+    est = model_estimate(scene, solver, cameras=cameras, **settings)
+    size = settings.get("resolution")
+    label = what or f"the {solver} at resolution {size}" + (
+        f", M = {settings['M']}" if "M" in settings else "")
+    note = check_fits(est, force=force, what=label)
+    if note:
+        warnings.warn(note, MemoryWarning, stacklevel=3)
+    return est

@@ -103,6 +103,14 @@ def _seq(v):
     return v
 
 
+#: the largest magnitude a scene number may have: difffog computes in float32 (largest 3.4e38),
+#: and products of two scene numbers (σ_t × a length, an irradiance × an area) must stay finite
+MAX_MAGNITUDE = 1e15
+_TOO_BIG = (f"is beyond ±{MAX_MAGNITUDE:g}: difffog computes in float32 (up to 3.4e38), where "
+            "such a number overflows once combined with others (σ_t × length, irradiance × "
+            "area); rescale the units")
+
+
 def _is_number(x) -> bool:
     return not isinstance(x, (bool, np.bool_)) and isinstance(x, (int, float, np.integer,
                                                                      np.floating))
@@ -118,6 +126,8 @@ def _number(v, at: _At, f: str) -> float:
         x = math.inf
     if not math.isfinite(x):
         raise at(f, v, "must be a finite number")
+    if abs(x) > MAX_MAGNITUDE:
+        raise at(f, v, _TOO_BIG)
     return x
 
 
@@ -137,6 +147,8 @@ def _vector(n: int, what: str) -> Callable:
         out = tuple(float(x) for x in v)
         if not all(math.isfinite(x) for x in out):
             raise at(f, v, "must contain finite numbers only")
+        if any(abs(x) > MAX_MAGNITUDE for x in out):
+            raise at(f, v, _TOO_BIG)
         return out
 
     return conv

@@ -1,0 +1,314 @@
+"""Know before you run: the memory and time a forward model will take, from its settings alone.
+
+``estimate(scene, solver, **settings)`` computes the lattice shape the way ``voxelize`` does
+(without voxelizing: instant at any size), then adds up the arrays each stage holds at its
+peak, and the time per light iteration from measured rates.  ``check_fits(est)`` compares the
+peak with the memory available (host RAM on a CPU, device memory on a GPU) and refuses with one
+line naming the estimate, what is available and the setting to lower.
+
+Where the numbers come from: every byte count below is the size of an array the code allocates
+(named beside it); the per-node overheads that are not one array (the voxelizer's temporaries,
+XLA's buffers while a sweep runs) and the process's baseline were measured with
+``benchmarks/bench_cost.py`` (peak resident memory of ``difffog render`` in a fresh process,
+fog-balls, N = 16-64, M = 2-5, this project's 2-core CPU) and are stated as constants.  The
+time rates come from the same benchmark (CPU) and from the GPU issue's H100 measurements of the
+current sweep (``_sweep_face_loop``: ~18 µs per loop body there, whatever its size).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+from ._errors import ResourceError
+
+MIB = 1 << 20
+GIB = 1 << 30
+
+# ---- constants (measured: benchmarks/bench_cost.py, benchmarks/results/cost.md) -------------
+#: resident memory of a process that has imported difffog, jax and trimesh and compiled one
+#: small model (fog-balls N = 8, M = 1: the floor every render pays)
+BASE_BYTES = 720 * MIB
+#: host bytes per lattice node while voxelizing and preparing (sdf float64 + float32, owner,
+#: node type, material, normals, density twice, the shell's maximum filter, the camera
+#: geometry's nearest-node indices: ~60 B of named arrays, the rest temporaries)
+HOST_BYTES_PER_NODE = 110
+#: device bytes per lattice node of the light solve besides the Krylov vectors and the face
+#: carries: the problem's per-node fields (σ_t, albedo, sun and sky fluence, six face-frame
+#: optical depths, ...: ~160 B named), the face-frame copies a sweep makes, the light field,
+#: the cameras' node fields and XLA's temporaries: 780 B fitted (bench_cost.py, fog-balls N =
+#: 32-96, M = 2-5: every row within 4% of the measured peak with it)
+SOLVE_BYTES_PER_NODE = 780
+#: copies of one face's carry (M, D, nu + 2M, nv + 2M) alive at the peak: measured 18-19
+#: (fog-balls N = 8, M = 8 / 12 / 16: 1.08 / 2.56 / 7.58 GB resident, one carry 16 / 96 /
+#: 364 MB, the rest of the model ~0.8 GB; the issue's M = 20: 20.6 GB, predicted 20.5): six
+#: faces' exit radiance, the scan's carry in and out, the shifted copies per slab, XLA's
+#: buffers
+CARRY_COPIES = 18
+#: bytes per camera ray (supersample² per pixel, plus edge re-samples) through set-up and march
+RAY_BYTES = 400
+#: fraction of pixels re-sampled at geometric edges (16 rays each) assumed up front
+EDGE_FRACTION = 0.1
+EDGE_SAMPLES = 16
+
+#: one light iteration on a CPU = 6·D·n node-and-direction updates at this rate + a per-node
+#: cost (sources, face-frame copies, the Krylov step), fitted to bench_cost.py's 9 sweep rows
+#: (fog-balls N = 32-96, M = 2-5, this 2-core CPU: each within 0.75-1.2× of the measured)
+CPU_UPDATES_PER_S = 0.42e9
+CPU_SECONDS_PER_NODE = 6.5e-7
+#: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
+#: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
+GPU_SECONDS_PER_BODY = 18e-6
+#: host set-up: seconds per node (voxelize, prepare), per node × direction × M (segment
+#: blocking samples each direction's segment at 2|L| points) and per camera ray (exact hits,
+#: edge detection, the sun's depth: ~3 s for fog-balls' 200k rays); fitted to bench_cost.py
+#: (3.4e-6, 5e-9 and 1.7e-5 fit N = 32-96 within 15%), the middle term raised to 8e-9 for
+#: large M (fog-balls N = 8, M = 16 set up in 19 s)
+SETUP_S_PER_NODE = 3.4e-6
+SETUP_S_PER_NODE_DIRECTION_STEP = 8e-9
+SETUP_S_PER_RAY = 1.5e-5
+#: the splat's set-up: a fixed part (its footprint and kernel programs) and a part per voxel
+#: (bench_cost.py: 3.1 / 3.9 / 4.9 s at N = 32 / 64 / 96)
+SPLAT_SETUP_S = 2.6
+SPLAT_SETUP_S_PER_NODE = 2.5e-6
+#: compiling the light solve and the cameras, the first time in a process (10-15 s measured
+#: for fog-balls at N = 8-64; a later solve with the same shapes reuses it)
+COMPILE_S = 15.0
+#: GMRES steps a light solve typically takes (fog-balls 11, thick fog with the preconditioner
+#: 20; 6 in thin fog): the solve time is quoted for this many
+TYPICAL_ITERATIONS = 20
+
+
+@dataclass(frozen=True)
+class CostEstimate:
+    """What a forward model will cost, before it is built.
+
+    shape: the lattice (nx, ny, nz) with its vacuum margin; directions: per cube face.
+    memory: bytes per component at the solve's peak; peak_bytes: their sum.
+    seconds_per_iteration: one bounce (six sweeps) of the light solve; setup_s: host set-up.
+    """
+
+    solver: str
+    shape: tuple[int, int, int]
+    M: int
+    rays: int
+    memory: dict = field(default_factory=dict)
+    seconds_per_iteration: float = 0.0
+    setup_s: float = 0.0
+    backend: str = "cpu"
+
+    @property
+    def nodes(self) -> int:
+        return math.prod(self.shape)
+
+    @property
+    def peak_bytes(self) -> int:
+        return int(sum(self.memory.values()))
+
+    @property
+    def solve_s(self) -> float:
+        return TYPICAL_ITERATIONS * self.seconds_per_iteration
+
+    def as_dict(self) -> dict:
+        return {"solver": self.solver, "lattice_shape": list(self.shape), "M": self.M,
+                "nodes": self.nodes, "camera_rays": self.rays, "backend": self.backend,
+                "peak_bytes": self.peak_bytes,
+                "memory_bytes": {k: int(v) for k, v in self.memory.items()},
+                "seconds_per_iteration": self.seconds_per_iteration,
+                "solve_s_typical": self.solve_s, "typical_iterations": TYPICAL_ITERATIONS,
+                "setup_s": self.setup_s}
+
+    def setup_text(self) -> str:
+        return _secs(self.setup_s)
+
+    def lines(self) -> list[str]:
+        parts = ", ".join(f"{k} {_size(v)}" for k, v in self.memory.items() if v >= MIB)
+        out = [f"memory     ~{_size(self.peak_bytes)} at the peak ({parts})"]
+        if self.solver == "sweep":
+            out.append(f"time       ~{_secs(self.seconds_per_iteration)} per light iteration on "
+                       f"{self.backend}, ~{_secs(self.solve_s)} for a typical solve of "
+                       f"{TYPICAL_ITERATIONS}; set-up ~{_secs(self.setup_s)}, compiling "
+                       f"~{_secs(COMPILE_S)} the first time")
+        else:
+            out.append(f"time       set-up ~{_secs(self.setup_s)}")
+        return out
+
+
+def _size(b: float) -> str:
+    if b >= GIB:
+        return f"{b / GIB:.1f} GiB"
+    return f"{b / MIB:.0f} MiB"
+
+
+def _secs(s: float) -> str:
+    if s >= 3600:
+        return f"{s / 3600:.1f} h"
+    if s >= 60:
+        return f"{s / 60:.1f} min"
+    return f"{s:.2g} s"
+
+
+def lattice_shape(scene, resolution: int, margin: int) -> tuple[int, int, int]:
+    """The lattice ``voxelize(scene, resolution, M, margin=margin)`` would build."""
+    from .geometry._lattice import _Grid
+
+    return tuple(int(x) for x in _Grid.from_domain(scene.domain, int(resolution), int(margin)).shape)
+
+
+def camera_rays(scene, cameras, supersample: int) -> int:
+    cams = [c for c in scene.cameras if cameras is None or c.name in cameras]
+    px = sum(c.width * c.height for c in cams)
+    return int(px * (supersample ** 2 + EDGE_FRACTION * EDGE_SAMPLES))
+
+
+def estimate(scene, solver: str = "sweep", *, resolution: int = 64, M: int = 3,
+             supersample: int | None = None, cameras=None, restart: int = 30,
+             sheets: int | None = None, backend: str | None = None, gradient: bool = False,
+             **_ignored) -> CostEstimate:
+    """The :class:`CostEstimate` of ``forward_model(scene, solver, resolution=..., ...)``.
+
+    gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian)."""
+    if backend is None:
+        backend = _backend()
+    f = 4  # float32
+    if solver == "splat":
+        ss = 1 if supersample is None else int(supersample)
+        shape = lattice_shape(scene, resolution, 0)
+        n = math.prod(shape)
+        cams = [c for c in scene.cameras if cameras is None or c.name in cameras]
+        rays = sum(c.width * c.height for c in cams) * ss * ss  # no edge re-sampling
+        ext = max(shape)
+        K = int(sheets) if sheets else int(math.ceil(math.sqrt(3) * ext)) + 2
+        texels = int((math.sqrt(2) * ext + 8) ** 2)
+        ncam = len([c for c in scene.cameras if cameras is None or c.name in cameras])
+        mem = {"process": BASE_BYTES,
+               "volume": n * 16,  # density, its column integral, the scan's fields
+               # light_D (K + W + 1, hs, ws) per camera
+               "shadow buffers": ncam * (K + 7) * texels * f,
+               # eye footprints: eye_D, eye_up (K, P) (eye_uv is built per sheet)
+               "eye footprints": K * rays * 2 * f}
+        return CostEstimate("splat", shape, 0, rays, mem, 0.0,
+                            setup_s=SPLAT_SETUP_S + SPLAT_SETUP_S_PER_NODE * n, backend=backend)
+
+    ss = 2 if supersample is None else int(supersample)
+    M = int(M)
+    shape = lattice_shape(scene, resolution, M + 1)
+    n = math.prod(shape)
+    D = (2 * M + 1) ** 2
+    rays = camera_rays(scene, cameras, ss)
+    surfaces = bool(scene.shapes)
+    state = n * (2 if surfaces else 1)
+    nu = sorted(shape)[-1] + 2 * M
+    nv = sorted(shape)[-2] + 2 * M
+    mem = {
+        "process": BASE_BYTES,
+        "lattice (host)": n * HOST_BYTES_PER_NODE,
+        # FaceGeometry.blocked: (nw, nu, nv, ceil(D/8)) uint8 per face, kept on the host and the
+        # device, plus segment_blocking's (D, nx, ny, nz) bool while one face is built
+        "blocking masks": (12 * n * math.ceil(D / 8) + n * D) if surfaces else 0,
+        "light solve": n * SOLVE_BYTES_PER_NODE,
+        # GMRES: restart + 1 Krylov vectors (+ restart preconditioned ones, flexible GMRES,
+        # where the diffusion preconditioner is chosen), x and b
+        "Krylov vectors": ((2 * restart if _diffusive(scene) else restart) + 3) * state * f,
+        # the sweep's carry (M, D, nu + 2M, nv + 2M): CARRY_COPIES of it (measured)
+        "face carries": CARRY_COPIES * M * D * nu * nv * f,
+        "cameras": rays * RAY_BYTES,
+    }
+    if gradient:
+        mem["adjoint"] = 41 * state * f  # lineax GMRES, restart 40
+    if backend == "gpu":
+        slabs = -(-max(shape) // M)
+        bodies = 6 * slabs * max(1, -(-nu // 16)) * D
+        per_iter = bodies * GPU_SECONDS_PER_BODY
+    else:
+        per_iter = 6 * D * n / CPU_UPDATES_PER_S + CPU_SECONDS_PER_NODE * n
+    setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
+             + (SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M if surfaces else 0))
+    return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
+
+
+def _diffusive(scene) -> bool:
+    """Whether precondition="auto" will choose the diffusion preconditioner (judged from the
+    scene's fog values and its domain, as ``SweepSolver`` does from the lattice)."""
+    from .forward.sweep._solver import DIFFUSION_OPTICAL_SIZE
+
+    fog = scene.fog
+    if fog is None:
+        return False
+    zeta = fog.scattering * (1.0 - (fog.g or 0.0))
+    ext = zeta + fog.absorption
+    if ext <= 0:
+        return False
+    dmax = 1.0
+    if getattr(fog, "density", None) is not None:
+        try:
+            import numpy as np
+
+            dmax = float(np.max(fog.density))
+        except (TypeError, ValueError):
+            pass
+    size = ext * dmax * max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
+    a = zeta / ext
+    diff_len = math.inf if a >= 1 else 1.0 / math.sqrt(3.0 * (1.0 - a))
+    return min(size, diff_len) >= DIFFUSION_OPTICAL_SIZE
+
+
+def _backend() -> str:
+    try:
+        import jax
+
+        return jax.default_backend()
+    except Exception:  # pragma: no cover - jax is a dependency
+        return "cpu"
+
+
+def available_bytes(backend: str | None = None) -> tuple[int, str]:
+    """(bytes, what) the run can use: the GPU's memory, else the host's available RAM."""
+    backend = backend or _backend()
+    if backend == "gpu":
+        try:
+            import jax
+
+            stats = jax.devices()[0].memory_stats() or {}
+            if "bytes_limit" in stats:
+                return int(stats["bytes_limit"]), "GPU memory"
+        except Exception:  # pragma: no cover
+            pass
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024, "available RAM"
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "free RAM"
+    except (ValueError, OSError, AttributeError):  # pragma: no cover
+        return 1 << 62, "memory (unknown)"
+
+
+def check_fits(est: CostEstimate, *, force: bool = False, what: str = "this run") -> str | None:
+    """Refuse (DifffogError, one line) when ``est`` will not fit; a warning text above half of
+    the available memory (None otherwise).  ``force`` turns the refusal into the warning."""
+    avail, kind = available_bytes(est.backend)
+    need = est.peak_bytes
+    lower = _what_to_lower(est)
+    msg = (f"{what} needs ~{_size(need)} at its peak (estimate: lattice "
+           f"{'x'.join(map(str, est.shape))}" + (f", M = {est.M}" if est.M else "")
+           + f"), {kind} is {_size(avail)}")
+    if need > avail and not force:
+        raise ResourceError(f"{msg}; {lower}, or pass --force / force=True to try anyway")
+    if need > avail / 2:
+        return f"{msg}; {lower} if it swaps"
+    return None
+
+
+def _what_to_lower(est: CostEstimate) -> str:
+    m = est.memory
+    big = max((k for k in m if k != "process"), key=lambda k: m[k])
+    if big == "face carries" and est.M > 2:
+        return f"lower M (-M/--directions; the face carries, {_size(m[big])}, grow as M³·N²)"
+    if big == "cameras":
+        return "lower the camera resolution or --supersample"
+    return f"lower the resolution (-N; the {big}, {_size(m[big])}, grow as N³)"

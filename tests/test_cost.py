@@ -1,0 +1,99 @@
+"""Know before you run (issue 22): the cost estimate, the memory guard, and the values no
+machine or float type can hold."""
+
+import json
+import subprocess
+import sys
+import warnings
+
+import pytest
+
+import difffog as df
+from difffog import _cost
+from difffog.cli import main
+
+
+@pytest.mark.parametrize("name,N,M", [("fog-balls", 24, 2), ("slab", 16, 2),
+                                      ("translucent-cube", 20, 3), ("cloud-plane", 15, 2)])
+def test_lattice_shape_is_the_voxelizers_without_voxelizing(name, N, M):
+    scene = df.load_scene(name)
+    assert _cost.lattice_shape(scene, N, M + 1) == df.voxelize(scene, N, M, margin=M + 1).shape
+
+
+def test_estimate_at_any_size_never_voxelizes(monkeypatch):
+    """N = 1024, M = 5: the estimate comes from the settings alone (voxelizing would take
+    minutes), and it scales as the arrays do: ×8 nodes per doubling of N."""
+    import difffog.geometry._lattice as lat
+
+    monkeypatch.setattr(lat, "voxelize", lambda *a, **k: pytest.fail("voxelized"))
+    scene = df.load_scene("fog-balls")
+    big = df.estimate(scene, "sweep", resolution=1024, M=5)
+    assert big.shape == (1036, 1036, 1036)
+    half = df.estimate(scene, "sweep", resolution=512, M=5)
+    ratio = big.memory["Krylov vectors"] / half.memory["Krylov vectors"]
+    assert ratio == pytest.approx((1036 / 524) ** 3, rel=1e-9)
+    assert big.peak_bytes > 100 * 2**30  # far beyond any workstation
+    assert big.seconds_per_iteration > 100 * half.seconds_per_iteration / 8 / 20
+
+
+def test_estimate_matches_a_measured_render(tmp_path):
+    """A fresh process renders the furnace at N = 16, M = 3: the estimate it recorded before
+    building anything is within 30% of its measured peak resident memory (bench_cost.py
+    measures fog-balls over N and M)."""
+    out = tmp_path / "o"
+    subprocess.run([sys.executable, "-m", "difffog", "render", "furnace", "-N", "16", "-M",
+                    "3", "--iterations", "2", "--supersample", "1", "--out", str(out), "-q"],
+                   check=True)
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["estimate"]["lattice_shape"] == rep["settings"]["lattice_shape"]
+    assert rep["estimate"]["peak_mb"] == pytest.approx(rep["peak_memory_mb"], rel=0.3)
+
+
+def _fake_memory(monkeypatch, gib):
+    monkeypatch.setattr(_cost, "available_bytes", lambda backend=None: (int(gib * 2**30), "RAM"))
+
+
+def test_guard_refuses_warns_and_can_be_forced(monkeypatch):
+    scene = df.load_scene("fog-balls")
+    est = df.estimate(scene, "sweep", resolution=32, M=2)
+    need = est.peak_bytes / 2**30
+    _fake_memory(monkeypatch, need / 2)  # half of what it needs
+    with pytest.raises(df.ResourceError, match=r"needs ~.* at its peak .* is .*lower"):
+        df.forward_model(scene, "sweep", accuracy="draft")
+    assert "needs ~" in _cost.check_fits(est, force=True)  # forced: said, not refused
+    _fake_memory(monkeypatch, need * 1.5)  # fits, but above half: a warning text
+    assert "needs ~" in _cost.check_fits(est)
+    _fake_memory(monkeypatch, need * 4)
+    assert _cost.check_fits(est) is None
+
+
+def test_oversized_renders_exit_1_with_one_line_and_write_nothing(tmp_path, capsys):
+    for argv in (["-N", "1024", "-M", "5"], ["-N", "8", "-M", "40"]):
+        out = tmp_path / "out"
+        assert main(["render", "fog-balls", *argv, "--out", str(out)]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("difffog: error: ") and "GiB" in err[0]
+        assert "--force" in err[0] and not out.exists()
+
+
+def test_info_prints_the_estimate_without_voxelizing_a_huge_lattice(capsys, monkeypatch):
+    import difffog.cli._info as info
+
+    monkeypatch.setattr(info, "voxelize", lambda *a, **k: pytest.fail("voxelized"))
+    assert main(["info", "fog-balls", "-N", "1024", "-M", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "1036x1036x1036 nodes" in out and "not voxelized" in out
+    assert "GiB at the peak" in out and "per light iteration" in out
+
+
+@pytest.mark.parametrize("override,field", [("fog.scattering=1e300", "scattering"),
+                                            ("sun.irradiance=2e15", "irradiance"),
+                                            ("sky.radiance=-1e16", "radiance")])
+def test_numbers_float32_cannot_carry_are_refused(override, field):
+    with pytest.raises(df.SceneError, match=rf"{field}.*beyond ±1e\+15.*float32"):
+        df.load_scene("fog-balls", [override])
+
+
+def test_numbers_up_to_the_limit_still_load():
+    scene = df.load_scene("fog-balls", ["fog.scattering=1e6", "sun.irradiance=1e15"])
+    assert scene.fog.scattering == 1e6 and scene.sun.irradiance == 1e15
