@@ -68,6 +68,7 @@ FURNACE_REL_RMSE = 0.025
 FURNACE_REL_RMSE_CORR = 0.01
 
 
+@pytest.mark.slow  # the suite's 12-minute budget; test_cli's render checks the furnace's 10
 def test_furnace_image_is_ten_and_matches_mitsuba():
     img = _render("furnace", 16, 2, 1e-4)["inside"]
     assert np.all(np.isfinite(img))
