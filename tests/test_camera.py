@@ -262,6 +262,8 @@ def test_sun_term_uses_forward_scattering(x64):
 # ------------------------------------------------------------------------------------------
 # (f) gradients
 # ------------------------------------------------------------------------------------------
+@pytest.mark.slow  # the suite's budget; the default camera path's (exact hits) is checked by
+# test_exact_hit_gradients_match_finite_differences
 def test_gradients_match_finite_differences(x64):
     rng = np.random.default_rng(0)
     n = (10, 9, 8)

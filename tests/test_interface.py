@@ -148,6 +148,7 @@ def test_unconverged_light_solve_raises_inside_jit(thick):
         jax.block_until_ready(thick(thick.params()))
 
 
+@pytest.mark.slow  # the suite's 12-minute budget (passed when last run)
 def test_render_batch_names_the_failed_parameter_sets(thick):
     p = thick.params()
     with pytest.raises(df.SolverError, match=r"parameter set\(s\) 0, 1 failed"):

@@ -135,6 +135,16 @@ def main(argv=None) -> int:
 
 
 def peak_memory_mb() -> float:
+    """This process's peak resident memory (MiB): VmHWM on Linux (the high-water mark of this
+    program's own address space; ``ru_maxrss`` also keeps that of the process it was started
+    from, e.g. a 1.3 GB pytest counted into a 0.7 GB render), else ``ru_maxrss``."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -108,7 +108,8 @@ def run(args) -> int:
             save_image(tmp, name, img)
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
     if not result.converged:
-        print(f"difffog: error: render: {result.result.name} ({failure_details(light)}): "
+        print(f"difffog: error: render: {result.result.name} "
+              f"({failure_details(light, model.params())}): "
               f"{result.result.message} (images and report.json written to {out}/)",
               file=sys.stderr)
         return 1

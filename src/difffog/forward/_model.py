@@ -172,10 +172,31 @@ class Rendered:
         return self.result == RESULTS.successful
 
 
-def failure_details(light: AbstractLight) -> str:
-    """'estimated error 0.3 after 500 iterations' for a concrete light."""
-    return (f"estimated error {float(light.error_estimate):.3g} after "
+def failure_details(light: AbstractLight, params: Params | None = None) -> str:
+    """'estimated error 0.3 after 500 iterations' for a concrete light (with the largest
+    inputs, :func:`largest_inputs`, when the light is not finite and ``params`` are given)."""
+    text = (f"estimated error {float(light.error_estimate):.3g} after "
             f"{int(light.iterations)} iterations")
+    if params is not None and int(light.result) == RESULTS.nonfinite:
+        text += f"; the largest inputs: {largest_inputs(params)}"
+    return text
+
+
+def largest_inputs(params: Params, k: int = 3) -> str:
+    """The ``k`` parameters of largest magnitude, named as a scene file names them
+    ('fog.scattering = 1e+14, sun.irradiance = 3'): where a valid input overflowed, the
+    message says which input led there."""
+    vals = []
+    for path, field in (("fog.scattering", "scattering"), ("fog.absorption", "absorption"),
+                        ("sun.irradiance", "sun_irradiance"), ("sky.radiance", "sky_radiance")):
+        vals.append((path, float(np.asarray(getattr(params, field)))))
+    for field in ("albedo", "emission"):
+        a = np.asarray(getattr(params, field), np.float64).reshape(-1)
+        if a.size:
+            i = int(np.argmax(np.abs(a)))
+            vals.append((f"shape #{i} {field}", float(a[i])))
+    vals.sort(key=lambda t: -abs(t[1]) if np.isfinite(t[1]) else -np.inf)
+    return ", ".join(f"{p} = {v:.3g}" for p, v in vals[:k])
 
 
 def render(model, params: Params | None = None, *, throw: bool = True, **build) -> Rendered:
@@ -221,14 +242,16 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     timings["images_s"] = time.perf_counter() - t
     result = RESULTS(int(light.result))
     if throw:
-        check(light.result, "render", failure_details(light))
+        check(light.result, "render", failure_details(light, params))
     images = {k: np.asarray(v, np.float32) for k, v in imgs.items()}
     if result == RESULTS.successful:
         for k, v in images.items():
             if not np.all(np.isfinite(v)):
                 raise SolverError(f"camera '{k}': the image has non-finite values although the "
-                                  f"light solve converged (a bug: please report the scene and "
-                                  f"settings)")
+                                  f"light solve converged; the largest inputs: "
+                                  f"{largest_inputs(params)} (if they are legitimate, use "
+                                  f"float64: jax_enable_x64; otherwise please report the scene "
+                                  f"and settings)")
     return Rendered(images=images, light=light, result=result, timings=timings,
                     settings=model.settings())
 
