@@ -1,6 +1,6 @@
 """Stability at the extremes: a matrix of fog and surface parameters, both dtypes, every solver.
 
-ζ, γ ∈ {0, 1e-6, 1e-3, 1, 1e3, 1e6} per unit length (fog albedo 0 … 1 comes with them) and
+ζ, γ ∈ {0, 1e-6, 1, 1e3, 1e6} per unit length (fog albedo 0 … 1 comes with them) and
 surface albedo ∈ {0, 1e-6, 0.5, 1 − 1e-6, 1}, float32 and float64: images finite and
 non-negative, the sun's transmittance in [0, 1], the furnace's energy balance (radiance ≤
 E/(1 − ρ), = where nothing absorbs and the solve converged), gradients finite, and continuity as
@@ -33,7 +33,8 @@ import pytest
 import difffog as df
 from difffog import SolverError, load_scene, set_param
 
-VALUES = [0.0, 1e-6, 1e-3, 1.0, 1e3, 1e6]
+# (1e-3 left the default matrix for the suite's 12-minute budget; it had passed in every run)
+VALUES = [0.0, 1e-6, 1.0, 1e3, 1e6]
 ALBEDOS = [0.0, 1e-6, 0.5, 1 - 1e-6, 1.0]
 DTYPES = ["float32", "float64"]
 TOL = 1e-4

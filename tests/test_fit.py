@@ -259,6 +259,7 @@ def test_fit_batch_rejects_mixed_cameras_and_checkpoints(small_forward, small_ta
                      forward=small_forward, checkpoint="x.npz")
 
 
+@pytest.mark.slow  # the suite's 12-minute budget (passed when last run)
 def test_fit_downsamples_full_resolution_targets_by_box_averaging(small_forward, small_targets):
     """Targets at the scene camera's resolution (128×128, 160×120) are box-averaged to the
     model's (16×16, 20×15).  (The same unknowns as above: the compiled step is reused.)"""

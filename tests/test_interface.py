@@ -106,9 +106,10 @@ def test_gradient_matches_finite_differences(solver, x64):
         assert got == pytest.approx(fd, rel=1e-4, abs=1e-10 * abs(float(value))), path
 
 
+# both slow (the suite's 12-minute budget; both passed when last run): test_fit.py's fits run
+# the sweep's in the default suite, and the splat's gradient is checked there below
 @pytest.mark.parametrize("fit_model", [
-    "splat",
-    # test_fit.py's fits run the sweep's through this same shared model in the default suite
+    pytest.param("splat", marks=pytest.mark.slow),
     pytest.param("sweep", marks=pytest.mark.slow)], indirect=True)
 def test_short_fit_recovers_the_truth(fit_model):
     """A fit through each model (the fit tests' shared model: its compiled step is shared)."""
@@ -143,6 +144,7 @@ def test_unconverged_light_solve_raises_with_its_error_and_iterations(thick):
     assert out.images["top"].shape == (6, 8) and np.all(np.isfinite(out.images["top"]))
 
 
+@pytest.mark.slow  # the suite's budget; the eager path is checked just above
 def test_unconverged_light_solve_raises_inside_jit(thick):
     with pytest.raises(Exception, match="iteration cap before its tolerance"):
         jax.block_until_ready(thick(thick.params()))
