@@ -229,29 +229,20 @@ def estimate(scene, solver: str = "sweep", *, resolution: int = 64, M: int = 3,
 
 
 def _diffusive(scene) -> bool:
-    """Whether precondition="auto" will choose the diffusion preconditioner (judged from the
-    scene's fog values and its domain, as ``SweepSolver`` does from the lattice)."""
-    from .forward.sweep._solver import DIFFUSION_OPTICAL_SIZE
+    """Whether precondition="auto" will choose the diffusion preconditioner (the solver's rule,
+    judged from the scene's density grid and domain instead of the lattice)."""
+    from .forward.sweep._solver import DIFFUSION_OPTICAL_SIZE, diffusive_size
 
     fog = scene.fog
     if fog is None:
         return False
-    zeta = fog.scattering * (1.0 - (fog.g or 0.0))
-    ext = zeta + fog.absorption
-    if ext <= 0:
-        return False
     dmax = 1.0
     if getattr(fog, "density", None) is not None:
-        try:
-            import numpy as np
+        import numpy as np
 
-            dmax = float(np.max(fog.density))
-        except (TypeError, ValueError):
-            pass
-    size = ext * dmax * max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
-    a = zeta / ext
-    diff_len = math.inf if a >= 1 else 1.0 / math.sqrt(3.0 * (1.0 - a))
-    return min(size, diff_len) >= DIFFUSION_OPTICAL_SIZE
+        dmax = float(np.max(fog.density))
+    extent = max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
+    return diffusive_size(fog, dmax, extent) >= DIFFUSION_OPTICAL_SIZE
 
 
 def _backend() -> str:

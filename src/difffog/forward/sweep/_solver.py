@@ -182,22 +182,25 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto") -> 
 
 
 def _optical_size(scene, lattice, solid) -> float:
-    """How many mean free paths light diffuses through in the scene's fog (its values at
-    ``prepare``): the lesser of σ_t (at the densest node) × the lattice's largest extent and
-    the diffusion length 1/√(3(1 − a)) in mean free paths (a: single-scattering albedo).  The
-    ``precondition="auto"`` rule."""
-    fog = scene.fog
-    if fog is None:
+    """``diffusive_size`` of the scene's fog on ``lattice`` (its densest non-solid node, the
+    lattice's largest extent): the ``precondition="auto"`` rule."""
+    if scene.fog is None:
         return 0.0
     dens = np.where(solid, 0.0, np.asarray(lattice.density, np.float64))
-    if not dens.size or dens.max() <= 0:
-        return 0.0
+    dmax = float(dens.max()) if dens.size else 0.0
+    return diffusive_size(scene.fog, dmax, max(lattice.shape) * lattice.h)
+
+
+def diffusive_size(fog, density_max: float, extent: float) -> float:
+    """How many mean free paths light diffuses through in ``fog`` (its values as given): the
+    lesser of σ_t (at ``density_max``) × ``extent`` and the diffusion length 1/√(3(1 − a)) in
+    mean free paths (a: single-scattering albedo after δ-scaling)."""
     zeta = fog.scattering * (1.0 - (fog.g or 0.0))
     ext = zeta + fog.absorption
-    if ext <= 0:
+    if ext <= 0 or density_max <= 0:
         return 0.0
-    size = ext * dens.max() * max(lattice.shape) * lattice.h
     a = zeta / ext
+    size = ext * density_max * extent
     return float(min(size, np.inf if a >= 1 else 1.0 / math.sqrt(3.0 * (1.0 - a))))
 
 
