@@ -1,6 +1,7 @@
 """Know before you run: the memory and time a forward model will take, from its settings alone.
 
-``estimate(scene, solver, **settings)`` computes the lattice shape the way ``voxelize`` does
+``estimate_sweep`` / ``estimate_splat`` (the registry's ``estimate`` of each solver; public as
+``difffog.estimate(scene, solver, **settings)``) compute the lattice shape the way ``voxelize`` does
 (without voxelizing: instant at any size), then adds up the arrays each stage holds at its
 peak, and the time per light iteration from measured rates.  ``check_fits(est)`` compares the
 peak with the memory available (host RAM on a CPU, device memory on a GPU) and refuses with one
@@ -125,7 +126,7 @@ class CostEstimate:
     def lines(self) -> list[str]:
         parts = ", ".join(f"{k} {_size(v)}" for k, v in self.memory.items() if v >= MIB)
         out = [f"memory     ~{_size(self.peak_bytes)} at the peak ({parts})"]
-        if self.solver == "sweep":
+        if self.seconds_per_iteration > 0:  # an iterated light solve (the sweep)
             out.append(f"time       ~{_secs(self.seconds_per_iteration)} per light iteration on "
                        f"{self.backend}, ~{_secs(self.solve_s)} for a typical solve of "
                        f"{TYPICAL_ITERATIONS}; set-up ~{_secs(self.setup_s)}, compiling "
@@ -156,47 +157,53 @@ def lattice_shape(scene, resolution: int, margin: int) -> tuple[int, int, int]:
     return tuple(int(x) for x in _Grid.from_domain(scene.domain, int(resolution), int(margin)).shape)
 
 
-def camera_rays(scene, cameras, supersample: int) -> int:
-    cams = [c for c in scene.cameras if cameras is None or c.name in cameras]
-    px = sum(c.width * c.height for c in cams)
-    return int(px * (supersample ** 2 + EDGE_FRACTION * EDGE_SAMPLES))
+def _cameras(scene, cameras):
+    """The scene's cameras a model renders (``cameras``: names, or None for all)."""
+    return [c for c in scene.cameras if cameras is None or c.name in cameras]
 
 
-def estimate(scene, solver: str = "sweep", *, resolution: int = 64, M: int = 3,
-             supersample: int | None = None, cameras=None, restart: int = 30,
-             sheets: int | None = None, backend: str | None = None, gradient: bool = False,
-             **_ignored) -> CostEstimate:
-    """The :class:`CostEstimate` of ``forward_model(scene, solver, resolution=..., ...)``.
+def camera_rays(scene, cameras, supersample: int, edge_samples: bool = True) -> int:
+    """Rays the cameras cast: supersample² per pixel (+ the sweep's edge re-samples)."""
+    px = sum(c.width * c.height for c in _cameras(scene, cameras))
+    extra = EDGE_FRACTION * EDGE_SAMPLES if edge_samples else 0.0
+    return int(px * (supersample ** 2 + extra))
+
+
+def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras=None,
+                   sheets: int | None = None, backend: str | None = None,
+                   **_ignored) -> CostEstimate:
+    """The :class:`CostEstimate` of the splat (the registry's ``estimate`` for it)."""
+    f = 4  # float32
+    shape = lattice_shape(scene, resolution, 0)
+    n = math.prod(shape)
+    rays = camera_rays(scene, cameras, int(supersample), edge_samples=False)
+    ext = max(shape)
+    K = int(sheets) if sheets else int(math.ceil(math.sqrt(3) * ext)) + 2
+    texels = int((math.sqrt(2) * ext + 8) ** 2)
+    mem = {"process": BASE_BYTES,
+           "volume": n * 16,  # density, its column integral, the scan's fields
+           # light_D (K + W + 1, hs, ws) per camera
+           "shadow buffers": len(_cameras(scene, cameras)) * (K + 7) * texels * f,
+           # eye footprints: eye_D, eye_up (K, P) (eye_uv is built per sheet)
+           "eye footprints": K * rays * 2 * f}
+    return CostEstimate("splat", shape, 0, rays, mem, 0.0,
+                        setup_s=SPLAT_SETUP_S + SPLAT_SETUP_S_PER_NODE * n,
+                        backend=backend or _backend())
+
+
+def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int = 2,
+                   cameras=None, restart: int = 30, backend: str | None = None,
+                   gradient: bool = False, **_ignored) -> CostEstimate:
+    """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian)."""
-    if backend is None:
-        backend = _backend()
+    backend = backend or _backend()
     f = 4  # float32
-    if solver == "splat":
-        ss = 1 if supersample is None else int(supersample)
-        shape = lattice_shape(scene, resolution, 0)
-        n = math.prod(shape)
-        cams = [c for c in scene.cameras if cameras is None or c.name in cameras]
-        rays = sum(c.width * c.height for c in cams) * ss * ss  # no edge re-sampling
-        ext = max(shape)
-        K = int(sheets) if sheets else int(math.ceil(math.sqrt(3) * ext)) + 2
-        texels = int((math.sqrt(2) * ext + 8) ** 2)
-        ncam = len([c for c in scene.cameras if cameras is None or c.name in cameras])
-        mem = {"process": BASE_BYTES,
-               "volume": n * 16,  # density, its column integral, the scan's fields
-               # light_D (K + W + 1, hs, ws) per camera
-               "shadow buffers": ncam * (K + 7) * texels * f,
-               # eye footprints: eye_D, eye_up (K, P) (eye_uv is built per sheet)
-               "eye footprints": K * rays * 2 * f}
-        return CostEstimate("splat", shape, 0, rays, mem, 0.0,
-                            setup_s=SPLAT_SETUP_S + SPLAT_SETUP_S_PER_NODE * n, backend=backend)
-
-    ss = 2 if supersample is None else int(supersample)
     M = int(M)
     shape = lattice_shape(scene, resolution, M + 1)
     n = math.prod(shape)
     D = (2 * M + 1) ** 2
-    rays = camera_rays(scene, cameras, ss)
+    rays = camera_rays(scene, cameras, int(supersample))
     surfaces = bool(scene.shapes)
     state = n * (2 if surfaces else 1)
     nu = sorted(shape)[-1] + 2 * M

@@ -30,10 +30,10 @@ INFO_VOXELIZE_MAX_NODES = 20_000_000
 
 
 def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
-    from .._cost import estimate
+    from ..forward._registry import model_estimate
 
     d = scene.domain
-    est = estimate(scene, "sweep", resolution=resolution, M=M)
+    est = model_estimate(scene, "sweep", resolution=resolution, M=M)
     big = est.nodes > INFO_VOXELIZE_MAX_NODES
     fmt = lambda v: "[" + ", ".join(f"{x:g}" for x in v) + "]"  # noqa: E731
     lines = [f"scene      {scene.title}" + (f"  ({scene.source})" if scene.source else "")]

@@ -31,7 +31,7 @@ from jaxtyping import Array, Float, Int
 from .._errors import SolverError, ThickStepWarning
 from .._results import RESULTS, check, error_if_failed
 from ..scene._description import Camera, Scene
-from ..scene._params import Params
+from ..scene._params import _SCALAR_PATHS, Params
 
 
 class AbstractLight(eqx.Module):
@@ -186,10 +186,8 @@ def largest_inputs(params: Params, k: int = 3) -> str:
     """The ``k`` parameters of largest magnitude, named as a scene file names them
     ('fog.scattering = 1e+14, sun.irradiance = 3'): where a valid input overflowed, the
     message says which input led there."""
-    vals = []
-    for path, field in (("fog.scattering", "scattering"), ("fog.absorption", "absorption"),
-                        ("sun.irradiance", "sun_irradiance"), ("sky.radiance", "sky_radiance")):
-        vals.append((path, float(np.asarray(getattr(params, field)))))
+    vals = [(path, float(np.asarray(getattr(params, field))))
+            for path, field in _SCALAR_PATHS.items()]
     for field in ("albedo", "emission"):
         a = np.asarray(getattr(params, field), np.float64).reshape(-1)
         if a.size:

@@ -30,6 +30,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+from .._cost import estimate_splat, estimate_sweep
 from .._errors import DifffogError
 from ..scene._description import Scene
 from ._model import AbstractForwardModel
@@ -47,6 +48,7 @@ class SolverEntry:
     presets: accuracy level → settings.
     fit_defaults: the settings a fit uses unless told otherwise.
     study: the settings ``difffog bench`` measures, cheapest first; quick: its smoke test.
+    estimate: (scene, *, cameras, **settings) → its :class:`difffog.CostEstimate` (``_cost.py``).
     """
 
     name: str
@@ -56,6 +58,7 @@ class SolverEntry:
     fit_defaults: Mapping = field(default_factory=dict)
     study: tuple[Mapping, ...] = ()
     quick: tuple[Mapping, ...] = ()
+    estimate: Callable | None = None
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -112,6 +115,7 @@ SOLVERS: dict[str, SolverEntry] = {
         study=(dict(resolution=32, M=2, tol=1e-3), dict(resolution=48, M=3, tol=1e-3),
                dict(resolution=64, M=3, tol=1e-4), dict(resolution=96, M=4, tol=1e-4)),
         quick=(dict(resolution=16, M=2, tol=1e-3),),
+        estimate=estimate_sweep,
     ),
     "splat": SolverEntry(
         name="splat",
@@ -125,6 +129,7 @@ SOLVERS: dict[str, SolverEntry] = {
         study=(dict(resolution=32, sheets=None), dict(resolution=64, sheets=34),
                dict(resolution=64, sheets=None), dict(resolution=128, sheets=None)),
         quick=(dict(resolution=16, sheets=None),),
+        estimate=estimate_splat,
     ),
 }
 
@@ -189,14 +194,12 @@ def forward_model(scene: Scene, solver: str = "sweep", accuracy: str | None = "d
 def model_estimate(scene: Scene, solver: str, *, cameras=None, **settings):
     """The :class:`difffog.CostEstimate` of ``forward_model(scene, solver, ...)`` with these
     settings (the solver's own defaults where a setting is not given)."""
-    from .._cost import estimate
-
     entry = solver_entry(solver)
     ps = inspect.signature(entry.build).parameters
     defaults = {k: p.default for k, p in ps.items()
                 if p.kind == p.KEYWORD_ONLY and k != "cameras"
                 and p.default is not inspect.Parameter.empty}
-    return estimate(scene, solver, cameras=cameras, **{**defaults, **settings})
+    return entry.estimate(scene, cameras=cameras, **{**defaults, **settings})
 
 
 def guard(scene: Scene, solver: str, *, cameras=None, force: bool = False, what=None,

@@ -58,11 +58,8 @@ CG_MAX_STEPS = 400
 def _mean_length(M: int) -> float:
     """The weighted mean lattice segment length Σ w_L |L| / Σ w_L, in units of h."""
     ds = direction_set(M)
-    r = np.arange(-M, M + 1)
-    p, q = np.meshgrid(r, r, indexing="ij")
-    length = np.sqrt(p**2 + q**2 + M**2).reshape(-1)
     w = np.asarray(ds.weights)
-    return float(np.sum(w * length[None]) / np.sum(w))
+    return float(np.sum(w * ds.length[None]) / np.sum(w))
 
 
 class DiffusionOperator:
