@@ -140,6 +140,25 @@ def copy_bandwidth(nbytes: int = 256 * MIB, repeat: int = 5, threads: int = 1) -
     return 2 * nbytes / statistics.median(times) / GB
 
 
+def device_copy_bandwidth(nbytes: int = 256 * MIB, repeat: int = 5) -> float:
+    """The default JAX device's copy bandwidth in GB/s (bytes read + written per second, median
+    of ``repeat``): a jitted copy (x + 0 of a float32 array of ``nbytes``) on the device.  On a
+    GPU this is the roofline of the sweep; on a CPU it is XLA's own copy (compare with
+    :func:`copy_bandwidth`)."""
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.ones(nbytes // 4, jnp.float32)
+    f = jax.jit(lambda a: a + 0.0)
+    f(x).block_until_ready()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        f(x).block_until_ready()
+        times.append(time.perf_counter() - t)
+    return 2 * nbytes / statistics.median(times) / GB
+
+
 def loadavg() -> str:
     try:
         return " / ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -175,6 +194,8 @@ def machine(bandwidth: bool = True, nbytes: int = 256 * MIB) -> dict:
     if bandwidth:
         info["copy_GBps"] = round(copy_bandwidth(nbytes), 2)
         info["copy_MiB"] = nbytes // MIB
+        if info["backend"] != "cpu":  # the accelerator's own roofline
+            info["device_copy_GBps"] = round(device_copy_bandwidth(nbytes), 1)
     return info
 
 
@@ -187,6 +208,9 @@ def machine_lines(info: dict) -> list[str]:
     if "copy_GBps" in info:
         lines.append(f"- copy bandwidth (NumPy copy of {info['copy_MiB']} MiB float32, bytes "
                      f"read + written, this run): {info['copy_GBps']:.1f} GB/s")
+    if "device_copy_GBps" in info:
+        lines.append(f"- {info['backend']} device copy bandwidth (jitted copy of "
+                     f"{info['copy_MiB']} MiB, this run): {info['device_copy_GBps']:.1f} GB/s")
     return lines
 
 
@@ -326,7 +350,7 @@ def fit_model(scene, cameras, resolution: int, M: int, downsample: int):
 
 
 # ----------------------------------------------------------------------------- sweep internals
-def sweep_problem(scene, N: int, M: int, devices: int = 1, mesh=None):
+def sweep_problem(scene, N: int, M: int, devices: int = 1, mesh=None, kernel: str = "auto"):
     """(geometry, problem, prepare seconds) of the sweep's light problem on an N³ lattice with
     no vacuum margin (float32, the scene's parameters): ``SweepSolver.problem``, the input of
     one Jacobi iteration."""
@@ -340,7 +364,7 @@ def sweep_problem(scene, N: int, M: int, devices: int = 1, mesh=None):
     kw = {"devices": devices} if devices > 1 else {}
     if mesh is not None:
         kw["mesh"] = tuple(mesh)
-    solver = df.SweepSolver(M=M, **kw)
+    solver = df.SweepSolver(M=M, kernel=kernel, **kw)
     geom = solver.prepare(scene, lat)
     prep_s = time.perf_counter() - t
     pb = jax.jit(solver.problem)(geom, df.Params.from_scene(scene, jnp.float32))

@@ -41,6 +41,8 @@ def _args(argv=None):
     ap.add_argument("--repeat", type=int, default=5, help="timed iterations per case (median)")
     ap.add_argument("--scene", default="fog-balls")
     ap.add_argument("--devices", type=int, default=1, help="SweepSolver(devices=...) if > 1")
+    ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched"],
+                    help="SweepSolver(kernel=...): the face sweep's program (auto: the backend's)")
     ap.add_argument("--grad-size", type=int, default=None, help="N of the forward/gradient case")
     ap.add_argument("--no-grad", action="store_true")
     ap.add_argument("--no-bandwidth", action="store_true")
@@ -79,7 +81,7 @@ def _hlo_ops(text: str) -> int:
     return sum(1 for line in text.splitlines() if re.match(r"\s*(ROOT\s+)?%?[\w.\-]+ = ", line))
 
 
-def iteration_case(scene, N, M, repeat, devices=1, k_iter=4):
+def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto"):
     """Seconds per Jacobi iteration as the solver runs it: the forward iteration (``_iterate``,
     a while loop over ``_jacobi``, tol = 0) timed at 1 and ``k_iter`` iterations; the
     difference per extra iteration is the marginal cost of an iteration (one-time work hoisted
@@ -89,7 +91,7 @@ def iteration_case(scene, N, M, repeat, devices=1, k_iter=4):
 
     from difffog.forward.sweep._solver import _jacobi  # the internal being measured
 
-    geom, pb, prep_s = C.sweep_problem(scene, N, M, devices)
+    geom, pb, prep_s = C.sweep_problem(scene, N, M, devices, kernel=kernel)
     zero = jnp.zeros(geom.shape, jnp.float32)
     ops_pre = _hlo_ops(jax.jit(_jacobi).lower((zero, zero), pb).as_text(dialect="hlo"))
     it = C.iteration_seconds(pb, k_iter, repeat)
@@ -103,7 +105,7 @@ def iteration_case(scene, N, M, repeat, devices=1, k_iter=4):
                 setup_s=it["setup_s"], rate=updates / it["s_iter"], updates=updates)
 
 
-def grad_case(scene, N, M, repeat=3, devices=1):
+def grad_case(scene, N, M, repeat=3, devices=1, kernel="auto"):
     """Forward images against ``jax.grad`` of an image loss, compiled ahead of time."""
     import jax
     import jax.numpy as jnp
@@ -111,7 +113,7 @@ def grad_case(scene, N, M, repeat=3, devices=1):
     import difffog as df
 
     model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=1e-4,
-                             devices=devices, supersample=1)
+                             devices=devices, supersample=1, kernel=kernel)
     p = model.params(jnp.float32)
     target = {k: 0.9 * v for k, v in model(p).items()}
 
@@ -150,6 +152,8 @@ def main(argv=None):
     emit(f"- command: `{' '.join([os.path.basename(sys.executable)] + sys.argv)}`")
     for ln in C.machine_lines(info):
         emit(ln)
+    emit(f"- sweep kernel `{df.SweepSolver(kernel=a.kernel).resolved_kernel()}` "
+         f"(`--kernel {a.kernel}`)")
     emit(f"- scene `{a.scene}`, float32, lattice N³ (no vacuum margin), timings are medians of "
          f"{a.repeat} warm iterations")
     emit()
@@ -172,7 +176,7 @@ def main(argv=None):
     results, rows = [], []
     for N in a.sizes:
         for M in a.Ms:
-            r = iteration_case(scene, N, M, a.repeat, a.devices)
+            r = iteration_case(scene, N, M, a.repeat, a.devices, kernel=a.kernel)
             results.append(r)
             pct = f"{100 * r['rate'] / roof:.0f}%" if roof else "–"
             rows.append([N, M, r["D"], f"{r['s_iter']:.3f}", f"{r['s_best']:.3f}",
@@ -192,7 +196,7 @@ def main(argv=None):
 
     if not a.no_grad:
         M = a.Ms[0] if a.quick else 3
-        g = grad_case(scene, a.grad_size, M, devices=a.devices)
+        g = grad_case(scene, a.grad_size, M, devices=a.devices, kernel=a.kernel)
         emit(f"## Forward solve vs gradient (N = {a.grad_size}, lattice {g['shape']} with the "
              f"model's vacuum margin, M = {M}, tol 1e-4, {g['iterations']} iterations, "
              f"both cameras, supersample 1)")

@@ -4,6 +4,7 @@ finite differences, and reference values that need test-only packages (iadpython
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import jax
 import numpy as np
@@ -72,3 +73,15 @@ def adding_doubling(albedo: float, tau: float, g: float = 0.0, *, quad_pts: int 
                          quad_pts=quad_pts)
     ur1, ut1, uru, utu = s.rt()
     return float(uru), float(utu)
+
+
+SRC = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "src"))
+
+
+def host_devices_env(n: int) -> dict:
+    """The environment of a subprocess that runs JAX on ``n`` host (CPU) devices: the CPU
+    platform forced (on a GPU machine JAX would otherwise pick the one GPU), and this checkout's
+    ``src`` first on the path."""
+    return dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}",
+                JAX_PLATFORMS="cpu",
+                PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))

@@ -10,7 +10,8 @@ import pytest
 
 import difffog as df
 
-SRC = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "src"))
+from helpers import SRC, host_devices_env
+
 
 @pytest.fixture(scope="module")
 def renderer(sweep_model):
@@ -74,8 +75,7 @@ for k in a:
         np.max(np.asarray(a[k])))
 print("ok")
 """
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-               PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = host_devices_env(2)
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
@@ -87,7 +87,8 @@ def test_cli_render_devices_gives_the_same_images(tmp_path):
     images of one device, to the solve's tolerance (GMRES on a mesh also sweeps the Λ off the
     fog that one device skips, so its iterates differ in the last digits; the fixed point is
     the same)."""
-    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               JAX_PLATFORMS="cpu")  # host devices, also on a GPU machine
     env.pop("XLA_FLAGS", None)
     for n in (1, 2):
         r = subprocess.run([sys.executable, "-m", "difffog", "render", "fog-balls", "-N", "12",
@@ -122,8 +123,7 @@ for ra, rb, z in zip(a, b, (1.5, 2.0, 3.0)):
     assert abs(rb.estimates["fog.scattering"] / z - 1) <= 1e-3
 print("ok")
 """
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-               PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = host_devices_env(2)
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=900)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]

@@ -19,7 +19,7 @@ from difffog import Params, SweepSolver, get_param, load_scene, set_param, voxel
 from difffog.forward.sweep._uncollided import sun_transmittance
 from difffog.study import references
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import adding_doubling
+from helpers import adding_doubling, host_devices_env
 
 AD_ROWS = references.slab_table()
 
@@ -265,6 +265,65 @@ def test_loop_kernel_matches_batched_kernel(shape, surfaces):
                                        err_msg=str(periodic))
 
 
+@pytest.mark.parametrize("name,derivatives", [
+    ("fog-balls", False),
+    # derivatives always come from the batched program (the kernels differ in the primal the
+    # adjoint linearizes about): 75 s each on 2 cores, so in -m slow
+    pytest.param("fog-balls", True, marks=pytest.mark.slow),
+    pytest.param("cloud-plane", True, marks=pytest.mark.slow)])
+def test_solver_kernels_agree(name, derivatives, x64):
+    """SweepSolver(kernel="loop") (a CPU's) and kernel="batched" (a GPU's) on a shared scene in
+    float64: the same light field and (``derivatives``) the same JVP and gradient through the
+    implicit adjoint, so CI guards the GPU's program without a GPU."""
+    scene = load_scene(name, ["shape.walls.thickness=0.1"] if name == "fog-balls" else [])
+    solvers = {k: SweepSolver(M=2, tol=1e-11, max_iterations=400, adjoint_rtol=1e-11, kernel=k)
+               for k in ("loop", "batched")}
+    geom = solvers["loop"].prepare(scene, voxelize(scene, 10 if name == "fog-balls" else 14, 2))
+    p0 = Params.from_scene(scene, jnp.float64)
+    wt = jnp.asarray(np.random.default_rng(2).random(geom.shape))
+    tangent = set_param(jax.tree.map(jnp.zeros_like, p0), scene, "fog.scattering", 1.0)
+    out = {}
+    for k, solver in solvers.items():
+        def loss(p, solver=solver):
+            light = solver.solve(geom, p)
+            return jnp.sum(wt * (light.fluence + light.radiosity)), light
+
+        @jax.jit
+        def everything(p, t, loss=loss):  # one compiled program per kernel
+            (_, light), jv = jax.jvp(loss, (p,), (t,))
+            return light, jv[0], jax.grad(lambda q: loss(q)[0])(p)
+
+        if not derivatives:
+            light = jax.jit(solver.solve)(geom, p0)
+            out[k] = (np.asarray(light.fluence), np.asarray(light.radiosity))
+            continue
+        light, jv, g = everything(p0, tangent)
+        assert int(light.result) == df.RESULTS.successful
+        out[k] = (np.asarray(light.fluence), np.asarray(light.radiosity), float(jv),
+                  [float(get_param(g, scene, q)) for q in ("fog.scattering", "fog.absorption",
+                                                           "sky.radiance")])
+    (fa, ra, *da), (fb, rb, *db) = out["loop"], out["batched"]
+    assert fa.max() > 0
+    np.testing.assert_allclose(fb, fa, rtol=1e-9, atol=1e-12 * fa.max())
+    np.testing.assert_allclose(rb, ra, rtol=1e-9, atol=1e-12 * max(ra.max(), 1.0))
+    if not derivatives:
+        return
+    (ja, ga), (jb, gb) = da, db
+    assert jb == pytest.approx(ja, rel=1e-8) and ja != 0
+    assert gb == pytest.approx(ga, rel=1e-8)
+    # the JVP is the gradient's component along the tangent
+    assert ja == pytest.approx(ga[0], rel=1e-7)
+
+
+def test_kernel_auto_follows_the_backend():
+    from difffog.forward.sweep._kernel import kernel_for
+
+    assert kernel_for("cpu") == "loop" and kernel_for("gpu") == "batched"
+    assert SweepSolver().resolved_kernel() == kernel_for(jax.default_backend())
+    with pytest.raises(df.SceneError, match="kernel must be one of auto, loop, batched"):
+        SweepSolver(kernel="fast")
+
+
 def test_two_devices_need_two_devices():
     if len(jax.devices()) >= 2:
         pytest.skip("this process has two devices")
@@ -358,7 +417,7 @@ def test_sharded_sweep_matches_one_device(cases):
     import subprocess
     import sys
 
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    env = host_devices_env(4)
     r = subprocess.run([sys.executable, "-c", _SHARDED_CODE, json.dumps(cases)], env=env,
                        capture_output=True, text=True, timeout=900)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]

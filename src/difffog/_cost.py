@@ -61,6 +61,12 @@ CPU_SECONDS_PER_NODE = 6.5e-7
 #: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
 #: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
 GPU_SECONDS_PER_BODY = 18e-6
+#: the batched sweep (kernel="batched", the GPU's default) on a GPU: node-and-direction updates
+#: per second (H100, fog-balls N = 128, M = 5: 0.0213 s per iteration, the GPU issue's figures)
+GPU_BATCHED_UPDATES_PER_S = 72e9
+#: the batched sweep on a CPU is this many times slower than the loop (fog-balls N = 48, M = 3,
+#: this 2-core CPU: 0.50 against 0.058 s per iteration)
+CPU_BATCHED_SLOWDOWN = 8.7
 #: host set-up: seconds per node (voxelize, prepare), per node × direction × M (segment
 #: blocking samples each direction's segment at 2|L| points) and per camera ray (exact hits,
 #: edge detection, the sun's depth: ~3 s for fog-balls' 200k rays); fitted to bench_cost.py
@@ -193,11 +199,14 @@ def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras
 
 def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int = 2,
                    cameras=None, restart: int = 30, backend: str | None = None,
-                   gradient: bool = False, **_ignored) -> CostEstimate:
+                   kernel: str = "auto", gradient: bool = False, **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
+    kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
     gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian)."""
     backend = backend or _backend()
+    if kernel == "auto":
+        kernel = "loop" if backend == "cpu" else "batched"
     f = 4  # float32
     M = int(M)
     shape = lattice_shape(scene, resolution, M + 1)
@@ -211,9 +220,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     mem = {
         "process": BASE_BYTES,
         "lattice (host)": n * HOST_BYTES_PER_NODE,
-        # FaceGeometry.blocked: (nw, nu, nv, ceil(D/8)) uint8 per face, kept on the host and the
-        # device, plus segment_blocking's (D, nx, ny, nz) bool while one face is built
-        "blocking masks": (12 * n * math.ceil(D / 8) + n * D) if surfaces else 0,
+        # FaceGeometry.blocked: (nw, nu, nv, ceil(D/8)) uint8 per face, on the host (the six
+        # faces' masks are built at once) and the device, plus one face-frame copy in transit
+        "blocking masks": 13 * n * math.ceil(D / 8) if surfaces else 0,
         "light solve": n * SOLVE_BYTES_PER_NODE,
         # GMRES: restart + 1 Krylov vectors (+ restart preconditioned ones, flexible GMRES,
         # where the diffusion preconditioner is chosen), x and b
@@ -224,12 +233,16 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     }
     if gradient:
         mem["adjoint"] = 41 * state * f  # lineax GMRES, restart 40
-    if backend == "gpu":
+    if backend == "gpu" and kernel == "batched":
+        per_iter = 6 * D * n / GPU_BATCHED_UPDATES_PER_S
+    elif backend == "gpu":
         slabs = -(-max(shape) // M)
         bodies = 6 * slabs * max(1, -(-nu // 16)) * D
         per_iter = bodies * GPU_SECONDS_PER_BODY
     else:
         per_iter = 6 * D * n / CPU_UPDATES_PER_S + CPU_SECONDS_PER_NODE * n
+        if kernel == "batched":
+            per_iter *= CPU_BATCHED_SLOWDOWN
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + (SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M if surfaces else 0))
     return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
@@ -259,6 +272,24 @@ def _backend() -> str:
         return jax.default_backend()
     except Exception:  # pragma: no cover - jax is a dependency
         return "cpu"
+
+
+def machine() -> dict:
+    """What JAX runs on here: backend, its devices (count and kind) and the JAX version — for
+    ``difffog info`` and ``report.json``."""
+    import jax
+
+    devs = jax.devices()
+    return {"backend": jax.default_backend(), "devices": len(devs),
+            "device_kind": ", ".join(sorted({d.device_kind for d in devs})),
+            "jax": jax.__version__}
+
+
+def machine_line(info: dict | None = None) -> str:
+    """:func:`machine` in one line, e.g. ``cpu, 1 device (cpu), JAX 0.10.2``."""
+    m = info or machine()
+    n = m["devices"]
+    return f"{m['backend']}, {n} device{'s' if n != 1 else ''} ({m['device_kind']}), JAX {m['jax']}"
 
 
 def available_bytes(backend: str | None = None) -> tuple[int, str]:

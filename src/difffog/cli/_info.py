@@ -30,6 +30,8 @@ INFO_VOXELIZE_MAX_NODES = 20_000_000
 
 
 def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
+    from .._cost import machine_line
+    from ..forward.sweep._kernel import kernel_for
     from ..forward._registry import model_estimate
 
     d = scene.domain
@@ -51,6 +53,7 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
         f"lattice    {sx}x{sy}x{sz} nodes, voxel {h:.4g}, M = {M} ({(2 * M + 1) ** 2} directions "
         f"per face; {M + 1} vacuum nodes around open sides), {done}"
     )
+    lines.append(f"backend    {machine_line()}; sweep kernel: {kernel_for(est.backend)}")
     lines += ["cost       (sweep, estimated from the settings: difffog.estimate)"]
     lines += ["  " + ln for ln in est.lines()]
     if lat is not None:

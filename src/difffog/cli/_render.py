@@ -45,6 +45,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from .._cost import machine
     from .._output import atomic_folder, check_out_dir, save_image
     from .._progress import NoProgress, TextProgress
     from ..forward._model import failure_details, render
@@ -97,6 +98,7 @@ def run(args) -> int:
         "total_s": round(time.perf_counter() - t0, 4),
         **light.report(),
         "error_estimate": float(light.error_estimate),
+        "machine": machine(),  # the JAX backend and devices that ran it
         "peak_memory_mb": peak_memory_mb(),
         # the estimate made before anything was built (difffog.estimate), beside the measured
         "estimate": {**est.as_dict(), "peak_mb": round(est.peak_bytes / 2**20, 1)},

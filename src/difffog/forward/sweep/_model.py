@@ -222,7 +222,8 @@ class SweepModel(AbstractForwardModel):
             "solver_options": {"M": s.M, "method": s.method, "max_iterations": s.max_iterations,
                                "tol": s.tol, "sky_quadrature": s.sky_quadrature,
                                "terms": s.terms, "devices": s.devices,
-                               "precondition": s.resolved_precondition(self.geometry)},
+                               "precondition": s.resolved_precondition(self.geometry),
+                               "kernel": s.resolved_kernel()},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides
             "voxel_size": lat.h,
