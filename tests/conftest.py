@@ -5,6 +5,7 @@ import jax
 import pytest
 
 import notebook_runs
+from difffog import enable_compilation_cache
 from helpers import MODELS, build_fit_model, build_model
 
 
@@ -14,13 +15,13 @@ def pytest_configure(config):
     # compilation cache shared by this session's processes turns every repeat compile into a
     # cache hit.  A fresh folder per session (the first process makes it; xdist workers
     # inherit it through the environment), so runs stay independent.
+    # The command line (in-process and in subprocesses) uses the same folder.
     cache = os.environ.get("DIFFFOG_TEST_XLA_CACHE")
     if not cache:
         cache = tempfile.mkdtemp(prefix="difffog-test-xla-")
         os.environ["DIFFFOG_TEST_XLA_CACHE"] = cache
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    os.environ["DIFFFOG_CACHE_DIR"] = cache
+    enable_compilation_cache(cache)
 
 
 def pytest_collection_finish(session):

@@ -5,6 +5,7 @@ import re
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 
@@ -62,6 +63,42 @@ def test_render_writes_images_and_report(tmp_path, capsys):
     assert set(rep["timings_s"]) >= {"voxelize_s", "light_s", "images_s", "light_compile_s"}
     assert rep["peak_memory_mb"] > 0
     assert not list(tmp_path.glob(".difffog-*"))  # the staging folder is gone
+    assert rep["machine"]["backend"] == jax.default_backend() and rep["machine"]["devices"] >= 1
+    assert rep["settings"]["solver_options"]["kernel"] in ("loop", "batched")
+
+
+def test_a_second_render_loads_its_programs_from_the_cache(tmp_path):
+    """The command line keeps compiled programs in DIFFFOG_CACHE_DIR: a second identical render
+    in a new process compiles nothing new (every program a cache hit)."""
+    import os
+
+    def render(cache, out):
+        env = dict(os.environ, DIFFFOG_CACHE_DIR=str(cache))
+        r = subprocess.run([sys.executable, "-m", "difffog", "render", "furnace", "-N", "8", "-M",
+                            "1", "--iterations", "2", "--supersample", "1", "-q", "--out",
+                            str(tmp_path / out)], env=env, capture_output=True, text=True,
+                           timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+
+    cache = tmp_path / "xla"
+    render(cache, "a")
+    first = sorted(p.name for p in cache.iterdir())
+    assert first  # at least the light solve
+    render(cache, "b")
+    assert sorted(p.name for p in cache.iterdir()) == first
+
+
+def test_cache_folder_setting(monkeypatch, tmp_path):
+    from difffog._cache import default_cache_dir
+
+    for off in ("off", "0", ""):
+        monkeypatch.setenv("DIFFFOG_CACHE_DIR", off)
+        assert default_cache_dir() is None
+    monkeypatch.setenv("DIFFFOG_CACHE_DIR", str(tmp_path / "c"))
+    assert default_cache_dir() == tmp_path / "c"
+    monkeypatch.delenv("DIFFFOG_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert default_cache_dir() == tmp_path / "difffog" / "xla"
 
 
 def test_render_fixed_iterations_and_override(tmp_path):

@@ -43,6 +43,7 @@ from .forward._model import (
     unstack_params as unstack_params,
 )
 from ._cost import CostEstimate as CostEstimate
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from .forward._registry import (
     SOLVERS as SOLVERS,
     forward_model as forward_model,
