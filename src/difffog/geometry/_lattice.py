@@ -64,6 +64,10 @@ FREE, SURFACE, SOLID = 0, 1, 2
 NODE_TYPE_NAMES = ("free", "surface", "solid")
 
 _CHUNK = 1 << 20  # nodes per vectorized block when evaluating shapes over the grid
+# nodes per block of the evaluations from per-axis tables: their few float64 temporaries stay in
+# the L2 cache (N = 128, M = 5: an open box's SDF 19 ms, a torus's 52 ms; 30 and 75 ms in blocks
+# of _CHUNK nodes)
+_BLOCK = 1 << 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,31 +169,34 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
     n = grid.shape
     sdf = np.full(n, _far(grid), np.float64)
     owner = np.full(n, -1, np.int16)
+    closer = np.empty(n, bool)
     for s in shapes:
         d = s.sdf_grid(grid, M)
-        closer = d < sdf
-        sdf[closer] = d[closer]
-        owner[closer] = s.index
+        np.less(d, sdf, out=closer)
+        np.copyto(sdf, d, where=closer)
+        np.copyto(owner, s.index, where=closer)
     solid = sdf < 0
-    # float32 must keep the sign: SOLID strictly negative, the rest >= 0
-    tiny = 1e-6 * grid.h
-    sdf = np.where(solid, np.minimum(sdf, -tiny), np.maximum(sdf, 0.0)).astype(np.float32)
+    # float32 must keep the sign: SOLID strictly negative, the rest >= 0 (computed in float64,
+    # rounded on the way out)
+    sdf32 = np.empty(n, np.float32)
+    np.maximum(sdf, 0.0, out=sdf32)
+    np.minimum(sdf, -1e-6 * grid.h, out=sdf32, where=solid)
 
     # --- SURFACE shell: Chebyshev distance <= M from a SOLID node --------------------------------
     near = ndimage.maximum_filter(solid, size=2 * M + 1, mode=grid.modes(), cval=0)
     surface = near & ~solid
     node_type = np.full(n, FREE, np.int8)
-    node_type[surface] = SURFACE
-    node_type[solid] = SOLID
+    np.copyto(node_type, SURFACE, where=surface)
+    np.copyto(node_type, SOLID, where=solid)
 
     # --- material ----------------------------------------------------------------------------
     material = np.full(n, -1, np.int16)
-    material[solid] = owner[solid]
+    np.copyto(material, owner, where=solid)
     if surface.any():
         if len(shapes) == 1:
-            material[surface] = 0
+            np.copyto(material, 0, where=surface)
         else:
-            material[surface] = _nearest_solid_owner(solid, owner, surface, grid, M)
+            _surface_material(material, solid, owner, surface, grid, M)
 
     # --- normals -----------------------------------------------------------------------------
     normal = np.zeros(n + (3,), np.float32)
@@ -204,8 +211,11 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
             nv = _analytic_normals(shapes, owner[idx], idx, grid)
         normal[idx] = nv
 
-    density = _density(scene, grid, solid)
-    fog_density = _density(scene, grid, np.zeros_like(solid)) if solid.any() else density
+    fog_density = _density(scene, grid)
+    density = fog_density
+    if solid.any():
+        density = fog_density.copy()
+        np.copyto(density, 0.0, where=solid)
     return Lattice(
         shape=n,
         h=grid.h,
@@ -216,7 +226,7 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
         material=material,
         normal=normal,
         density=density,
-        sdf=sdf,
+        sdf=sdf32,
         fog_density=fog_density,
     )
 
@@ -283,6 +293,23 @@ class _Grid:
             p = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1)
             yield slice(i0, i0 + step), p
 
+    def blocks(self):
+        """Yield slices over ix of about _BLOCK nodes each."""
+        nx, ny, nz = self.shape
+        step = max(1, _BLOCK // (ny * nz))
+        for i0 in range(0, nx, step):
+            yield slice(i0, min(i0 + step, nx))
+
+    def axis_shifts(self, a) -> list[float]:
+        """The periodic images' shifts along axis ``a`` (``[0.0]`` along an open axis).
+
+        ``images()`` is the full product of these, so the minimum over the images of an SDF that
+        is non-decreasing in one term per axis (a box's ``|x - c| - e``, a sphere's ``(x - c)²``)
+        is that SDF of the per-axis minima, exactly (rounding is monotone too)."""
+        if self.periodic and a < 2:
+            return [i * self.period[a] for i in (-1, 0, 1)]
+        return [0.0]
+
     def images(self) -> list[np.ndarray]:
         """Lateral shifts of the periodic images (just the zero shift for an open domain)."""
         if not self.periodic:
@@ -322,6 +349,10 @@ class _Shape:
     def relevant_images(self, grid):
         return grid.images()
 
+    def grad_at(self, idx, grid):
+        """Unit gradient at the (non-SOLID) nodes with index arrays ``idx``."""
+        return self.grad_periodic(grid.positions(idx), grid)
+
     def grad_periodic(self, p, grid):
         """Gradient of the nearest periodic image."""
         shifts = self.relevant_images(grid)
@@ -351,8 +382,15 @@ class _Shape:
         return None
 
 
+def _norm3(v):
+    """``np.linalg.norm(v, axis=-1)`` bit for bit (its sum runs x, y, z in order), for (..., 3)
+    ``v``, without its (..., 3) temporaries."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
 def _unit(v, fallback=None):
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    n = _norm3(v)[..., None]
     ok = n > 1e-300
     u = np.where(ok, v / np.where(ok, n, 1.0), 0.0)
     if fallback is not None:
@@ -366,7 +404,23 @@ class _SphereS(_Shape):
         self.c, self.r = np.asarray(s.center, float), float(s.radius)
 
     def sdf(self, p):
-        return np.linalg.norm(p - self.c, axis=-1) - self.r
+        return _norm3(p - self.c) - self.r
+
+    def sdf_grid(self, grid: _Grid, M: int) -> np.ndarray:
+        """``sdf`` at every node, with its arithmetic, from per-axis tables: the squared offset
+        along each axis (minimised over the periodic shifts), summed x, y, z as the norm does."""
+        d2 = [
+            np.min([np.square(grid.axis_coords(a) - s - self.c[a]) for s in grid.axis_shifts(a)], 0)
+            for a in range(3)
+        ]
+        sxy = np.add.outer(d2[0], d2[1])
+        out = np.empty(grid.shape, np.float64)
+        for sl in grid.blocks():
+            o = out[sl]
+            np.add(sxy[sl, :, None], d2[2], out=o)
+            np.sqrt(o, out=o)
+            np.subtract(o, self.r, out=o)
+        return out
 
     def grad(self, p):
         return _unit(p - self.c, fallback=np.array([0.0, 0.0, 1.0]))
@@ -397,10 +451,34 @@ class _TorusS(_Shape):
         return self.c + self.R * _unit(radial)
 
     def sdf(self, p):
-        v = p - self.c
+        return self._sdf_v(p - self.c)
+
+    def _sdf_v(self, v):
+        """SDF at the offsets ``v = p - c`` (..., 3)."""
         z = v @ self.a
         rho = np.sqrt(np.maximum(np.einsum("...i,...i", v, v) - z * z, 0.0))
         return np.hypot(rho - self.R, z) - self.r
+
+    def sdf_grid(self, grid: _Grid, M: int) -> np.ndarray:
+        """``sdf`` at every node, block by block, the offsets filled in from per-axis tables
+        rather than built as positions and then shifted (the same values)."""
+        out = np.empty(grid.shape, np.float64)
+        ny, nz = grid.shape[1:]
+        tables = [
+            [grid.axis_coords(a) - s - self.c[a] for s in grid.axis_shifts(a)] for a in range(3)
+        ]
+        for sl in grid.blocks():
+            v = np.empty((sl.stop - sl.start, ny, nz, 3))
+            best = None
+            for tx in tables[0]:
+                for ty in tables[1]:
+                    v[..., 0] = tx[sl, None, None]
+                    v[..., 1] = ty[None, :, None]
+                    v[..., 2] = tables[2][0]
+                    d = self._sdf_v(v)
+                    best = d if best is None else np.minimum(best, d, out=best)
+            out[sl] = best
+        return out
 
     def grad(self, p):
         return _unit(p - self.core_point(p), fallback=self.a)
@@ -409,29 +487,17 @@ class _TorusS(_Shape):
         return 2 * self.r
 
 
-def _box_sdf(p, lo, hi):
-    c, e = (lo + hi) / 2, (hi - lo) / 2
-    q = np.abs(p - c) - e
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
-    inside = np.minimum(q.max(axis=-1), 0.0)
-    return outside + inside
-
-
-def _box_grad(p, lo, hi):
-    c, e = (lo + hi) / 2, (hi - lo) / 2
-    d = p - c
-    sgn = np.where(d >= 0, 1.0, -1.0)
-    q = np.abs(d) - e
-    out = sgn * np.maximum(q, 0.0)
-    inside_n = np.zeros_like(p)
-    ax = np.argmax(q, axis=-1)
-    np.put_along_axis(inside_n, ax[..., None], np.take_along_axis(sgn, ax[..., None], -1), -1)
-    is_out = (q > 0).any(axis=-1, keepdims=True)
-    return np.where(is_out, _unit(out), inside_n)
-
-
 class _BoxesS(_Shape):
-    """A union of axis-aligned boxes: a box, or the walls of an open box."""
+    """A union of axis-aligned boxes: a box, or the walls of an open box.
+
+    Evaluated from 1-D tables: a box's SDF depends on a node through one term per axis,
+    ``q = |x - c| - e``: it is ``max q`` where that is <= 0 (inside) and ``sqrt(Σ max(q, 0)²)``
+    elsewhere (the sum over x, y, z in that order, as ``np.linalg.norm`` adds).  So the union
+    over the boxes is ``min max q`` where that is <= 0 and the square root of ``min Σ max(q, 0)²``
+    elsewhere, every step monotone: the same floating-point values as the point formula,
+    computed in a few full-grid passes instead of one (N, 3) evaluation per box (the 5 walls of
+    an open box at N = 128, M = 5: 1.9 s before, 0.02 s).
+    """
 
     def __init__(self, s, index):
         self.index, self.name, self.kind = index, s.name, s.kind
@@ -442,20 +508,99 @@ class _BoxesS(_Shape):
             boxes = [(s.min, s.max)]
             self._thick = float(np.min(np.subtract(s.max, s.min)))
         self.boxes = [(np.asarray(a, float), np.asarray(b, float)) for a, b in boxes]
+        self._c = np.array([(lo + hi) / 2 for lo, hi in self.boxes]).reshape(-1, 3)
+        self._e = np.array([(hi - lo) / 2 for lo, hi in self.boxes]).reshape(-1, 3)
 
-    def sdf(self, p):
+    def _tables(self, grid, a, shift):
+        """Per box (rows) and node along axis ``a``: the offset ``d = x - shift - c`` and
+        ``q = |d| - e``."""
+        d = grid.axis_coords(a) - shift - self._c[:, a, None]
+        return d, np.abs(d) - self._e[:, a, None]
+
+    def sdf_grid(self, grid: _Grid, M: int) -> np.ndarray:
         if not self.boxes:
-            return np.full(p.shape[:-1], np.inf)
-        return np.min([_box_sdf(p, lo, hi) for lo, hi in self.boxes], axis=0)
+            return np.full(grid.shape, np.inf)
+        q = [
+            np.min([self._tables(grid, a, s)[1] for s in grid.axis_shifts(a)], 0) for a in range(3)
+        ]
+        o2 = [np.square(np.maximum(qa, 0.0)) for qa in q]
+        # boxes with the same z table share the 3-D pass: the min over them of max(qxy, qz) and
+        # of sxy + oz² is max(min qxy, qz) and (min sxy) + oz² (the 4 side walls of an open box)
+        groups = {}
+        for b in range(len(self.boxes)):
+            qxy, sxy = np.maximum.outer(q[0][b], q[1][b]), np.add.outer(o2[0][b], o2[1][b])
+            g = groups.setdefault(q[2][b].tobytes(), [qxy, sxy, q[2][b], o2[2][b]])
+            if g[0] is not qxy:
+                np.minimum(g[0], qxy, out=g[0])
+                np.minimum(g[1], sxy, out=g[1])
+        out = np.empty(grid.shape, np.float64)
+        for sl in grid.blocks():
+            ssum = out[sl]  # min Σ max(q, 0)², then the SDF
+            qmax = np.empty_like(ssum)  # min max q
+            tmp = np.empty_like(ssum)
+            for i, (qxy, sxy, qz, oz) in enumerate(groups.values()):
+                if i == 0:
+                    np.maximum(qxy[sl, :, None], qz, out=qmax)
+                    np.add(sxy[sl, :, None], oz, out=ssum)
+                else:
+                    np.minimum(qmax, np.maximum(qxy[sl, :, None], qz, out=tmp), out=qmax)
+                    np.minimum(ssum, np.add(sxy[sl, :, None], oz, out=tmp), out=ssum)
+            np.sqrt(ssum, out=ssum)
+            np.copyto(ssum, qmax, where=qmax <= 0)
+        return out
 
-    def grad(self, p):
-        d = np.stack([_box_sdf(p, lo, hi) for lo, hi in self.boxes])
-        best = np.argmin(d, axis=0)
-        out = np.zeros_like(p)
-        for i, (lo, hi) in enumerate(self.boxes):
-            m = best == i
-            if m.any():
-                out[m] = _box_grad(p[m], lo, hi)
+    def grad_at(self, idx, grid):
+        """Unit outward gradient of the nearest box (the first on ties) of the nearest periodic
+        image (the first on ties) at the non-SOLID nodes ``idx``: outside, away from the box's
+        closest point; on its boundary, along the axis of the nearest face (the first on ties).
+
+        At a non-SOLID node every box's SDF is the square root of its Σ max(q, 0)².  The per-axis
+        tables are gathered at the nodes and combined per axis (N = 128, M = 5, 0.8 M nodes on
+        the walls of fog-balls: 0.6 s as (N, 3) arrays before, 0.1 s)."""
+        ny = grid.shape[1]
+        shifts = [grid.axis_shifts(a) for a in range(3)]
+        tabs = [[self._tables(grid, a, s) for s in shifts[a]] for a in range(3)]
+        D = [np.stack([t[0] for t in tabs[a]]) for a in range(3)]  # (shift, box, node)
+        Q = [np.stack([t[1] for t in tabs[a]]) for a in range(3)]
+        O2 = [np.square(np.maximum(qa, 0.0)) for qa in Q]
+        ix, iy, iz = idx
+        ixy = ix * ny + iy
+        n, nb, nsy = len(ix), len(self.boxes), len(shifts[1])
+        best, f = np.full(n, np.inf), np.empty(n)
+        code = np.zeros(n, np.int64)  # (x shift · (y shifts) + y shift) · (boxes) + box
+        closer = np.empty(n, bool)
+        for i in range(len(shifts[0])):  # strictly smaller wins, in the order of grid.images()
+            for j in range(nsy):
+                for b in range(nb):
+                    sxy = np.add.outer(O2[0][i, b], O2[1][j, b]).ravel()
+                    np.add(sxy[ixy], O2[2][0, b][iz], out=f)
+                    np.sqrt(f, out=f)
+                    np.less(f, best, out=closer)
+                    np.copyto(best, f, where=closer)
+                    np.copyto(code, (i * nsy + j) * nb + b, where=closer)
+        si, rest = np.divmod(code, nsy * nb)
+        sj, box = np.divmod(rest, nb)
+        # flat indices into the (shift, box, node) tables of each axis
+        at = [
+            (si * nb + box) * D[0].shape[2] + ix,
+            (sj * nb + box) * D[1].shape[2] + iy,
+            box * D[2].shape[2] + iz,
+        ]
+        sgn = [np.where(Da >= 0, 1.0, -1.0) for Da in D]
+        m = [np.take(sa * np.maximum(Qa, 0.0), ia) for sa, Qa, ia in zip(sgn, Q, at)]
+        nrm = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+        ok = nrm > 1e-300
+        safe = np.where(ok, nrm, 1.0)
+        out = np.empty((n, 3))
+        for a in range(3):  # outside the box (some q > 0, so m != 0): away from it
+            out[:, a] = np.where(ok, m[a] / safe, 0.0)
+        face = np.nonzero((m[0] == 0) & (m[1] == 0) & (m[2] == 0))[0]  # on it: max q = 0
+        if face.size:
+            qf = np.stack([np.take(Qa, ia[face]) for Qa, ia in zip(Q, at)], axis=-1)
+            sf = np.stack([np.take(sa, ia[face]) for sa, ia in zip(sgn, at)], axis=-1)
+            ax = np.argmax(qf, axis=-1)
+            out[face] = 0.0
+            out[face, ax] = sf[np.arange(face.size), ax]
         return out
 
     def thickness(self):
@@ -495,7 +640,14 @@ def _closest_on_triangles(p, a, b, c):
 
 class _QuadS(_Shape):
     """Two-sided polygon (two triangles), thickened to a 26-tunnel-free layer: SOLID where the
-    distance to the polygon is below w = ‖n‖₁·h/2 (see the module docstring)."""
+    distance to the polygon is below w = ‖n‖₁·h/2 (see the module docstring).
+
+    A horizontal quad (its corners at one z; the ground of the shipped scenes) is evaluated per
+    (x, y) column and per z layer: the in-polygon test and the closest points' x, y do not depend
+    on z (the z terms of their dot products are products with an exact 0), the closest points lie
+    at the corners' z, and the norm adds the z term last.  So ``sdf_grid`` and ``grad_at`` take
+    the point formula's values from 2-D and 1-D tables (N = 128, M = 5: 1.6 s before, 0.02 s).
+    """
 
     def __init__(self, s: Quad, index, grid):
         self.index, self.name, self.kind = index, s.name, s.kind
@@ -512,6 +664,99 @@ class _QuadS(_Shape):
         self.w = 0.5 * grid.h * float(np.abs(self.n).sum()) * (1 + 1e-6)
         size = float(np.linalg.norm(c.max(0) - c.min(0)))
         self.planar = len(self.tris) == 2 and abs(float((c[3] - c[0]) @ self.n)) <= 1e-9 * size
+        self.horizontal = (
+            self.planar
+            and (c[:, 2] == c[0, 2]).all()
+            and self.n[0] == 0
+            and self.n[1] == 0
+            and abs(self.n[2]) == 1
+        )
+
+    def _separable(self, grid) -> bool:
+        # one-row matrix products take another code path in NumPy (not the same bits)
+        return self.horizontal and grid.shape[0] * grid.shape[1] >= 2
+
+    def _z_terms(self, grid):
+        """Per z layer: the signed distance to the plane ``(p - a0) @ n``, and the z offsets from
+        a node to its projection on the plane (inside the polygon) and to the corners' z."""
+        z = grid.axis_coords(2)
+        a0z, nz = self.tris[0][0][2], self.n[2]
+        dn = (z - a0z) * nz
+        return dn, z - (z - dn * nz), z - a0z
+
+    def _columns(self, grid, shift):
+        """Per (x, y) column (flat index ix·ny + iy) of the periodic image shifted by ``shift``:
+        whether it projects inside the polygon; per triangle (first axis), the x and y offsets of
+        its nodes from their closest point on the triangle and the sum of their squares (inf
+        inside)."""
+        nx, ny = grid.shape[:2]
+        x = np.repeat(grid.axis_coords(0) - shift[0], ny)
+        y = np.tile(grid.axis_coords(1) - shift[1], nx)
+        p = np.stack([x, y, np.full(nx * ny, self.tris[0][0][2])], axis=-1)  # in the plane
+        inside = np.zeros(nx * ny, bool)
+        for a, b, c, _ in self.tris:
+            inside |= _in_triangle(p, a, b, c)
+        rest = np.nonzero(~inside)[0]
+        ex, ey = np.zeros((2, 2, nx * ny))
+        e2 = np.full((2, nx * ny), np.inf)
+        for t, (a, b, c, _) in enumerate(self.tris):
+            q = _closest_on_triangles(p[rest], a, b, c)
+            ex[t, rest], ey[t, rest] = x[rest] - q[:, 0], y[rest] - q[:, 1]
+            e2[t, rest] = ex[t, rest] * ex[t, rest] + ey[t, rest] * ey[t, rest]
+        return inside, ex, ey, e2
+
+    def sdf_grid(self, grid: _Grid, M: int) -> np.ndarray:
+        if not self._separable(grid):
+            return super().sdf_grid(grid, M)
+        _, ez_in, ez_out = self._z_terms(grid)
+        val_in = np.sqrt(ez_in * ez_in) - self.w  # a node over the polygon: its plane distance
+        # over the images, min of the squared in-plane offset of the columns projecting outside
+        # (sqrt(e2 + ez²) - w is monotone in e2), and whether any image projects inside
+        any_in = np.zeros(grid.shape[0] * grid.shape[1], bool)
+        e2_out = np.full(grid.shape[0] * grid.shape[1], np.inf)
+        for shift in grid.images():
+            inside, _, _, e2 = self._columns(grid, shift)
+            any_in |= inside
+            np.minimum(e2_out, e2.min(axis=0), out=e2_out)
+        out = np.empty(grid.shape, np.float64)
+        out[...] = val_in
+        cols = out.reshape(-1, grid.shape[2])
+        fin = np.isfinite(e2_out)
+        o = np.sqrt(e2_out[fin][:, None] + ez_out * ez_out) - self.w
+        both = any_in[fin]
+        o[both] = np.minimum(o[both], val_in)
+        cols[fin] = o
+        return out
+
+    def grad_at(self, idx, grid):
+        if not self._separable(grid):
+            return super().grad_at(idx, grid)
+        ix, iy, iz = idx
+        col = ix * grid.shape[1] + iy
+        dn, ez_in, ez_out = (t[iz] for t in self._z_terms(grid))
+        val_in = np.sqrt(ez_in * ez_in) - self.w
+        ez2 = ez_out * ez_out
+        best = np.full(len(iz), np.inf)
+        vec = np.zeros((len(iz), 3))
+        closer = np.empty(len(iz), bool)
+        for shift in grid.images():  # the nearest image, the first on ties
+            inside, ex, ey, e2 = self._columns(grid, shift)
+            ins = inside[col]
+            d0, d1 = np.sqrt(e2[0, col] + ez2), np.sqrt(e2[1, col] + ez2)
+            t1 = d1 < d0  # the nearer triangle, the first on ties
+            f = np.where(ins, val_in, np.where(t1, d1, d0) - self.w)
+            np.less(f, best, out=closer)
+            np.copyto(best, f, where=closer)
+            # from the closest point: (0, 0, plane offset) over the polygon, else beside it
+            np.copyto(
+                vec[:, 0], np.where(ins, 0.0, np.where(t1, ex[1, col], ex[0, col])), where=closer
+            )
+            np.copyto(
+                vec[:, 1], np.where(ins, 0.0, np.where(t1, ey[1, col], ey[0, col])), where=closer
+            )
+            np.copyto(vec[:, 2], np.where(ins, ez_in, ez_out), where=closer)
+        side = np.where((dn >= 0)[:, None], self.n, -self.n)
+        return _unit(vec, fallback=side)
 
     def _closest(self, p):
         """Closest points of the polygon to p (N, 3)."""
@@ -729,10 +974,13 @@ class _MeshS(_Shape):
         rj, rk, t0, t1 = rj[ok], rk[ok], t0[ok], t1[ok]
         a = np.clip(np.ceil(t0), 0, n[2]).astype(np.int64)
         b = np.clip(np.floor(t1) + 1, 0, n[2]).astype(np.int64)
-        diff = np.zeros((n[0], n[1], n[2] + 1), np.int32)
-        np.add.at(diff, (rj, rk, a), 1)
-        np.add.at(diff, (rj, rk, b), -1)
-        mask |= np.cumsum(diff, axis=2)[..., :-1] > 0
+        if rj.size:  # over the columns' bounding box only
+            j0, k0 = rj.min(), rk.min()
+            diff = np.zeros((rj.max() - j0 + 1, rk.max() - k0 + 1, n[2] + 1), np.int32)
+            np.add.at(diff, (rj - j0, rk - k0, a), 1)
+            np.add.at(diff, (rj - j0, rk - k0, b), -1)
+            cols = (slice(j0, j0 + diff.shape[0]), slice(k0, k0 + diff.shape[1]))
+            mask[cols] = np.cumsum(diff, axis=2)[..., :-1] > 0
         bad = (bj >= 0) & (bj < n[0]) & (bk >= 0) & (bk < n[1])
         if bad.any():  # unbalanced columns (round-off at a vertex): ask trimesh for those nodes
             self._fallback_columns(mask, bj[bad], bk[bad], grid)
@@ -771,15 +1019,27 @@ class _MeshS(_Shape):
         if self._tree is None:
             self._build_samples()
         k = min(6, len(self._sample_face))  # 6 candidates: max error ~0.01 h on the shared ring
-        _, idx = self._tree.query(p, k=k)
+        # independent queries, so the same answer on every core (2 free cores: 0.39 s -> 0.21 s
+        # for the 58 k band nodes of translucent-cube at N = 128, M = 5)
+        _, idx = self._tree.query(p, k=k, workers=-1)
         idx = idx.reshape(len(p), k)
         cand = self._sample_face[idx]  # (N, k)
-        tri = self.V[self.F[cand]]  # (N, k, 3, 3)
-        q = _closest_on_triangles(p[:, None, :], tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
-        d = np.linalg.norm(p[:, None, :] - q, axis=-1)
+        # several of a node's samples are often on one face (2.6 faces in 6 on the shared ring):
+        # each (node, face) pair once, the first of equally near faces still winning
+        fresh = np.ones(cand.shape, bool)
+        for j in range(1, k):
+            fresh[:, j] = (cand[:, :j] != cand[:, j : j + 1]).all(axis=1)
+        rows, cols = np.nonzero(fresh)
+        tri = self.V[self.F[cand[rows, cols]]]  # (K, 3, 3)
+        pr = p[rows]
+        qk = _closest_on_triangles(pr, tri[:, 0], tri[:, 1], tri[:, 2])
+        d = np.full(cand.shape, np.inf)
+        d[rows, cols] = _norm3(pr - qk)
+        at = np.zeros(cand.shape, np.int64)
+        at[rows, cols] = np.arange(len(rows))
         best = np.argmin(d, axis=1)
         r = np.arange(len(p))
-        return d[r, best], q[r, best], cand[r, best]
+        return d[r, best], qk[at[r, best]], cand[r, best]
 
     def _build_samples(self):
         """Points on every triangle about h/2 apart (KD-tree candidates for closest())."""
@@ -819,9 +1079,15 @@ class _MeshS(_Shape):
         h = grid.h
         mask = self.solid_mask(grid)
         lo, hi = self.V.min(0), self.V.max(0)
-        out = np.empty(grid.shape, np.float64)
-        for sl, p in grid.slabs():
-            out[sl] = np.maximum(_box_sdf(p, lo, hi), 0.0) + h
+        # distance to the bounding box + h: outside a box its SDF is sqrt(Σ max(|x - c| - e, 0)²),
+        # x, y, z summed in order as np.linalg.norm does; inside, that is 0
+        c, e = (lo + hi) / 2, (hi - lo) / 2
+        o2 = [
+            np.square(np.maximum(np.abs(grid.axis_coords(a) - c[a]) - e[a], 0.0)) for a in range(3)
+        ]
+        out = np.add.outer(np.add.outer(o2[0], o2[1]), o2[2])
+        np.sqrt(out, out=out)
+        out += h
         # sub-box: the mask and the mesh's bounds, with a margin beyond the shell's reach (M·√3)
         pad = math.ceil(M * math.sqrt(3)) + 3
         vb = np.stack(
@@ -843,15 +1109,17 @@ class _MeshS(_Shape):
         gi = tuple(i + o for i, o in zip(bi, b0))
         d, q, f = self.closest(grid.positions(gi))
         e[bi] = np.where(m[bi], -np.maximum(d, 1e-6 * h), d)
-        out[sub] = e
+        out[sub] = np.where(m, np.minimum(e, -1e-6 * h), np.maximum(e, 0.0))
         flat = np.ravel_multi_index(gi, grid.shape)
         order = np.argsort(flat)
         self._cache = (flat[order], q[order], f[order])
-        return np.where(mask, np.minimum(out, -1e-6 * h), np.maximum(out, 0.0))
+        return out  # beyond the sub-box: no SOLID node, and the box distance is > 0
 
-    def grad_nodes(self, flat: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Outward unit normals at nodes (flat indices, positions (N, 3)): the direction away from
-        the closest surface point (the face normal when the node lies on a face)."""
+    def grad_at(self, idx, grid):
+        """Outward unit normals at the nodes ``idx``: the direction away from the closest surface
+        point (the face normal when the node lies on a face)."""
+        p = grid.positions(idx)
+        flat = np.ravel_multi_index(idx, grid.shape)
         keys, cq, cf = self._cache
         pos = np.clip(np.searchsorted(keys, flat), 0, max(len(keys) - 1, 0))
         hit = (keys[pos] == flat) if len(keys) else np.zeros(len(flat), bool)
@@ -889,6 +1157,54 @@ def _make_shape(s, index, grid) -> _Shape:
 
 # ----------------------------------------------------------------------------------------------
 # material, normals, density
+
+
+def _surface_material(material, solid, owner, surface, grid: _Grid, M: int) -> None:
+    """Set ``material`` at the SURFACE nodes to the owner shape of their (Euclidean) nearest SOLID
+    node.
+
+    That node lies within Chebyshev distance R = ⌊M√3⌋ (a SURFACE node has a SOLID node within
+    Chebyshev distance M, so within Euclidean M√3).  Where the SOLID nodes within R are all of one
+    shape, that shape is the answer however the nearest is chosen; so each shape but the one with
+    the largest bounding box (the rest's default) is dilated by R inside its bounding box + 2R,
+    and the dilation of the other shapes' SOLID nodes there tells whether a node sees two shapes.
+    Only then (near contacts, coarse lattices; no shipped scene at N = 128) does the Euclidean
+    feature transform of the whole lattice decide, ties broken its way (0.2-0.4 s at N = 128).
+    """
+    labels = np.where(solid, owner + 1, 0)
+    boxes = ndimage.find_objects(labels)
+    present = [o for o, b in enumerate(boxes) if b is not None]
+    vol = [math.prod(sl.stop - sl.start for sl in boxes[o]) for o in present]
+    default = present[int(np.argmax(vol))]
+    np.copyto(material, default, where=surface)
+    R = math.floor(M * math.sqrt(3))
+    modes = grid.modes()
+    for o in present:
+        if o == default:
+            continue
+        reach, ctx = [], []  # the nodes within R of the shape, and those within 2R (per axis)
+        for a, sl in enumerate(boxes[o]):
+            if modes[a] == "wrap":  # periodic: the whole period, wrapped
+                reach.append(slice(0, grid.shape[a]))
+                ctx.append(slice(0, grid.shape[a]))
+            else:
+                r0, r1 = max(sl.start - R, 0), min(sl.stop + R, grid.shape[a])
+                c0, c1 = max(sl.start - 2 * R, 0), min(sl.stop + 2 * R, grid.shape[a])
+                reach.append(slice(r0, r1))
+                ctx.append(slice(c0, c1))
+        inner = tuple(slice(r.start - c.start, r.stop - c.start) for r, c in zip(reach, ctx))
+        lab = labels[tuple(ctx)]
+        mine = ndimage.maximum_filter(lab == o + 1, size=2 * R + 1, mode=modes)[inner]
+        cand = mine & surface[tuple(reach)]
+        if not cand.any():
+            continue
+        lab = lab.copy()
+        lab[lab == o + 1] = 0
+        others = ndimage.maximum_filter(lab > 0, size=2 * R + 1, mode=modes)[inner]
+        if (cand & others).any():
+            material[surface] = _nearest_solid_owner(solid, owner, surface, grid, M)
+            return
+        material[tuple(reach)][cand] = o
 
 
 def _nearest_solid_owner(solid, owner, surface, grid: _Grid, M: int) -> np.ndarray:
@@ -929,34 +1245,22 @@ def _com_normals(free, idx, M, grid: _Grid):
 
 def _analytic_normals(shapes, owner, idx, grid):
     """SDF gradient of the nearest shape (``owner``: argmin of the SDF) at the nodes ``idx``."""
-    p = grid.positions(idx)
-    out = np.zeros_like(p)
+    out = np.zeros((len(idx[0]), 3))
     for s in shapes:
         m = owner == s.index
-        if not m.any():
-            continue
-        if isinstance(s, _MeshS):
-            out[m] = s.grad_nodes(np.ravel_multi_index(tuple(i[m] for i in idx), grid.shape), p[m])
-        else:
-            out[m] = s.grad_periodic(p[m], grid)
+        if m.all():
+            out[:] = s.grad_at(idx, grid)
+        elif m.any():
+            out[m] = s.grad_at(tuple(i[m] for i in idx), grid)
     return out
 
 
-def _density(scene: Scene, grid: _Grid, solid: np.ndarray) -> np.ndarray:
-    """Fog density multiplier per node: trilinear (clamped) grid × region mask × non-SOLID."""
+def _density(scene: Scene, grid: _Grid) -> np.ndarray:
+    """Fog density multiplier per node, as if there were no solids: trilinear (clamped) grid ×
+    region mask."""
     fog = scene.fog
     if fog is None:
         return np.zeros(grid.shape, np.float32)
-    if fog.density is not None:
-        g = np.asarray(fog.density, np.float64)
-        if g.ndim != 3:
-            raise SceneError(f"fog density grid must be 3-D [ix, iy, iz], got shape {g.shape}")
-        for a in range(3):  # separable: trilinear between cell centres, clamped to the edge cells
-            x = grid.axis_coords(a)
-            u = (x - grid.domain_min[a]) / grid.domain_size[a] * g.shape[a] - 0.5
-            g = _lerp_axis(g, u, a)
-    else:
-        g = np.ones(grid.shape)
     if fog.region is not None:
         (r0, r1) = (np.asarray(fog.region[0], float), np.asarray(fog.region[1], float))
     else:
@@ -964,9 +1268,18 @@ def _density(scene: Scene, grid: _Grid, solid: np.ndarray) -> np.ndarray:
     r0 = np.maximum(r0, grid.domain_min)  # the fog never leaves the domain (vacuum margin)
     r1 = np.minimum(r1, grid.domain_min + grid.domain_size)
     ins = [(grid.axis_coords(a) >= r0[a]) & (grid.axis_coords(a) <= r1[a]) for a in range(3)]
-    g = g * (ins[0][:, None, None] & ins[1][None, :, None] & ins[2][None, None, :])
-    g = np.where(solid, 0.0, g)
-    return g.astype(np.float32)
+    mask = ins[0][:, None, None] & ins[1][None, :, None] & ins[2][None, None, :]
+    if fog.density is None:
+        return mask.astype(np.float32)
+    g = np.asarray(fog.density, np.float64)
+    if g.ndim != 3:
+        raise SceneError(f"fog density grid must be 3-D [ix, iy, iz], got shape {g.shape}")
+    for a in range(3):  # separable: trilinear between cell centres, clamped to the edge cells
+        x = grid.axis_coords(a)
+        u = (x - grid.domain_min[a]) / grid.domain_size[a] * g.shape[a] - 0.5
+        g = _lerp_axis(g, u, a)
+    out = np.empty(grid.shape, np.float32)
+    return np.multiply(g, mask, out=out)  # in float64, rounded on the way out
 
 
 def _lerp_axis(g, u, axis):
@@ -979,4 +1292,9 @@ def _lerp_axis(g, u, axis):
     shape = [1, 1, 1]
     shape[axis] = len(u)
     t = t.reshape(shape)
-    return np.take(g, i0, axis=axis) * (1 - t) + np.take(g, i0 + 1, axis=axis) * t
+    out = np.take(g, i0, axis=axis)
+    out *= 1 - t
+    hi = np.take(g, i0 + 1, axis=axis)
+    hi *= t
+    out += hi
+    return out
