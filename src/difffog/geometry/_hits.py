@@ -5,24 +5,28 @@ the geometry, which no fit changes: they are cast here once per camera, against 
 shapes, and the sweep's camera then marches the fog only up to the exact hit.
 
 * sphere: the quadratic, exactly;
-* torus: the real roots of its quartic along the ray (companion-matrix eigenvalues from the
-  bounding sphere's entry point, polished by Newton);
-* box, the walls of an open box, quad, mesh: their triangles (12 per box; a quad's two; a
-  mesh's own), which are these shapes exactly, through ``_rays.cast_rays``.
+* torus: the real roots of its quartic along the ray (from the bounding sphere's entry point,
+  by Ferrari's method or, where that cannot tell, the companion matrix's eigenvalues; polished
+  by Newton);
+* box, the walls of an open box: the slab test against the box's faces (those of its 12
+  triangles, which are the box exactly);
+* quad, mesh: their triangles (a quad's two; a mesh's own), which are these shapes exactly,
+  through ``_rays.cast_rays``.
 
 The normal at a hit is the shape's exact outward normal (a quad's: the side the ray comes from).
 """
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
-from ..scene._description import Scene, Sphere, Torus
+from ..scene._description import Box, OpenBox, Scene, Sphere, Torus
 from ._lattice import _TorusS
-from ._rays import cast_rays, scene_triangles
+from ._rays import _shape_meshes, cast_rays, scene_triangles
 
 __all__ = ["Hits", "first_hits", "sun_depth"]
 
@@ -62,9 +66,74 @@ def _torus_frame(s: Torus):
         float(s.minor_radius)
 
 
+#: how close (in units of the torus's R + r) two roots of its quartic may lie before
+#: :func:`_quartic_roots` leaves the quartic to the eigenvalues: near a cluster (a ray grazing
+#: the torus) a root is ill-conditioned and Newton stalls wherever it starts.  With 1e-2 the hit
+#: distances agree with the eigenvalues' to 7e-13 relative over 4 million random rays, half of
+#: them grazing, and ~1 % of the ring-box cameras' quartics are left (1e-3: 4e-9; measured)
+_QUARTIC_SAFE = 1e-2
+
+
+def _quartic_roots(coef, scale: float, tol: float):
+    """The roots of the monic quartics t⁴ + c3 t³ + c2 t² + c1 t + c0 (coef (n, 4)) by
+    Ferrari's method in real arithmetic: the largest root m >= 0 of the resolvent cubic
+    (Cardano, or the trigonometric form for three real roots, then Newton) splits the depressed
+    quartic into two real quadratics, solved stably.  Returns their real parts (n, 4), |imaginary
+    parts| (n, 4) and ``unsure`` (n,): where this may not decide as the companion matrix's
+    eigenvalues would, with the real-root tolerance ``tol`` on the imaginary parts — an
+    |imaginary part| within a factor 8 of ``tol``, two roots closer than _QUARTIC_SAFE·scale, a
+    resolvent root near 0 (q/√(2m) amplifies rounding) or a non-finite value.  ~7x faster than
+    LAPACK's eigenvalues (0.09 s against 0.65 s for the 176 000 quartics of the ring-box
+    cameras, measured)."""
+    a, b, c, d = (coef[:, i] for i in range(4))
+    a4 = a / 4.0
+    a42 = a4 * a4
+    p = b - 6.0 * a42  # depressed: y⁴ + p y² + q y + r, t = y - a/4
+    q = c - 2.0 * b * a4 + 8.0 * a42 * a4
+    r = d - c * a4 + b * a42 - 3.0 * a42 * a42
+    # the resolvent m³ + A m² + B m + C (C = -q²/8 <= 0, so a root m >= 0 exists)
+    A, B, C = p, 0.25 * p * p - r, -0.125 * q * q
+    A3 = A / 3.0
+    P = B - A * A3  # depressed cubic z³ + P z + Q, m = z - A/3
+    Q = (2.0 * A3 * A3 - B) * A3 + C
+    D = 0.25 * Q * Q + (P / 3.0) ** 3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.cbrt(-0.5 * Q - np.copysign(np.sqrt(np.maximum(D, 0.0)), Q))
+        one = u - P / (3.0 * u)  # D > 0: the one real root
+        rho = np.sqrt(np.maximum(-P / 3.0, 0.0))
+        three = 2.0 * rho * np.cos(np.arccos(np.clip(-Q / (2.0 * rho ** 3), -1.0, 1.0)) / 3.0)
+        m = np.where(D > 0, one, three) - A3
+        for _ in range(2):
+            dm = (3.0 * m + 2.0 * A) * m + B
+            m = m - np.where(dm != 0, (((m + A) * m + B) * m + C) / dm, 0.0)
+        sm = np.sqrt(2.0 * np.maximum(m, 0.0))
+        re, im = [], []
+        for sign in (1.0, -1.0):  # y² ∓ √(2m) y + p/2 + m ± q/(2√(2m)) = 0
+            bq = -sign * sm
+            cq = 0.5 * p + m + sign * q / (2.0 * sm)
+            disc = bq * bq - 4.0 * cq
+            sq = np.sqrt(np.abs(disc))
+            real = disc >= 0
+            w = -0.5 * (bq + np.copysign(sq, bq))
+            re += [np.where(real, w, -0.5 * bq), np.where(real, cq / w, -0.5 * bq)]
+            im += [np.where(real, 0.0, 0.5 * sq)] * 2
+        re = np.stack(re, -1) - a4[:, None]
+        im = np.stack(im, -1)
+        unsure = (~np.isfinite(re).all(-1) | ~np.isfinite(im).all(-1)
+                  | (sm < _QUARTIC_SAFE * scale)
+                  | ((im > tol / 8.0) & (im < 8.0 * tol)).any(-1))
+        z = re + 1j * im * np.array([1.0, -1.0, 1.0, -1.0])  # a complex pair: ± its part
+        for i in range(4):
+            for j in range(i + 1, 4):
+                unsure |= np.abs(z[:, i] - z[:, j]) < _QUARTIC_SAFE * scale
+    return re, im, unsure
+
+
 def _torus_hits(s: Torus, o, d, t_min):
-    """The quartic of the ray and the torus, solved by the eigenvalues of its companion matrix
-    (vectorized LAPACK) from the bounding sphere's entry point, then polished by Newton."""
+    """The quartic of the ray and the torus from the bounding sphere's entry point, solved by
+    :func:`_quartic_roots` or, where that is unsure, by the eigenvalues of its companion matrix
+    (vectorized LAPACK), then polished by Newton; roots with |imaginary part| <= 1e-6·(R + r)
+    count as real."""
     c, a, R, r = _torus_frame(s)
     # local frame: the axis along z
     e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -85,28 +154,89 @@ def _torus_hits(s: Torus, o, d, t_min):
     L = oo[:, 0] ** 2 + oo[:, 1] ** 2
     coef = np.stack([2.0 * H, H * H + 2.0 * I_ - 4.0 * R * R * J, 2.0 * H * I_ - 4.0 * R * R * K,
                      I_ * I_ - 4.0 * R * R * L], -1)  # monic: t⁴ + c3 t³ + c2 t² + c1 t + c0
-    comp = np.zeros((len(live), 4, 4))
-    comp[:, 0, :] = -coef
-    comp[:, 1, 0] = comp[:, 2, 1] = comp[:, 3, 2] = 1.0
-    roots = np.linalg.eigvals(comp) if len(live) else np.zeros((0, 4), complex)
-    tr = roots.real
+    tol = 1e-6 * (R + r)
+    tr, im, unsure = _quartic_roots(coef, R + r, tol)
+    u = np.flatnonzero(unsure)
+    if len(u):
+        comp = np.zeros((len(u), 4, 4))
+        comp[:, 0, :] = -coef[u]
+        comp[:, 1, 0] = comp[:, 2, 1] = comp[:, 3, 2] = 1.0
+        roots = np.linalg.eigvals(comp)
+        tr[u], im[u] = roots.real, np.abs(roots.imag)
     for _ in range(2):  # Newton on the quartic
         p_ = (((tr + coef[:, :1]) * tr + coef[:, 1:2]) * tr + coef[:, 2:3]) * tr + coef[:, 3:]
         dp = ((4.0 * tr + 3.0 * coef[:, :1]) * tr + 2.0 * coef[:, 1:2]) * tr + coef[:, 2:3]
         tr = tr - np.where(np.abs(dp) > 0, p_ / np.where(dp == 0, 1.0, dp), 0.0)
-    ok = (np.abs(roots.imag) <= 1e-6 * (R + r)) & (tr + t0[:, None] > t_min)
+    ok = (im <= tol) & (tr + t0[:, None] > t_min)
     t = np.where(ok, tr, np.inf).min(axis=-1) + t0
     t_out[live] = t
     hit = np.isfinite(t_out)
-    p = o + np.where(hit, t_out, 0.0)[:, None] * d
-    return t_out, _TorusS(s, -1).grad(p)  # the voxelizer's: away from the core circle
+    n = np.zeros((len(o), 3))
+    n[hit] = _TorusS(s, -1).grad(o[hit] + t_out[hit, None] * d[hit])  # the voxelizer's: away
+    return t_out, n  # from the core circle
+
+
+def _box_hits(lo, hi, o, inv_d, t_min):
+    """The solid box [lo, hi] by the slab test; o, inv_d: the rays' origins and 1/directions
+    as (R,) component arrays.  The hit is where the ray enters the box or, from inside, leaves
+    it; the normal is that face's outward one, ±(the axis), as its triangles' face normals.
+    Up to rounding this is Möller–Trumbore on the box's 12 triangles, whose faces lie at
+    exactly lo and hi (they can differ only where those round their edge tests either way: a
+    ray through an edge, or lying in a face's plane), ~10x faster than casting against them
+    through the hierarchy (0.07 s against 0.67 s for fog-balls' open box, both cameras,
+    measured)."""
+    R = len(o[0])
+    tn, tf = np.full(R, -np.inf), np.full(R, np.inf)
+    an, af = np.zeros(R, np.int64), np.zeros(R, np.int64)
+    with np.errstate(invalid="ignore"):
+        for c in range(3):
+            t1 = (lo[c] - o[c]) * inv_d[c]
+            t2 = (hi[c] - o[c]) * inv_d[c]
+            # NaN (0·inf: a ray in a face's plane) compares false: no bound, as for its triangles
+            near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+            m = near > tn
+            tn, an = np.where(m, near, tn), np.where(m, c, an)
+            m = far < tf
+            tf, af = np.where(m, far, tf), np.where(m, c, af)
+    entry = tn > t_min
+    t = np.where(tn <= tf, np.where(entry, tn, np.where(tf > t_min, tf, np.inf)), np.inf)
+    rows = np.flatnonzero(np.isfinite(t))
+    ax = np.where(entry, an, af)[rows]
+    d_sign = np.sign(np.stack(inv_d, -1)[rows, ax])
+    n = np.zeros((R, 3))
+    n[rows, ax] = np.where(entry[rows], -d_sign, d_sign)
+    return t, n
+
+
+_GEOMETRY: dict[int, tuple] = {}
+
+
+def _hit_geometry(scene: Scene):
+    """What :func:`first_hits` casts against besides spheres and tori: the solid boxes of the
+    boxes and open-box walls [(shape index, lo, hi)], bounded by their triangles' vertices, and
+    the triangles of the other shapes.  Built once per scene object (trimesh and the hierarchy
+    cost ~25 ms a call for translucent-cube's ring, measured, and a camera's set-up makes four
+    calls) and dropped with it."""
+    geo = _GEOMETRY.get(id(scene))
+    if geo is None:
+        boxes = []
+        for i, s in enumerate(scene.shapes):
+            if isinstance(s, (Box, OpenBox)):  # (the subdivisions are for spheres and tori)
+                for m, _ in _shape_meshes(s, 0, (0, 0)):
+                    v = np.asarray(m.vertices, float)
+                    boxes.append((i, v.min(0), v.max(0)))
+        geo = (boxes, scene_triangles(scene, skip=(Sphere, Torus, Box, OpenBox)))
+        _GEOMETRY[id(scene)] = geo
+        weakref.finalize(scene, _GEOMETRY.pop, id(scene), None)
+    return geo
 
 
 def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits:
     """The first hit (t > t_min) of each ray o + t·d against the exact shapes of ``scene``.
 
     origins, directions: (R, 3), directions unit.  Shapes are not repeated across the sides of
-    a periodic-xy domain.
+    a periodic-xy domain.  At equal t the shape met first wins, in this order: spheres and
+    tori, boxes (each group by index), then the triangles of the other shapes (the lowest face).
     """
     o = np.asarray(origins, np.float64).reshape(-1, 3)
     d = np.asarray(directions, np.float64).reshape(-1, 3)
@@ -126,7 +256,13 @@ def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits
             take(*_sphere_hits(s, o, d, t_min), i)
         elif isinstance(s, Torus):
             take(*_torus_hits(s, o, d, t_min), i)
-    tris = scene_triangles(scene, skip=(Sphere, Torus))  # spheres and tori: exact above
+    boxes, tris = _hit_geometry(scene)
+    if boxes:
+        oc = tuple(np.ascontiguousarray(o[:, c]) for c in range(3))
+        with np.errstate(divide="ignore"):
+            inv_d = tuple(1.0 / d[:, c] for c in range(3))  # ±inf along axes not moved on
+        for i, lo, hi in boxes:
+            take(*_box_hits(lo, hi, oc, inv_d, t_min), i)
     if len(tris):
         t, face, _, _ = cast_rays(tris, o, d, t_min=t_min)
         hit = face >= 0
@@ -150,7 +286,7 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
     box's edge (the sun's transmittance is exp(-σ_t·depth) for a uniform extinction σ_t per
     unit density).  ``density`` is the lattice's node field (node (i, j, k) at
     origin + (idx + 0.5)·h, trilinear between nodes, 0 outside), integrated by the midpoint rule
-    in steps of ``step``·h.  Points: (R, 3); normals: (R, 3) unit.
+    in steps of ``step``·h (:func:`_midpoint_depth`).  Points: (R, 3); normals: (R, 3) unit.
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
     n = np.asarray(normals, np.float64).reshape(-1, 3)
@@ -178,19 +314,95 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
         ta = np.where(s != 0, (lo - q) / s, np.inf)
         tb = np.where(s != 0, (hi - q) / s, np.inf)
     t_end = np.maximum(np.min(np.maximum(ta, tb), axis=-1), 0.0)
-    ds = step * h
-    n_steps = int(np.ceil(t_end.max() / ds)) if len(t_end) else 0
-    acc = np.zeros(len(q))
-    dens = np.asarray(density, np.float64)
-    chunk = max(1, (1 << 22) // max(n_steps, 1))
-    for c0 in range(0, len(q), chunk):
-        qc, te = q[c0:c0 + chunk], t_end[c0:c0 + chunk]
-        k = (np.arange(n_steps) + 0.5) * ds  # midpoints
-        pts = qc[:, None, :] + k[None, :, None] * s  # (r, K, 3)
-        u = (pts - lo) / h - 0.5  # node coordinates
-        vals = ndimage.map_coordinates(dens, u.reshape(-1, 3).T, order=1, mode="constant",
-                                       cval=0.0).reshape(len(qc), n_steps)
-        w = np.clip((te[:, None] - (k[None, :] - 0.5 * ds)) / ds, 0.0, 1.0)  # last partial step
-        acc[c0:c0 + chunk] = (vals * w).sum(-1) * ds
-    depth[lit] = acc
+    depth[lit] = _midpoint_depth(np.asarray(density), q, s, lo, h, t_end, step * h)
     return cos_vis, depth
+
+
+def _node_span(u0, g, A, B):
+    """Where the lines u0 + t·g (u0 (R, 3), g (3,)) lie in the box [A, B] (3,) of node
+    coordinates: (t0, t1) (R,), t0 > t1 where they never do."""
+    t0 = np.full(len(u0), -np.inf)
+    t1 = np.full(len(u0), np.inf)
+    for i in range(3):
+        if g[i] != 0:
+            ta, tb = (A[i] - u0[:, i]) / g[i], (B[i] - u0[:, i]) / g[i]
+            t0 = np.maximum(t0, np.minimum(ta, tb))
+            t1 = np.minimum(t1, np.maximum(ta, tb))
+        else:
+            out = (u0[:, i] < A[i]) | (u0[:, i] > B[i])
+            t0[out], t1[out] = np.inf, -np.inf
+    return t0, t1
+
+
+def _midpoint_depth(density, q, s, lo, h: float, t_end, ds: float, chunk: int = 1 << 22):
+    """The midpoint rule of :func:`sun_depth`: ds·Σ_j ρ(q + k_j·s)·w_j over k_j = (j + 1/2)·ds,
+    w_j = clip((t_end - j·ds)/ds, 0, 1) (the share of step j before the box's edge), ρ the
+    density trilinear between nodes and 0 beyond the outer nodes (``map_coordinates``, order 1,
+    mode "constant").  Only the samples whose value is not known beforehand are interpolated:
+
+    * beyond one spacing from the box of nonzero nodes, ρ = 0: those samples are skipped (the
+      clouds fill ~9 % of the lattice's box);
+    * where every node in that box holds one value c (fog uniform over a region, as in fog-balls
+      and translucent-cube), ρ = c inside it: those samples add c each, counted per ray, and
+      only the few where the ray crosses the region's edge are interpolated.
+
+    The samples interpolated are those of interpolating every sample, at the same points up to
+    rounding (their node coordinates as u0 + (j + 1/2)·ds·s/h), so the depths are the same to
+    ~1e-12 relative.  One sample either side of each range is taken in addition, so that
+    rounding at a range's end cannot drop a sample.  Interpolating every ray's samples up to
+    the longest ray's length took 3.8 s of fog-balls' 5.0 s camera set-up at N = 128; this
+    interpolates 59x fewer samples there, 54x for translucent-cube, 9-11x for the clouds
+    (measured)."""
+    shape = np.asarray(density.shape)
+    xy = (density != 0).any(axis=2)
+    occupied = [np.flatnonzero(x) for x in (xy.any(axis=1), xy.any(axis=0),
+                                            (density != 0).any(axis=(0, 1)))]
+    a = np.array([x[0] for x in occupied])  # the box of nonzero nodes
+    b = np.array([x[-1] for x in occupied])
+    inner = density[tuple(slice(a[i], b[i] + 1) for i in range(3))]
+    c = float(inner.flat[0])
+    uniform = bool(np.all(inner == c))
+    first = np.maximum(a - 1, 0)  # the nonzero box and one zero node around it (if any)
+    sub = np.asarray(density[tuple(slice(first[i], min(b[i] + 2, shape[i]))
+                                   for i in range(3))], np.float64)
+    u0 = (q - lo) / h - 0.5  # node coordinates of q; a sample's are u0 + k·s/h
+    g = s / h
+    n_end = np.ceil(t_end / ds)  # w_j > 0 for j < n_end
+    ts0, ts1 = _node_span(u0, g, a - 1.0, b + 1.0)
+    j0 = np.clip(np.ceil(ts0 / ds - 0.5) - 1, 0, n_end)
+    j1 = np.clip(np.floor(ts1 / ds - 0.5) + 1, -1, n_end - 1)
+    if uniform:  # [c0, c1]: samples inside the region, 2 steps short of t_end (w = 1)
+        tc0, tc1 = _node_span(u0, g, a.astype(float), b.astype(float))
+        c0 = np.clip(np.ceil(tc0 / ds - 0.5) + 1, j0, j1 + 1)
+        c1 = np.clip(np.minimum(np.floor(tc1 / ds - 0.5) - 1, np.floor(t_end / ds) - 2),
+                     c0 - 1, j1)
+    else:
+        c0, c1 = j1 + 1, j1
+    acc = c * (c1 - c0 + 1)
+    # the rest, [j0, c0) and (c1, j1], as one flat list of samples, chunk by chunk
+    seg_j = np.concatenate([j0, c1 + 1]).astype(np.int64)
+    seg_n = np.concatenate([c0 - j0, j1 - c1]).astype(np.int64)
+    seg_ray = np.tile(np.arange(len(q)), 2)
+    keep = seg_n > 0
+    seg_j, seg_n, seg_ray = seg_j[keep], seg_n[keep], seg_ray[keep]
+    cum = np.cumsum(seg_n)
+    cuts = np.unique(np.searchsorted(cum, np.arange(0, cum[-1] if len(cum) else 0, chunk)))
+    u0 = [np.ascontiguousarray(u0[:, i] - first[i]) for i in range(3)]  # in the sub-array
+    dg = g * ds
+    te = t_end / ds
+    for g0, g1 in zip(cuts, np.r_[cuts[1:], len(cum)]):
+        n_ = seg_n[g0:g1]
+        ray = np.repeat(seg_ray[g0:g1], n_)
+        j = np.repeat(seg_j[g0:g1] - (np.cumsum(n_) - n_), n_)
+        j += np.arange(len(j))
+        jh = j + 0.5
+        u = np.empty((3, len(j)))
+        for i in range(3):
+            ui = np.multiply(jh, dg[i], out=u[i])
+            ui += u0[i][ray]
+        vals = ndimage.map_coordinates(sub, u, order=1, mode="constant", cval=0.0)
+        w = te[ray]
+        w -= j
+        vals *= np.clip(w, 0.0, 1.0, out=w)
+        acc += np.bincount(ray, vals, minlength=len(q))
+    return acc * ds
