@@ -88,6 +88,18 @@ def test_a_second_render_loads_its_programs_from_the_cache(tmp_path):
     assert sorted(p.name for p in cache.iterdir()) == first
 
 
+def test_import_turns_the_cache_on_unless_told_not_to(tmp_path):
+    import os
+
+    code = "import difffog, jax; print(jax.config.jax_compilation_cache_dir)"
+    env = {k: v for k, v in os.environ.items() if k != "DIFFFOG_CACHE_DIR"}
+    for extra, expected in (({"XDG_CACHE_HOME": str(tmp_path)}, str(tmp_path / "difffog" / "xla")),
+                            ({"DIFFFOG_CACHE_DIR": "off"}, "None")):
+        r = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True,
+                           text=True, timeout=120)
+        assert r.returncode == 0 and r.stdout.strip() == expected, (r.stdout, r.stderr[-500:])
+
+
 def test_cache_folder_setting(monkeypatch, tmp_path):
     from difffog._cache import default_cache_dir
 

@@ -43,7 +43,10 @@ from .forward._model import (
     unstack_params as unstack_params,
 )
 from ._cost import CostEstimate as CostEstimate
-from ._cache import enable_compilation_cache as enable_compilation_cache
+from ._cache import (
+    enable_compilation_cache as enable_compilation_cache,
+    enable_default_cache as _enable_default_cache,
+)
 from .forward._registry import (
     SOLVERS as SOLVERS,
     forward_model as forward_model,
@@ -92,3 +95,7 @@ def __getattr__(name):
 
         return importlib.import_module(".plot", __name__)
     raise AttributeError(f"module 'difffog' has no attribute {name!r}")
+
+
+# compiled programs kept between processes (docs: difffog._cache; DIFFFOG_CACHE_DIR=off)
+_enable_default_cache()

@@ -2,9 +2,10 @@
 
 A difffog render or fit spends most of a short run compiling (a default render: ~11 of its
 20 s on a 2-core CPU); the programs depend only on the shapes and settings, so a second
-process with the same ones can load them instead.  The command line turns the cache on; API
-users call :func:`enable_compilation_cache` (JAX's setting is global to the process, so a
-library does not change it on import).
+process with the same ones can load them instead.  ``import difffog`` turns the cache on
+(:func:`enable_default_cache`) unless ``DIFFFOG_CACHE_DIR=off`` or the program has already
+chosen a cache folder of its own (JAX's setting is global to the process: a folder set before
+or after the import wins).
 """
 
 from __future__ import annotations
@@ -45,4 +46,15 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     # the many tiny ones of the host set-up are cheaper to compile than to look up)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    # (no size limit: JAX's needs the filelock package; a default render's programs are ~1 MB)
     return folder
+
+
+def enable_default_cache() -> Path | None:
+    """What ``import difffog`` does: :func:`enable_compilation_cache` at the default folder,
+    unless JAX already has a cache folder (the program's own choice is kept)."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return None
+    return enable_compilation_cache()

@@ -9,7 +9,6 @@ import os
 import sys
 import warnings
 
-from .._cache import enable_compilation_cache
 from .._errors import (AdjointWarning, DifffogError, MemoryWarning, ResourceError,
                        ThickStepWarning)
 from ..fit._result import IdentifiabilityWarning
@@ -106,9 +105,6 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    # compiled programs kept between runs (a second default render: compile 14 s → 1.7 s);
-    # DIFFFOG_CACHE_DIR moves it or turns it off
-    enable_compilation_cache()
     # difffog's own warnings (thick steps, unconverged adjoints, identifiability) as one line
     # each, like its errors, rather than Python's file:line and source line
     shown = warnings.showwarning
