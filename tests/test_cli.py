@@ -282,7 +282,12 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
     (["--target", "side=T.npy", "--unknown", "fog.scattering"], "has no camera 'side'"),
     (["--target", "top=T.npy", "--unknown", "fog.scatter"], "Did you mean 'fog.scattering'"),
     (["--target", "top=T.npy"], "at least one --unknown"),
-    (["--target", "top=BAD.npy", "--unknown", "fog.scattering"], "expected (height, width)"),
+    (["--target", "top=BAD.npy", "--unknown", "fog.scattering"], "the image is 128x100 pixels "
+     "(width x height) but camera 'top' is 128x128, rendered at 16x16 with downsample 8"),
+    (["--target", "top=photo.bmp", "--unknown", "fog.scattering"],
+     "unknown image format '.bmp'; supported: .npy"),
+    (["--target", "top=T.npy", "--unknown", "camera.top.exposur"], "Did you mean "
+     "'camera.top.exposure'?"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering=abc"], "not a number"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--resume"], "no checkpoint"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",

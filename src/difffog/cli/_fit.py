@@ -17,16 +17,27 @@ from ._main import add_scene_args, model_settings, peak_memory_mb, positive_int,
 def add_parser(sub) -> None:
     p = sub.add_parser("fit", help="fit fog and surface parameters to target images")
     add_scene_args(p)
-    p.add_argument("--target", action="append", metavar="CAMERA=PATH.npy",
-                   help="a target image (H, W) of a scene camera (repeatable: several views)")
+    p.add_argument("--target", action="append", metavar="CAMERA=FILE",
+                   help="a target image of a scene camera (repeatable: several views): .npy "
+                        "(linear radiance), .png (8/16-bit), .tif (8/16-bit, float), .exr "
+                        "(half, float) or .jpg")
+    p.add_argument("--channel", default="luminance", choices=["luminance", "r", "g", "b"],
+                   help="colour targets to one channel: luminance (default: Y = 0.2126 R + "
+                        "0.7152 G + 0.0722 B of the linear values) or one channel")
+    p.add_argument("--transfer", default="auto", choices=["auto", "srgb", "linear"],
+                   help="encoding of target files: auto (default: sRGB for 8-bit, linear for "
+                        "16-bit and float), srgb or linear")
     p.add_argument("--unknown", action="append", metavar="PATH[=INIT]",
-                   help="a parameter to fit, e.g. fog.scattering=1.0 (repeatable; default "
-                        "initial value: the scene's)")
+                   help="a parameter to fit, e.g. fog.scattering=1.0, or a gain on the images "
+                        "(exposure, camera.NAME.exposure; for photographs) (repeatable; default "
+                        "initial value: the scene's; an exposure's: the best gain for the "
+                        "first render)")
     p.add_argument("--bounds", action="append", metavar="PATH=LOWER,UPPER",
                    help="bounds of an unknown (default: (0, inf) for coefficients, (0, 1) "
                         "for albedo)")
-    p.add_argument("--mask", action="append", metavar="CAMERA=PATH.npy",
-                   help="per-pixel weights >= 0 (or a 0/1 mask) for a target")
+    p.add_argument("--mask", action="append", metavar="CAMERA=FILE",
+                   help="a target's mask: .npy weights >= 0, or an image file used where its "
+                        "alpha (else any channel) is nonzero, e.g. the photo itself")
     p.add_argument("--solver", default="sweep", choices=list(SOLVERS),
                    help="forward model (default sweep); " + solver_help())
     p.add_argument("--optimizer", default="lm", choices=list(OPTIMIZERS),
@@ -67,23 +78,6 @@ def _float(flag: str, key: str, text: str) -> float:
         return float(text)
     except ValueError:
         raise DifffogError(f"{flag} {key}={text}: {text!r} is not a number") from None
-
-
-def _load_image(flag: str, cam: str, path: str):
-    import numpy as np
-
-    p = Path(path)
-    if p.suffix != ".npy":
-        raise DifffogError(f"{flag} {cam}={path}: give a .npy file of the (H, W) image")
-    if not p.is_file():
-        raise DifffogError(f"{flag} {cam}={path}: no such file")
-    try:
-        a = np.load(p, allow_pickle=False)
-    except Exception as e:  # noqa: BLE001 - any unreadable file gets the same one-line answer
-        raise DifffogError(f"{flag} {cam}={path}: cannot read it as .npy ({e})") from None
-    if a.ndim != 2:
-        raise DifffogError(f"{flag} {cam}={path}: expected an (H, W) image, got shape {a.shape}")
-    return a
 
 
 def _fit_plots(result, tmp: Path) -> None:
@@ -152,17 +146,18 @@ def run(args) -> int:
     if args.force:
         settings["force"] = True
     scene = load_scene(args.scene, args.overrides)
+    # files are read by the fit (fit/_images.py), which records how in fit.json
     targets = {}
     for cam, path in _parse_kv(args.target, "--target"):
         scene.camera(cam)
-        targets[cam] = _load_image("--target", cam, path)
+        targets[cam] = path
     if not targets:
-        raise DifffogError("give at least one --target CAMERA=PATH.npy")
+        raise DifffogError("give at least one --target CAMERA=FILE, e.g. --target top=photo.png")
     weights = {}
     for cam, path in _parse_kv(args.mask, "--mask"):
         if cam not in targets:
             raise DifffogError(f"--mask {cam}=…: camera '{cam}' has no --target")
-        weights[cam] = _load_image("--mask", cam, path).astype(float)
+        weights[cam] = path
     bounds = {}
     for key, val in _parse_kv(args.bounds, "--bounds"):
         parts = val.split(",")
@@ -198,7 +193,8 @@ def run(args) -> int:
         result = fit(scene, targets, unknowns, optimizer=args.optimizer, forward=args.solver,
                      resolution=resolution, model_settings=settings or None, downsample=down,
                      weights=weights or None, loss=args.loss, max_steps=args.max_steps,
-                     checkpoint=ckpt, resume=args.resume, progress=progress)
+                     channel=args.channel, transfer=args.transfer, checkpoint=ckpt,
+                     resume=args.resume, progress=progress)
     for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)
         if issubclass(w.category, MemoryWarning):
             print(f"difffog: warning: {w.message}", file=sys.stderr)

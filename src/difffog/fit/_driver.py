@@ -32,11 +32,12 @@ from ..forward._model import AbstractForwardModel, batch_devices, map_batch
 from ..forward._registry import check_settings, guard, solver_entry
 from ..scene._description import Scene
 from . import _checkpoint
+from ._images import load_files
 from ._result import FitResult, IdentifiabilityWarning, result_name, statistics
 from ._residuals import LOSSES
 from ._stepper import make_optimizer, stepper_for
 from ._targets import prepare_targets, reduced_scene
-from ._unknowns import as_unknowns, coordinates
+from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera
 
 
 def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample: int = 1,
@@ -81,6 +82,8 @@ class _Setup:
     stepper: Any
     settings: dict
     fingerprint: str
+    target_files: dict
+    mask_files: dict
 
     @property
     def args(self):
@@ -90,9 +93,46 @@ class _Setup:
         return {c.path: float(c.to_v(x)) for c, x in zip(self.coords, np.asarray(u))}
 
 
+def _inside(v: float, c: Coordinate) -> float:
+    """v (1 where it is not a positive number) moved inside c's bounds by 1% where it is not."""
+    v = v if math.isfinite(v) and v > 0 else 1.0
+    if math.isinf(c.upper):
+        return v if v > c.lower else c.lower * 1.01
+    span = c.upper - c.lower
+    return min(max(v, c.lower + 0.01 * span), c.upper - 0.01 * span)
+
+
+def _exposure_starts(stepper, args, coords, inits, names, tgt, wts, dtype) -> list[float]:
+    """``inits`` with each exposure given without a start (None) started at the gain that fits
+    the first render y to the targets t by weighted least squares, Σw·y·t / Σw·y² (the
+    global exposure over every camera, then each camera's own on top of it), at the other
+    unknowns' starts: one light solve.  A photograph's scale (exposure time, aperture, ISO,
+    the file's code values) is arbitrary, orders of magnitude from the scene's radiance; from
+    1, a fit in log coordinates would spend several steps of 1 + n light solves each crossing
+    them, and this gain is exact when the other unknowns are."""
+    start = [_inside(1.0, c) if v is None else v for v, c in zip(inits, coords)]
+    u = jnp.asarray([c.to_u(v) for c, v in zip(coords, start)], dtype)
+    y = np.asarray(stepper.images(u, args)[0], np.float64)
+    t = np.concatenate([tgt[n].ravel() for n in names])
+    w = np.concatenate([wts[n].ravel() for n in names])
+    ends = np.cumsum([tgt[n].size for n in names])
+    part = {n: slice(e - tgt[n].size, e) for n, e in zip(names, ends)}
+    auto = sorted((i for i, v in enumerate(inits) if v is None),
+                  key=lambda i: exposure_camera(coords[i].path) != "")  # the global one first
+    for i in auto:
+        cam = exposure_camera(coords[i].path)
+        sl = part[cam] if cam else slice(None)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gain = float(np.sum(w[sl] * y[sl] * t[sl]) / np.sum(w[sl] * y[sl] ** 2))
+        new = _inside(start[i] * gain, coords[i])
+        y[sl] *= new / start[i]
+        start[i] = new
+    return start
+
+
 def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, downsample,
            model_settings, weights, loss, loss_scale, rtol, atol, max_steps, stall_steps,
-           dtype) -> _Setup:
+           dtype, channel, transfer) -> _Setup:
     unknowns = as_unknowns(unknowns)
     if loss not in LOSSES:
         raise DifffogError(f"loss '{loss}': choose one of {', '.join(LOSSES)}")
@@ -110,19 +150,24 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
         raise DifffogError("targets: give a dict {camera name: (H, W) image}, at least one")
     for name in targets:
         scene.camera(name)
+    targets, weights, target_files, mask_files = load_files(targets, weights, channel=channel,
+                                                            transfer=transfer)
     names = sorted(targets)  # a fixed order: fits of the same views share one compiled step
     model = make_model(scene, forward, cameras=names, downsample=downsample,
                        resolution=resolution, model_settings=model_settings)
-    tgt, wts = prepare_targets(scene, model, targets, weights, downsample)
+    tgt, wts = prepare_targets(scene, model, targets, weights, downsample, files=target_files)
     dtype = dtype or jnp.result_type(float)
     base = model.params(dtype)
-    coords, inits = coordinates(model.scene, base, unknowns)
+    coords, given = coordinates(model.scene, base, unknowns)
     flat_t = np.concatenate([tgt[n].ravel() for n in names])
     flat_w = np.concatenate([wts[n].ravel() for n in names])
     m = int(np.count_nonzero(flat_w))
     scale = float(np.sqrt(np.sum(flat_w * flat_t ** 2) / np.sum(flat_w))) or 1.0
     data = (jnp.asarray(flat_t, dtype), jnp.asarray(np.sqrt(flat_w), dtype),
             jnp.asarray(scale, dtype), jnp.asarray(loss_scale, dtype), base)
+    stepper = stepper_for(model, coords, names, loss, opt)
+    inits = (_exposure_starts(stepper, (model, data), coords, given, names, tgt, wts, dtype)
+             if None in given else given)
     u0 = jnp.asarray([c.to_u(v) for c, v in zip(coords, inits)], dtype)
     settings = {
         "forward": forward if isinstance(forward, str) else type(forward).__name__,
@@ -135,8 +180,9 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
         "image_shapes": {n: list(tgt[n].shape) for n in names},
         "unknowns": [dataclasses.asdict(c) for c in coords],
     }
-    # the fingerprint leaves out the device count (a checkpoint resumes on any number of them)
-    # and max_steps (a stopped fit resumes with a larger one)
+    # the fingerprint leaves out the device count (a checkpoint resumes on any number of them),
+    # max_steps (a stopped fit resumes with a larger one) and the exposures' starts from a
+    # render (None: a light solve on other devices may differ in its last bits)
     fp_settings = dict(settings, model={k: v for k, v in settings["model"].items()
                                         if k != "solver_options"})
     del fp_settings["max_steps"]
@@ -144,9 +190,9 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
         scene=repr(scene), settings=fp_settings,
         solver_options={k: v for k, v in settings["model"].get("solver_options", {}).items()
                         if k != "devices"},
-        init=inits, t=_checkpoint.digest(flat_t), w=_checkpoint.digest(flat_w))
-    return _Setup(model, names, tgt, flat_t, m, data, u0, coords, inits,
-                  stepper_for(model, coords, names, loss, opt), settings, fp)
+        init=given, t=_checkpoint.digest(flat_t), w=_checkpoint.digest(flat_w))
+    return _Setup(model, names, tgt, flat_t, m, data, u0, coords, inits, stepper, settings, fp,
+                  target_files, mask_files)
 
 
 class _Tracker:
@@ -246,6 +292,8 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         targets={n: st.tgt[n].astype(np.float32) for n in st.names},
         condition=cond,
         settings=st.settings,
+        target_files=st.target_files,
+        mask_files=st.mask_files,
     )
 
 
@@ -256,7 +304,8 @@ def _step_warning(st: _Setup, u) -> str | None:
     p = st.model.params()
     try:
         for path, v in st.values(u).items():
-            p = set_param(p, st.model.scene, path, v)
+            if exposure_camera(path) is None:
+                p = set_param(p, st.model.scene, path, v)
     except DifffogError:  # an unknown the parameters do not hold (e.g. a density grid)
         return None
     return st.model.step_warning(p)
@@ -264,7 +313,8 @@ def _step_warning(st: _Setup, u) -> str | None:
 
 def _postfix(entry: dict) -> dict:
     out = {"loss": entry["loss"]}
-    out.update({p.split(".")[-1]: v for p, v in entry["values"].items()})
+    out.update({p.removeprefix("camera.") if exposure_camera(p) else p.split(".")[-1]: v
+                for p, v in entry["values"].items()})
     return out
 
 
@@ -273,17 +323,21 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         model_settings: Mapping | None = None, optimizer="lm",
         weights: Mapping[str, Any] | None = None, loss: str = "linear",
         loss_scale: float = 0.05, rtol: float = 1e-4, atol: float = 1e-4, max_steps: int = 50,
-        stall_steps: int = 3, dtype=None, checkpoint: str | os.PathLike | None = None,
-        resume: bool = False, progress=None,
+        stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
+        checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
         callback: Callable[[dict], None] | None = None) -> FitResult:
     """Fit the unknowns of ``scene`` to target images.
 
-    targets: {camera name: (H, W) image}, one or several views, at the scene camera's
-        resolution or already reduced by ``downsample``.
+    targets: {camera name: (H, W) image or image file}, one or several views, at the scene
+        camera's resolution or already reduced by ``downsample``.  A file (a path: .npy, .png,
+        .tif, .exr, .jpg) is read as linear radiance by ``difffog.fit._images.load_target``
+        with ``channel`` and ``transfer``; the result's ``target_files`` records how.
     unknowns: dotted parameter paths (``fog.scattering``, ``fog.absorption``,
         ``shape.<name>.albedo``; ``fog.g``, ``sun.irradiance``, ``sky.radiance`` as nuisance
-        parameters): a list, a dict {path: init | (init, lower, upper) | None} or
-        :class:`Unknown` objects.
+        parameters; ``exposure`` or ``camera.<name>.exposure``, a gain on every image or on one
+        camera's, for photographs of unknown scale): a list, a dict {path: init | (init,
+        lower, upper) | None} or :class:`Unknown` objects.  An exposure without an initial
+        value starts at the gain that best fits the first render to the targets.
     forward: a solver name ("sweep", default, or "splat": built from the registry at its fit
         defaults, e.g. the sweep at N = 32, M = 3, light tol 1e-5) or a forward model
         (``difffog.forward_model(...)``, used as it is: its cameras must match the targets).
@@ -295,14 +349,19 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         machine has (a :class:`difffog.ResourceError` otherwise).
     optimizer: "lm" (Levenberg–Marquardt, default), "gauss-newton", "bfgs" or an optimistix
         least-squares solver / minimiser.
-    weights: {camera: (H, W)} per-pixel weights ≥ 0 (a boolean mask works); the residual is
-        √w·(model − target) / RMS(target).
+    weights: {camera: (H, W)} per-pixel weights ≥ 0 (a boolean mask works), or a mask file
+        (a .npy of weights; an image: used where its alpha, else any channel, is nonzero); the
+        residual is √w·(model − target) / RMS(target).
     loss: "linear" (least squares) or a robust "huber", "soft_l1", "cauchy" with threshold
         ``loss_scale`` in units of the target's RMS.
     rtol, atol: optimistix' termination on the unconstrained unknowns and the residuals; the
         fit also stops ("loss_stalled", converged) when the unknowns moved but the loss fell
         by less than rtol over ``stall_steps`` steps (0: never).
     dtype: of the parameters (default float32, or float64 with x64 on).
+    channel: how colour target files become one channel: "luminance" (Y = 0.2126 R + 0.7152 G
+        + 0.0722 B of the linear values) or "r", "g", "b".
+    transfer: of target files: "auto" (sRGB for 8-bit files, linear for 16-bit and float
+        ones), "srgb" (sRGB-encoded: undone) or "linear".
     checkpoint: a file written (atomically) after every step; ``resume=True`` continues from
         it and reaches the same answer as an uninterrupted fit.
     progress: True, a progress meter (``difffog.TqdmProgress("fit")``) or None/False.
@@ -316,7 +375,8 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     st = _setup(scene, targets, unknowns, optimizer=optimizer, forward=forward,
                 resolution=resolution, downsample=downsample, model_settings=model_settings,
                 weights=weights, loss=loss, loss_scale=loss_scale, rtol=rtol, atol=atol,
-                max_steps=max_steps, stall_steps=stall_steps, dtype=dtype)
+                max_steps=max_steps, stall_steps=stall_steps, dtype=dtype, channel=channel,
+                transfer=transfer)
     stepper, args = st.stepper, st.args
     state = stepper.init(st.u0, args)
     u = st.u0
@@ -455,4 +515,5 @@ import inspect as _inspect  # noqa: E402
 
 _SETUP_DEFAULTS = {k: _inspect.signature(fit).parameters[k].default
                    for k in ("optimizer", "forward", "resolution", "downsample",
-                             "model_settings", "weights", "loss", "loss_scale", "dtype")}
+                             "model_settings", "weights", "loss", "loss_scale", "dtype",
+                             "channel", "transfer")}

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..scene._description import Scene
 from ..scene._params import Params, set_param
-from ._unknowns import Coordinate
+from ._unknowns import Coordinate, exposure_camera
 
 LOSSES = ("linear", "huber", "soft_l1", "cauchy")
 
@@ -52,7 +52,8 @@ class FitProblem:
     cameras in the order their images are flattened, and the loss.
 
     scene: the forward model's scene (for the dotted paths).
-    coords: one :class:`Coordinate` per unknown.
+    coords: one :class:`Coordinate` per unknown: a scene parameter, or an exposure (a gain on
+        every camera's image, or one camera's) applied to the rendered images.
     names: target cameras, in the order of the flattened images.
     loss: one of ``LOSSES``.
     """
@@ -65,15 +66,30 @@ class FitProblem:
     def params(self, u, base: Params) -> Params:
         p = base
         for i, c in enumerate(self.coords):
-            p = set_param(p, self.scene, c.path, c.to_v(u[i]))
+            if exposure_camera(c.path) is None:
+                p = set_param(p, self.scene, c.path, c.to_v(u[i]))
         return p
 
+    def gains(self, u) -> dict:
+        """{camera: the product of the exposures that scale its image} (1.0 where none do)."""
+        out = {n: 1.0 for n in self.names}
+        for i, c in enumerate(self.coords):
+            cam = exposure_camera(c.path)
+            if cam is not None:
+                for n in self.names:
+                    if cam in ("", n):
+                        out[n] = out[n] * c.to_v(u[i])
+        return out
+
     def model(self, model, u, base: Params):
-        """(flattened images (P,), the light solve's result code) at unknowns u."""
+        """(flattened images (P,) times their exposures, the light solve's result code) at
+        unknowns u."""
         p = self.params(u, base)
         light = model.light(p)
         imgs = model.images_from(light, p)
-        return jnp.concatenate([jnp.ravel(imgs[n]) for n in self.names]), light.result
+        g = self.gains(u)
+        return (jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in self.names]),
+                light.result)
 
     def model_and_jacobian(self, model, u, base: Params):
         """(images (P,), J (P, n), result code) by forward mode: J·e_i as the transpose of

@@ -39,6 +39,9 @@ class FitResult:
     images, targets: fitted and target images per camera (the forward model's resolution).
     condition: of the column-normalised J (√ of JᵀJ's).
     settings: the fit's settings (JSON-able).
+    target_files: {camera: how its target file was read} (path, format, dtype, transfer,
+        channel, ...; ``_images.load_target``) for the targets given as files.
+    mask_files: {camera: path} for the weights given as files.
     """
 
     paths: list[str]
@@ -58,6 +61,8 @@ class FitResult:
     targets: dict[str, np.ndarray] = field(repr=False, default_factory=dict)
     condition: float = float("nan")  # of the column-normalised J (√ of JᵀJ's)
     settings: dict = field(default_factory=dict)
+    target_files: dict = field(default_factory=dict)
+    mask_files: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -80,6 +85,9 @@ class FitResult:
             lines.append(s)
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
+        for cam, f in self.target_files.items():
+            lines.append(f"target {cam}: {f['path']} ({f['dtype']}, transfer {f['transfer']}, "
+                         f"{f['channel']})")
         if len(self.paths) > 1:
             lines.append("correlation:")
             for i, p in enumerate(self.paths):
@@ -112,6 +120,8 @@ class FitResult:
             "condition": None if not math.isfinite(self.condition) else self.condition,
             "history": self.history,
             "settings": self.settings,
+            "target_files": self.target_files,
+            "mask_files": self.mask_files,
         }
 
 

@@ -80,6 +80,11 @@ class Stepper:
     def terminate(self, u, state, args):
         return self._term(u, state, args)
 
+    def images(self, u, args):
+        """(the model's flattened images at u, light result code): one light solve, compiled
+        once (the least-squares solvers' :meth:`final` calls it too)."""
+        return self._model(u, args)
+
     def final(self, u, state, args):
         """Residual, Jacobian, images and light result code at the final u.  A least-squares
         solver's state holds the residual and the (linearised) Jacobian at u already: reuse
@@ -87,7 +92,7 @@ class Stepper:
         info = getattr(state, "f_info", None)
         if isinstance(info, optx.FunctionInfo.ResidualJac):
             r, J = self._from_state(info)
-            y, code = self._model(u, args)
+            y, code = self.images(u, args)
             return r, J, y, code
         return self._rj(u, args)
 

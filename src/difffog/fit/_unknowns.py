@@ -1,10 +1,16 @@
 """What a fit estimates: the unknowns (dotted parameter paths with bounds) and the
-unconstrained coordinates the optimizer moves: log for coefficients and light intensities,
-logit for albedo, a scaled logit (or log-logit over wide ranges) for bounded values."""
+unconstrained coordinates the optimizer moves: log for coefficients, light intensities and
+exposures, logit for albedo, a scaled logit (or log-logit over wide ranges) for bounded values.
+
+Besides the scene's parameters, the images' gains: ``exposure`` multiplies every rendered image
+and ``camera.<name>.exposure`` one camera's, before the residual (a photograph's scale is
+unknown).  A gain is the same as scaling every light source (sun, sky, emission), so it is not
+determined together with all of them; the fit's identifiability warning then says so."""
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -12,7 +18,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from .._errors import DifffogError
+from .._errors import DifffogError, SceneError
 from ..scene._description import Scene
 from ..scene._params import Params, get_param
 
@@ -27,6 +33,17 @@ class Unknown:
     init: float | None = None
     lower: float | None = None
     upper: float | None = None
+
+
+def exposure_camera(path: str) -> str | None:
+    """The camera an exposure unknown scales: "" for ``exposure`` (every camera), the name for
+    ``camera.<name>.exposure``; None for a parameter of the scene."""
+    if path == "exposure":
+        return ""
+    head, tail = "camera.", ".exposure"
+    if path.startswith(head) and path.endswith(tail) and len(path) > len(head) + len(tail):
+        return path[len(head):-len(tail)]
+    return None
 
 
 def _kind(path: str) -> str:
@@ -117,13 +134,34 @@ def as_unknowns(unknowns) -> list[Unknown]:
     return out
 
 
+def _scene_value(scene: Scene, base: Params, path: str) -> float | None:
+    """The scene's value of a parameter path (None for an exposure: the scene has none), or a
+    one-line error naming the closest path."""
+    cam = exposure_camera(path)
+    if cam is not None:
+        names = [c.name for c in scene.cameras]
+        if cam and cam not in names:
+            raise DifffogError(f"unknown '{path}': camera '{cam}' has no target (the targets' "
+                               f"cameras: {', '.join(names)})")
+        return None
+    try:
+        return float(get_param(base, scene, path))
+    except SceneError as e:
+        gains = ["exposure"] + [f"camera.{c.name}.exposure" for c in scene.cameras]
+        close = difflib.get_close_matches(path, gains, n=1)
+        hint = f" Did you mean '{close[0]}'?" if close and "Did you mean" not in str(e) else ""
+        raise SceneError(f"{e}; and the images' gains: {', '.join(gains)}.{hint}") from None
+
+
 def coordinates(scene: Scene, base: Params, unknowns: list[Unknown]):
     """(Coordinate per unknown, initial physical value per unknown), checked: the path names a
-    parameter of ``scene`` (one-line error with the closest path otherwise), the bounds are
-    inside the natural ones, the initial value inside the bounds."""
+    parameter of ``scene`` or an exposure of one of its cameras (one-line error with the
+    closest path otherwise), the bounds are inside the natural ones, the initial value inside
+    the bounds.  An exposure given without an initial value gets None: the fit starts it from
+    the targets (``_driver._exposure_starts``)."""
     coords, inits = [], []
     for u in unknowns:
-        scene_value = float(get_param(base, scene, u.path))  # raises for an unknown path
+        scene_value = _scene_value(scene, base, u.path)
         kind = _kind(u.path)
         nlo, nhi = _NATURAL[kind]
         lo = nlo if u.lower is None else float(u.lower)
@@ -132,6 +170,10 @@ def coordinates(scene: Scene, base: Params, unknowns: list[Unknown]):
             raise DifffogError(
                 f"unknown '{u.path}': bounds [{lo}, {hi}] must satisfy {nlo} <= lower < upper "
                 f"<= {nhi}")
+        coords.append(Coordinate(u.path, lo, hi))
+        if u.init is None and scene_value is None:
+            inits.append(None)
+            continue
         v0 = scene_value if u.init is None else float(u.init)
         if not (lo < v0 < hi) or not math.isfinite(v0):
             src = "the scene's value" if u.init is None else "the initial value"
@@ -139,6 +181,5 @@ def coordinates(scene: Scene, base: Params, unknowns: list[Unknown]):
                 f"unknown '{u.path}': {src} {v0:g} lies outside the open interval ({lo:g}, "
                 f"{hi:g}); give an initial value inside the bounds, e.g. {u.path}="
                 f"{(lo + 1.0) if math.isinf(hi) else 0.5 * (lo + hi):g}")
-        coords.append(Coordinate(u.path, lo, hi))
         inits.append(v0)
     return coords, inits
