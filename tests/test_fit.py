@@ -492,3 +492,92 @@ def test_recovery_from_finer_targets_within_the_measured_bias(scene_name, case):
     for p, bound in RECOVERY_BOUNDS[(scene_name, case)].items():
         err = 100 * abs(res.estimates[p] / truth[p] - 1)
         assert err <= bound, (p, err)
+
+
+def test_stall_test_counts_rejected_steps_after_progress():
+    """Rejected steps (unknowns unchanged, loss unchanged) end the fit once the unknowns have
+    moved; the first rejections of a too-long step from the start do not."""
+    from difffog.fit._driver import _stalled
+
+    def hist(losses, values):
+        return [{"loss": loss, "values": {"fog.scattering": v}} for loss, v in zip(losses, values)]
+
+    rejected_at_optimum = hist([2.0, 1.0, 1.0, 1.0, 1.0], [1.0, 2.0, 2.0, 2.0, 2.0])
+    assert _stalled(rejected_at_optimum, 3, 1e-4)
+    rejected_from_the_start = hist([5.0, 5.0, 5.0, 5.0], [1.0, 1.0, 1.0, 1.0])
+    assert not _stalled(rejected_from_the_start, 3, 1e-4)
+    still_falling = hist([5.0, 4.0, 3.0, 2.0], [1.0, 1.5, 1.8, 1.9])
+    assert not _stalled(still_falling, 3, 1e-4)
+    moved_without_gain = hist([1.0, 1.0, 1.0, 1.0], [2.0, 2.1, 2.05, 2.02])
+    assert _stalled(moved_without_gain, 3, 1e-4)
+    assert not _stalled(rejected_at_optimum, 0, 1e-4)
+    assert not _stalled(rejected_at_optimum[:3], 3, 1e-4)
+
+
+def test_ladder_levels_and_model_error_arithmetic():
+    """The ladder's resolutions (3/4 of the fit's, not below where a shape is thinner than a
+    voxel) and the first-order Richardson model error and total uncertainty it reports."""
+    from difffog.fit._driver import _ladder_levels, _with_model_error
+    from difffog.fit._result import FitResult
+
+    fog_balls = df.load_scene("fog-balls")  # walls 0.05 thick: resolution >= 20
+    assert _ladder_levels(fog_balls, "sweep", 32, None, "auto") == (24, 32)
+    assert _ladder_levels(fog_balls, "sweep", None, None, "auto") == (24, 32)  # fit default
+    assert _ladder_levels(fog_balls, "sweep", 24, None, "auto") == (20, 24)
+    assert _ladder_levels(fog_balls, "sweep", 20, None, "auto") == ()  # nothing coarser fits
+    assert _ladder_levels(fog_balls, "sweep", 32, None, None) == ()
+    assert _ladder_levels(fog_balls, object(), 32, None, "auto") == ()  # a model object
+    assert _ladder_levels(fog_balls, "sweep", None, None, (16, 32)) == (16, 32)
+    with pytest.raises(DifffogError, match="ends at 32, but resolution=48"):
+        _ladder_levels(fog_balls, "sweep", 48, None, (16, 32))
+    with pytest.raises(DifffogError, match="coarse then fine"):
+        _ladder_levels(fog_balls, "sweep", None, None, (32, 16))
+
+    def result(zeta, se, name="successful"):
+        return FitResult(paths=["fog.scattering"], estimates={"fog.scattering": zeta},
+                         stderr={"fog.scattering": se}, correlation=np.eye(1),
+                         initial={"fog.scattering": 1.0}, residual_rms=0.0, loss=0.0,
+                         iterations=3, time_s=1.0, result=name, message="", warnings=[],
+                         history=[])
+
+    r = _with_model_error(result(2.1, 0.04), result(2.0, 0.05), (24, 32))
+    assert r.model_error["fog.scattering"] == pytest.approx(3 * 0.1)  # × 24 / (32 − 24)
+    assert r.uncertainty["fog.scattering"] == pytest.approx(math.hypot(0.04, 0.3))
+    assert [lv["resolution"] for lv in r.ladder] == [24, 32]
+    assert "model error: fog.scattering" in r.summary()
+    d = json.loads(json.dumps(r.to_json()))
+    assert d["uncertainty"]["fog.scattering"] == pytest.approx(math.hypot(0.04, 0.3))
+    failed = _with_model_error(result(2.1, 0.04), result(1.0, 0.05, "nonlinear_max_steps_reached"),
+                               (24, 32))
+    assert math.isnan(failed.model_error["fog.scattering"]) and failed.warnings
+
+
+# Known to fail (strict: when a better estimator makes it pass, drop the mark): ζ fitted at
+# N = 10 / 12 / 14 / 16 to these targets is 2.077 / 2.074 / 1.933 / 2.232 (truth 2.0): the
+# estimates jump between neighbouring resolutions, and the 10 → 12 change (0.003) misses the
+# error (0.074).
+@pytest.mark.xfail(strict=True, reason="two-level ladder underestimates erratic lattice error")
+@pytest.mark.slow  # two fits and two compiled models (~2 min on 2 cores)
+def test_ladder_uncertainty_covers_the_truth_of_finer_targets():
+    """Targets rendered on a finer lattice (N = 20) than the fit's (12, ladder from 10): the
+    model error is real, and the total uncertainty must cover it (truth within 3 of them),
+    where the noise-only standard error does not."""
+    from helpers import FIT_DOWNSAMPLE, FIT_TRUTH, fit_scene
+
+    scene = fit_scene()
+    settings = {"M": 2, "tol": 1e-6}
+    fine = make_model(scene, "sweep", cameras=["top", "oblique"], resolution=20,
+                      downsample=FIT_DOWNSAMPLE, model_settings=settings)
+    p = fine.params()
+    for path, v in FIT_TRUTH.items():
+        p = df.set_param(p, fine.scene, path, v)
+    targets = {k: np.asarray(v) for k, v in fine(p).items()}
+    start = {"fog.scattering": 1.5, "fog.absorption": 0.6, "shape.walls.albedo": 0.6}
+    res = df.fit(scene, targets, start, resolution=12, downsample=FIT_DOWNSAMPLE,
+                 model_settings=settings, ladder=(10, 12))
+    assert res.converged, res.message
+    assert [lv["resolution"] for lv in res.ladder] == [10, 12]
+    for path, truth in FIT_TRUTH.items():
+        err = abs(res.estimates[path] - truth)
+        assert err <= 3 * res.uncertainty[path], (path, err, res.uncertainty[path])
+        assert res.uncertainty[path] >= res.stderr[path]

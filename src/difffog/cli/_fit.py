@@ -14,6 +14,19 @@ from ..forward._registry import SOLVERS
 from ._main import add_scene_args, model_settings, peak_memory_mb, positive_int, solver_help
 
 
+def _ladder(text: str):
+    """--ladder: "auto", "none" or "NC,N"."""
+    if text in ("auto", "none"):
+        return None if text == "none" else "auto"
+    try:
+        levels = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        levels = ()
+    if len(levels) != 2:
+        raise DifffogError(f"--ladder {text}: use auto, none or two resolutions NC,N (e.g. 24,32)")
+    return levels
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("fit", help="fit fog and surface parameters to target images")
     add_scene_args(p)
@@ -48,6 +61,11 @@ def add_parser(sub) -> None:
                    help="render the cameras at 1/K width and height, box-averaging the "
                         "targets to match (default: the largest of 4, 2, 1 that divides)")
     p.add_argument("--max-steps", type=int, default=50, help="optimizer steps (default 50)")
+    p.add_argument("--ladder", default="none", metavar="auto|none|NC,N",
+                   help="experimental estimate of the model's own error: fit at a coarser "
+                        "resolution first (auto: 3/4 of -N), then at -N from there; the "
+                        "change, extrapolated to first order, is each estimate's model error, "
+                        "added to its uncertainty in fit.json (default none: noise only)")
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="sweep: share each light solve over N devices (on a CPU, N host "
                         "devices sharing its cores; the same estimates; default 1)")
@@ -194,7 +212,7 @@ def run(args) -> int:
                      resolution=resolution, model_settings=settings or None, downsample=down,
                      weights=weights or None, loss=args.loss, max_steps=args.max_steps,
                      channel=args.channel, transfer=args.transfer, checkpoint=ckpt,
-                     resume=args.resume, progress=progress)
+                     resume=args.resume, progress=progress, ladder=_ladder(args.ladder))
     for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)
         if issubclass(w.category, MemoryWarning):
             print(f"difffog: warning: {w.message}", file=sys.stderr)

@@ -229,14 +229,19 @@ class _Tracker:
 
 
 def _stalled(history: list[dict], stall_steps: int, rtol: float) -> bool:
-    """The unknowns moved but the loss fell by less than rtol over ``stall_steps`` steps: the
-    optimum to the precision of the forward model (its light solve stops at its tolerance).
-    LM would keep shrinking its trust region without meeting the step-size criterion."""
+    """The loss fell by less than rtol over ``stall_steps`` steps once the fit had made progress:
+    the optimum to the precision of the forward model (its light solve stops at its
+    tolerance), where LM keeps shrinking its trust region, rejecting step after step, without
+    meeting the step-size criterion.  Rejected steps count (a fit of ζ and γ spent 12 of its 16
+    steps rejecting steps that never moved the unknowns); progress means the unknowns moved,
+    over the window or before it — not the first rejections of a too-long step from the start
+    (LM's trust region, BFGS's line search)."""
     if not stall_steps or len(history) <= stall_steps:
         return False
     old, new = history[-1 - stall_steps], history[-1]
-    return old["values"] != new["values"] and old["loss"] - new["loss"] <= rtol * max(
-        new["loss"], 1e-30)
+    if old["loss"] - new["loss"] > rtol * max(new["loss"], 1e-30):
+        return False
+    return old["values"] != new["values"] or old["values"] != history[0]["values"]
 
 
 def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
@@ -278,6 +283,7 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         paths=[c.path for c in st.coords],
         estimates=st.values(u),
         stderr={c.path: float(s) for c, s in zip(st.coords, se)},
+        uncertainty={c.path: float(s) for c, s in zip(st.coords, se)},  # a ladder adds to it
         correlation=corr,
         initial={c.path: v for c, v in zip(st.coords, st.inits)},
         residual_rms=float(np.sqrt(np.sum(raw ** 2) / st.m)),
@@ -325,7 +331,8 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         loss_scale: float = 0.05, rtol: float = 1e-4, atol: float = 1e-4, max_steps: int = 50,
         stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
         checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
-        callback: Callable[[dict], None] | None = None) -> FitResult:
+        callback: Callable[[dict], None] | None = None,
+        ladder=None) -> FitResult:
     """Fit the unknowns of ``scene`` to target images.
 
     targets: {camera name: (H, W) image or image file}, one or several views, at the scene
@@ -355,8 +362,8 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     loss: "linear" (least squares) or a robust "huber", "soft_l1", "cauchy" with threshold
         ``loss_scale`` in units of the target's RMS.
     rtol, atol: optimistix' termination on the unconstrained unknowns and the residuals; the
-        fit also stops ("loss_stalled", converged) when the unknowns moved but the loss fell
-        by less than rtol over ``stall_steps`` steps (0: never).
+        fit also stops ("loss_stalled", converged) when, after progress, the loss fell by less
+        than rtol over ``stall_steps`` steps, rejected steps included (0: never).
     dtype: of the parameters (default float32, or float64 with x64 on).
     channel: how colour target files become one channel: "luminance" (Y = 0.2126 R + 0.7152 G
         + 0.0722 B of the linear values) or "r", "g", "b".
@@ -365,12 +372,91 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     checkpoint: a file written (atomically) after every step; ``resume=True`` continues from
         it and reaches the same answer as an uninterrupted fit.
     progress: True, a progress meter (``difffog.TqdmProgress("fit")``) or None/False.
-    callback: called after every step with that step's history entry.
+    ladder: an estimate of the model's own error (experimental, off by default).  "auto" (for
+        a named solver): fit first on a coarser lattice (3/4 of ``resolution``, and not so
+        coarse that a shape is thinner than a voxel), then at ``resolution`` from that
+        estimate; the change of each estimate between the two, extrapolated to first order in
+        the voxel size (Richardson: × N_c/(N − N_c), 3 for 24 → 32), is its ``model_error``,
+        and ``uncertainty`` is √(stderr² + model_error²).  A tuple (coarse, fine) chooses the
+        resolutions.  None (default): one fit, ``uncertainty`` = ``stderr``.  Measured limit
+        (docs/fitting.md): on small lattices the estimates jump between neighbouring
+        resolutions, and two levels can miss most of the error.
+    callback: called after every step with that step's history entry (of the last level).
 
     The result is "light_solve_failed" (not converged) when the light solve at the estimate
     did not converge; an unconverged tangent solve (the Jacobian) is listed in its warnings.
     See :func:`fit_batch` for many target sets at once.
     """
+    levels = _ladder_levels(scene, forward, resolution, model_settings, ladder)
+    kw = dict(forward=forward, downsample=downsample, model_settings=model_settings,
+              optimizer=optimizer, weights=weights, loss=loss, loss_scale=loss_scale, rtol=rtol,
+              atol=atol, max_steps=max_steps, stall_steps=stall_steps, dtype=dtype,
+              channel=channel, transfer=transfer, progress=progress)
+    if len(levels) < 2:
+        return _fit_level(scene, targets, unknowns, resolution=resolution, checkpoint=checkpoint,
+                          resume=resume, callback=callback, **kw)
+    t0 = time.perf_counter()
+    unk = as_unknowns(unknowns)
+    coarse = _fit_level(scene, targets, unk, resolution=levels[0], **kw)
+    start = unk
+    if coarse.converged:  # the fine fit starts from the coarse estimate
+        start = [dataclasses.replace(u, init=coarse.estimates[u.path]) for u in unk]
+    fine = _fit_level(scene, targets, start, resolution=levels[1], checkpoint=checkpoint,
+                      resume=resume, callback=callback, **kw)
+    fine.time_s = time.perf_counter() - t0
+    return _with_model_error(fine, coarse, levels)
+
+
+def _ladder_levels(scene: Scene, forward, resolution, model_settings, ladder) -> tuple:
+    """The resolutions of the ladder, coarse to fine (one level: no ladder)."""
+    if ladder is None or not isinstance(forward, str):
+        return ()
+    if isinstance(ladder, str):
+        if ladder != "auto":
+            raise DifffogError(f"ladder={ladder!r}: use \"auto\", None or two resolutions "
+                               "(coarse, fine), e.g. (24, 32)")
+        from ..geometry._lattice import thin_resolution
+
+        fine = int(resolution or {**solver_entry(forward).fit_defaults,
+                                  **(model_settings or {})}.get("resolution", 32))
+        coarse = max(round(0.75 * fine), thin_resolution(scene))
+        return (coarse, fine) if coarse < fine else ()
+    levels = tuple(int(n) for n in ladder)
+    if len(levels) != 2 or not 2 <= levels[0] < levels[1]:
+        raise DifffogError(f"ladder={ladder!r}: give two resolutions, coarse then fine, e.g. "
+                           "(24, 32)")
+    if resolution is not None and int(resolution) != levels[1]:
+        raise DifffogError(f"ladder {levels} ends at {levels[1]}, but resolution={resolution}; "
+                           "give one of them")
+    return levels
+
+
+def _with_model_error(fine: FitResult, coarse: FitResult, levels) -> FitResult:
+    """``fine`` with its model error (first-order Richardson from the ladder's two levels) and
+    total uncertainty."""
+    nc, nf = levels
+    factor = nc / (nf - nc)  # θ(h) = θ* + c·h  ⇒  θ(h_f) − θ* = (θ_f − θ_c)·h_f / (h_c − h_f)
+    ok = coarse.converged and fine.converged
+    fine.model_error = {p: (factor * abs(fine.estimates[p] - coarse.estimates[p]) if ok
+                            else float("nan")) for p in fine.paths}
+    fine.uncertainty = {p: math.hypot(fine.stderr[p], fine.model_error[p]) for p in fine.paths}
+    fine.ladder = [{"resolution": n, "estimates": r.estimates, "iterations": r.iterations,
+                    "time_s": r.time_s, "result": r.result} for n, r in zip(levels, (coarse, fine))]
+    if not coarse.converged:
+        fine.warnings.append(f"the model error is not estimated: the fit at the ladder's coarse "
+                             f"resolution {nc} did not converge ({coarse.result})")
+    return fine
+
+
+def _fit_level(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
+        resolution: int | None = None, downsample: int = 1,
+        model_settings: Mapping | None = None, optimizer="lm",
+        weights: Mapping[str, Any] | None = None, loss: str = "linear",
+        loss_scale: float = 0.05, rtol: float = 1e-4, atol: float = 1e-4, max_steps: int = 50,
+        stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
+        checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
+        callback: Callable[[dict], None] | None = None) -> FitResult:
+    """One fit at one resolution (:func:`fit` without the ladder)."""
     t_start = time.perf_counter()
     st = _setup(scene, targets, unknowns, optimizer=optimizer, forward=forward,
                 resolution=resolution, downsample=downsample, model_settings=model_settings,

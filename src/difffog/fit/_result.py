@@ -42,6 +42,12 @@ class FitResult:
     target_files: {camera: how its target file was read} (path, format, dtype, transfer,
         channel, ...; ``_images.load_target``) for the targets given as files.
     mask_files: {camera: path} for the weights given as files.
+    model_error: {path: value}: the forward model's own discretization error in each estimate,
+        from the fit's resolution ladder (``fit(ladder=...)``); empty without a ladder.
+    uncertainty: {path: value}: the total, one standard deviation: √(stderr² + model_error²)
+        (the standard error alone without a ladder).
+    ladder: one dict per level of the ladder (resolution, estimates, iterations, time_s,
+        result).
     """
 
     paths: list[str]
@@ -63,6 +69,9 @@ class FitResult:
     settings: dict = field(default_factory=dict)
     target_files: dict = field(default_factory=dict)
     mask_files: dict = field(default_factory=dict)
+    model_error: dict = field(default_factory=dict)
+    uncertainty: dict = field(default_factory=dict)
+    ladder: list = field(default_factory=list)
 
     @property
     def converged(self) -> bool:
@@ -73,16 +82,29 @@ class FitResult:
 
     def summary(self, truth: Mapping[str, float] | None = None) -> str:
         w = max(len(p) for p in self.paths)
+        model = bool(self.model_error)
         head = f"{'unknown':<{w}}  {'initial':>10}  {'estimate':>10}  {'std err':>9}"
+        if model:
+            head += f"  {'model err':>9}  {'total ±':>9}"
         if truth:
             head += f"  {'truth':>10}  {'error %':>8}"
         lines = [head, "-" * len(head)]
         for p in self.paths:
             s = (f"{p:<{w}}  {self.initial[p]:>10.4g}  {self.estimates[p]:>10.4g}  "
                  f"{self.stderr[p]:>9.2g}")
+            if model:
+                s += f"  {self.model_error[p]:>9.2g}  {self.uncertainty[p]:>9.2g}"
             if truth and p in truth:
                 s += f"  {truth[p]:>10.4g}  {100 * (self.estimates[p] / truth[p] - 1):>+8.3f}"
             lines.append(s)
+        if model:
+            by = {"model error": [], "noise": []}
+            for p in self.paths:
+                if math.isfinite(self.model_error[p]) and math.isfinite(self.stderr[p]):
+                    by["model error" if self.model_error[p] > self.stderr[p] else "noise"].append(p)
+            lines.append("uncertainty dominated by " + "; ".join(
+                f"{k}: {', '.join(v)}" for k, v in by.items() if v) + " (ladder " + " → ".join(
+                str(lv["resolution"]) for lv in self.ladder) + ")")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
         for cam, f in self.target_files.items():
@@ -104,7 +126,7 @@ class FitResult:
     def to_json(self) -> dict:
         return {
             "estimates": self.estimates,
-            "stderr": {k: (None if not math.isfinite(v) else v) for k, v in self.stderr.items()},
+            "stderr": _finite_or_none(self.stderr),
             "correlation": [[None if not math.isfinite(x) else float(x) for x in row]
                             for row in np.asarray(self.correlation)],
             "paths": self.paths,
@@ -122,7 +144,14 @@ class FitResult:
             "settings": self.settings,
             "target_files": self.target_files,
             "mask_files": self.mask_files,
+            "model_error": _finite_or_none(self.model_error),
+            "uncertainty": _finite_or_none(self.uncertainty),
+            "ladder": self.ladder,
         }
+
+
+def _finite_or_none(d: Mapping[str, float]) -> dict:
+    return {k: (None if not math.isfinite(v) else v) for k, v in d.items()}
 
 
 def result_name(code) -> str:

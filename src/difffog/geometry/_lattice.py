@@ -1138,6 +1138,19 @@ def _signed_volume(V, F):
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
+def thin_resolution(scene: Scene) -> int:
+    """The smallest resolution at which no shape of ``scene`` is thinner than a voxel (where
+    ``voxelize`` warns that a shape may vanish or leak light); 2 without thin shapes."""
+    grid = _Grid.from_domain(scene.domain, 1)  # h = the longest side
+    need = 2
+    for i, s in enumerate(scene.shapes):
+        shape = _make_shape(s, i, grid)
+        t = shape.r if isinstance(shape, _SphereS) else shape.thickness()
+        if t:
+            need = max(need, math.ceil(grid.h / t - 1e-9))  # voxelize warns where t < h
+    return need
+
+
 def _make_shape(s, index, grid) -> _Shape:
     if isinstance(s, Sphere):
         return _SphereS(s, index)
