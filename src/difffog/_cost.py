@@ -67,14 +67,16 @@ GPU_BATCHED_UPDATES_PER_S = 72e9
 #: the batched sweep on a CPU is this many times slower than the loop (fog-balls N = 48, M = 3,
 #: this 2-core CPU: 0.50 against 0.058 s per iteration)
 CPU_BATCHED_SLOWDOWN = 8.7
-#: host set-up: seconds per node (voxelize, prepare), per node × direction × M (segment
-#: blocking samples each direction's segment at 2|L| points) and per camera ray (exact hits,
-#: edge detection, the sun's depth: ~3 s for fog-balls' 200k rays); fitted to bench_cost.py
-#: (3.4e-6, 5e-9 and 1.7e-5 fit N = 32-96 within 15%), the middle term raised to 8e-9 for
-#: large M (fog-balls N = 8, M = 16 set up in 19 s)
-SETUP_S_PER_NODE = 3.4e-6
-SETUP_S_PER_NODE_DIRECTION_STEP = 8e-9
-SETUP_S_PER_RAY = 1.5e-5
+#: host set-up: seconds per node (voxelize, prepare), per node × direction × M (the segment
+#: masks: 2|L| samples per direction, 64 nodes per word), per sampled offset of the six faces'
+#: directions (6·D·2M NumPy calls: what dominates at large M) and per camera ray (exact hits,
+#: the sun's depth: 0.34 s for fog-balls' 199,270 rays); fitted by relative least squares to
+#: fog-balls' set-up (forward_model's stages) at N/M = 32/2, 32/5, 64/3, 64/5, 96/5, 128/3,
+#: 128/5 and 8/16 on this 2-core CPU: each within 0.89–1.14× of the measured
+SETUP_S_PER_NODE = 8.9e-7
+SETUP_S_PER_NODE_DIRECTION_STEP = 3.1e-10
+SETUP_S_PER_SEGMENT_SAMPLE = 6.6e-6
+SETUP_S_PER_RAY = 1.7e-6
 #: the splat's set-up: a fixed part (its footprint and kernel programs) and a part per voxel
 #: (bench_cost.py: 3.1 / 3.9 / 4.9 s at N = 32 / 64 / 96)
 SPLAT_SETUP_S = 2.6
@@ -244,7 +246,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         if kernel == "batched":
             per_iter *= CPU_BATCHED_SLOWDOWN
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
-             + (SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M if surfaces else 0))
+             + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
+                 + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0))
     return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
 
 

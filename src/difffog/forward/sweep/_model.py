@@ -36,7 +36,7 @@ def _nearest_index(mask: np.ndarray) -> np.ndarray:
     """For every node, the flat index of the nearest node where ``mask`` is True."""
     if not mask.any():
         return np.zeros(mask.shape, np.int64)
-    _, idx = ndimage.distance_transform_edt(~mask, return_indices=True)
+    idx = ndimage.distance_transform_edt(~mask, return_distances=False, return_indices=True)
     return np.ravel_multi_index(tuple(idx), mask.shape)
 
 
