@@ -208,7 +208,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian)."""
     backend = backend or _backend()
     if kernel == "auto":
-        kernel = "loop" if backend == "cpu" else "batched"
+        from .forward.sweep._kernel import kernel_for
+
+        kernel = kernel_for(backend)
     f = 4  # float32
     M = int(M)
     shape = lattice_shape(scene, resolution, M + 1)
@@ -222,9 +224,10 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     mem = {
         "process": BASE_BYTES,
         "lattice (host)": n * HOST_BYTES_PER_NODE,
-        # FaceGeometry.blocked: (nw, nu, nv, ceil(D/8)) uint8 per face, on the host (the six
-        # faces' masks are built at once) and the device, plus one face-frame copy in transit
-        "blocking masks": 13 * n * math.ceil(D / 8) if surfaces else 0,
+        # FaceGeometry.blocked: (nw, nu, nv, ceil(D/8)) uint8 per face on the host and the
+        # device, and while they are built a mask and its face-frame copy per worker thread
+        "blocking masks": ((12 + 2 * min(6, os.cpu_count() or 1)) * n * math.ceil(D / 8)
+                           if surfaces else 0),
         "light solve": n * SOLVE_BYTES_PER_NODE,
         # GMRES: restart + 1 Krylov vectors (+ restart preconditioned ones, flexible GMRES,
         # where the diffusion preconditioner is chosen), x and b

@@ -37,7 +37,7 @@ from ._result import FitResult, IdentifiabilityWarning, result_name, statistics
 from ._residuals import LOSSES
 from ._stepper import make_optimizer, stepper_for
 from ._targets import prepare_targets, reduced_scene
-from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera
+from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera, within_bounds
 
 
 def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample: int = 1,
@@ -395,22 +395,27 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     if len(levels) < 2:
         return _fit_level(scene, targets, unknowns, resolution=resolution, checkpoint=checkpoint,
                           resume=resume, callback=callback, **kw)
+    if checkpoint is not None or resume:
+        raise DifffogError("checkpoint/resume is not supported with a ladder yet (the coarse "
+                           "level would be refitted); use ladder=None (--ladder none)")
     t0 = time.perf_counter()
     unk = as_unknowns(unknowns)
     coarse = _fit_level(scene, targets, unk, resolution=levels[0], **kw)
     start = unk
-    if coarse.converged:  # the fine fit starts from the coarse estimate
-        start = [dataclasses.replace(u, init=coarse.estimates[u.path]) for u in unk]
-    fine = _fit_level(scene, targets, start, resolution=levels[1], checkpoint=checkpoint,
-                      resume=resume, callback=callback, **kw)
+    if coarse.converged:  # the fine fit starts from the coarse estimate (inside its bounds)
+        start = [dataclasses.replace(u, init=within_bounds(u, coarse.estimates[u.path])) for u in unk]
+    fine = _fit_level(scene, targets, start, resolution=levels[1], callback=callback, **kw)
     fine.time_s = time.perf_counter() - t0
     return _with_model_error(fine, coarse, levels)
 
 
 def _ladder_levels(scene: Scene, forward, resolution, model_settings, ladder) -> tuple:
     """The resolutions of the ladder, coarse to fine (one level: no ladder)."""
-    if ladder is None or not isinstance(forward, str):
+    if ladder is None:
         return ()
+    if not isinstance(forward, str):
+        raise DifffogError("ladder needs a named solver (forward=\"sweep\" or \"splat\"): a "
+                           "forward model object has one resolution; use ladder=None")
     if isinstance(ladder, str):
         if ladder != "auto":
             raise DifffogError(f"ladder={ladder!r}: use \"auto\", None or two resolutions "

@@ -183,3 +183,16 @@ def coordinates(scene: Scene, base: Params, unknowns: list[Unknown]):
                 f"{(lo + 1.0) if math.isinf(hi) else 0.5 * (lo + hi):g}")
         inits.append(v0)
     return coords, inits
+
+
+def within_bounds(u: Unknown, v: float) -> float:
+    """``v`` moved just inside ``u``'s bounds (the natural ones where not given) if it lies on
+    or beyond one: an estimate can round onto a bound (an albedo of 1.0 in float32), which is
+    not a valid start."""
+    nlo, nhi = _NATURAL[_kind(u.path)]
+    lo = nlo if u.lower is None else float(u.lower)
+    hi = nhi if u.upper is None else float(u.upper)
+    if lo < v < hi:
+        return v
+    eps = 1e-3 * ((hi - lo) if math.isfinite(hi) else max(abs(lo), 1.0))
+    return min(max(v, lo + eps), hi - eps) if math.isfinite(hi) else max(v, lo + eps)
