@@ -130,7 +130,7 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
     return flu, irr
 
 
-def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
+def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_shift=None):
     """Batched light-aligned sheet sweep along −z (the frame of :func:`sky_uncollided`).
 
     For each quadrature direction ω_k (towards the sky) the transmittance T_k(x) from the top
@@ -139,6 +139,8 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
       fluence: Σ_k w_k T̄_k(x), T̄ averaged over the node's segment (×sky = the source's 4π·J)
       irradiance: Σ_k w_k T_k(x) max(0, ω_k·N(x))   (× sky = direct sky on a surface node).
     sigma_t, opaque: (nx, ny, nz); normal: (nx, ny, nz, 3); sky_dirs (K, 3) static.
+    by_shift: resample by whole-sheet shifts (open domains whose offsets per sheet are within
+    one voxel; None: whenever they are) or by gathers (False).
     """
     nx, ny, nz = sigma_t.shape
     dirs = np.asarray(sky_dirs, np.float64)
@@ -175,7 +177,8 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
     # N = 128, M = 5: 3.4 → 2.6 s per pass, measured under load).  Shallow directions of a
     # periodic domain (offsets of many voxels) keep the gathers.
     shifts = [list(range(int(i0[:, ax].min()), int(i0[:, ax].max()) + 2)) for ax in range(2)]
-    by_shift = max(len(sh) for sh in shifts) <= 4 and not periodic_xy
+    if by_shift is None:  # (False: the gathers, which the tests compare against)
+        by_shift = max(len(sh) for sh in shifts) <= 4 and not periodic_xy
     coef = []
     for ax in range(2):
         c = np.zeros((len(shifts[ax]), K))
