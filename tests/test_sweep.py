@@ -413,7 +413,6 @@ def test_sharded_sweep_matches_one_device(cases):
     halo exchange) gives the single-device light field (1e-12 float64, 1e-6 float32) and
     gradients; run in a subprocess, since the device count is fixed when JAX starts."""
     import json
-    import os
     import subprocess
     import sys
 
