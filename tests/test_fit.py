@@ -586,3 +586,17 @@ def test_ladder_uncertainty_covers_the_truth_of_finer_targets():
         err = abs(res.estimates[path] - truth)
         assert err <= 3 * res.uncertainty[path], (path, err, res.uncertainty[path])
         assert res.uncertainty[path] >= res.stderr[path]
+
+
+def test_reported_time_is_the_wall_time_of_the_call():
+    """FitResult.time_s covers the whole call, the final statistics pass included (the
+    bookkeeping, not a speed: it must lie within the wall time measured around the call and
+    be most of it)."""
+    import time
+
+    toy = Toy()
+    target = _toy_target(toy, **{"fog.scattering": 1.5, "fog.absorption": 0.3})
+    t = time.perf_counter()
+    res = df.fit(toy.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0}, forward=toy)
+    wall = time.perf_counter() - t
+    assert 0.8 * wall <= res.time_s <= wall
