@@ -454,21 +454,13 @@ def _with_model_error(fine: FitResult, coarse: FitResult, levels) -> FitResult:
     return fine
 
 
-def _fit_level(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
-        resolution: int | None = None, downsample: int = 1,
-        model_settings: Mapping | None = None, optimizer="lm",
-        weights: Mapping[str, Any] | None = None, loss: str = "linear",
-        loss_scale: float = 0.05, rtol: float = 1e-4, atol: float = 1e-4, max_steps: int = 50,
-        stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
-        checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
-        callback: Callable[[dict], None] | None = None) -> FitResult:
-    """One fit at one resolution (:func:`fit` without the ladder)."""
+def _fit_level(scene: Scene, targets: Mapping[str, Any], unknowns, *, progress,
+               checkpoint=None, resume: bool = False, callback=None, **settings) -> FitResult:
+    """One fit at one resolution (:func:`fit` without the ladder); ``settings`` are
+    :func:`_setup`'s (``fit``'s arguments of that name, resolution included)."""
     t_start = time.perf_counter()
-    st = _setup(scene, targets, unknowns, optimizer=optimizer, forward=forward,
-                resolution=resolution, downsample=downsample, model_settings=model_settings,
-                weights=weights, loss=loss, loss_scale=loss_scale, rtol=rtol, atol=atol,
-                max_steps=max_steps, stall_steps=stall_steps, dtype=dtype, channel=channel,
-                transfer=transfer)
+    st = _setup(scene, targets, unknowns, **settings)
+    rtol, max_steps, stall_steps = settings["rtol"], settings["max_steps"], settings["stall_steps"]
     stepper, args = st.stepper, st.args
     state = stepper.init(st.u0, args)
     u = st.u0
@@ -500,8 +492,8 @@ def _fit_level(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="s
                 callback(entry)
     meter.close()
     extra = _rewarn(caught)
-    res = _finish(tr, u, state, time_s=0.0, rtol=rtol, atol=atol, max_steps=max_steps,
-                  stall_steps=stall_steps, extra_warnings=extra)
+    res = _finish(tr, u, state, time_s=0.0, rtol=rtol, atol=settings["atol"],
+                  max_steps=max_steps, stall_steps=stall_steps, extra_warnings=extra)
     # the wall time, the final statistics pass (a Jacobian at the estimate) included
     res.time_s = elapsed0 + time.perf_counter() - t_start
     return res
