@@ -7,6 +7,7 @@ import dataclasses
 import os
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import difffog as df
@@ -85,3 +86,17 @@ def host_devices_env(n: int) -> dict:
     return dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}",
                 JAX_PLATFORMS="cpu",
                 PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
+class ToyLight(df.AbstractLight):
+    """A 'light' for test models that have nothing to solve: always converged."""
+
+    result: jax.Array
+    iterations: jax.Array
+    error_estimate: jax.Array
+
+    def fluence_at(self, points):
+        return jnp.zeros(jnp.shape(points)[:-1])
+
+    def report(self):
+        return {"iterations": int(self.iterations)}

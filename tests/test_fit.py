@@ -24,6 +24,8 @@ from difffog.fit._residuals import FitProblem
 from difffog.fit._result import statistics
 from difffog.fit._unknowns import Coordinate
 
+from helpers import ToyLight
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -47,20 +49,6 @@ def small_targets(small_forward):
 
 
 # ------------------------------------------------------------------ a cheap analytic forward
-class ToyLight(df.AbstractLight):
-    """The toy's 'light': nothing to solve, always converged."""
-
-    result: jax.Array
-    iterations: jax.Array
-    error_estimate: jax.Array
-
-    def fluence_at(self, points):
-        return jnp.zeros(jnp.shape(points)[:-1])
-
-    def report(self):
-        return {"iterations": int(self.iterations)}
-
-
 class Toy(df.AbstractForwardModel):
     """A forward model with the models' interface and no light solve: the 'top' image is
     ζ·F·a(x) + γ·b(x) + ρ_walls·c(x) (F the sun irradiance)."""

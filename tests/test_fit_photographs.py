@@ -25,6 +25,8 @@ import difffog as df
 from difffog import DifffogError, IdentifiabilityWarning
 from difffog.fit._images import LUMINANCE, load_mask, load_target, srgb_to_linear
 
+from helpers import ToyLight
+
 RNG = np.random.default_rng(16)
 #: linear radiance in [0, 1] (6 rows, 7 columns), with both ends of the sRGB curve's pieces
 L = RNG.uniform(0.0, 1.0, (6, 7))
@@ -273,18 +275,6 @@ def test_masked_out_pixels_are_not_checked(tmp_path):
 
 
 # ------------------------------------------------------------------ a cheap two-view model
-class ToyLight(df.AbstractLight):
-    result: jax.Array
-    iterations: jax.Array
-    error_estimate: jax.Array
-
-    def fluence_at(self, points):
-        return jnp.zeros(jnp.shape(points)[:-1])
-
-    def report(self):
-        return {"iterations": 1}
-
-
 class LitToy(df.AbstractForwardModel):
     """Two views, linear in the lights like the renderer (sun F, sky S) and not in the fog:
     top = F·(1 − e^(−ζa)) + S·b·e^(−γ), oblique = F·ζ·c + S·d.  No light solve."""
