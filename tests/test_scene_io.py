@@ -1,4 +1,5 @@
-"""Scenes: loading the shared scene files, overrides, a corpus of bad files, and scenes built in
+"""Scenes: loading the built-in scenes (copies of the shared benchmark scenes, compared with
+them by benchmarks/check_shared_scenes.py), overrides, a corpus of bad files, and scenes built in
 Python (``difffog.Scene`` and friends), which validate as files do."""
 
 import dataclasses
@@ -13,7 +14,6 @@ from difffog import SceneError, apply_overrides, builtin_scenes, load_scene, sca
 
 HERE = Path(__file__).parent
 BAD = HERE / "bad_scenes"
-SHARED = Path(__file__).parents[1].parent / "shared" / "scenes"
 
 # name -> (shapes, cameras)
 SHARED_COUNTS = {
@@ -24,12 +24,6 @@ SHARED_COUNTS = {
     "slab": (0, 1),
     "translucent-cube": (2, 2),
 }
-
-
-def _shared_files():
-    if not SHARED.is_dir():
-        return [pytest.param(None, marks=pytest.mark.skip(reason=f"{SHARED} is absent"))]
-    return sorted(SHARED.glob("*.toml"))
 
 
 def test_builtin_names():
@@ -43,20 +37,6 @@ def test_builtin_scenes_load(name):
     assert s.title == name
     assert (len(s.shapes), len(s.cameras)) == SHARED_COUNTS[name]
     assert s.source is not None and s.source.name == f"{name}.toml"
-
-
-@pytest.mark.parametrize("path", _shared_files(), ids=lambda p: getattr(p, "stem", "absent"))
-def test_shared_scene_files_load(path):
-    s = load_scene(path)
-    if path.stem not in SHARED_COUNTS:  # a shared scene that is not shipped: it loads
-        assert s.source == path.absolute() and s.cameras
-        return
-    assert (len(s.shapes), len(s.cameras)) == SHARED_COUNTS[path.stem]
-    shipped = load_scene(path.stem)  # the copy in the package says the same
-    assert s.replace(source=None) == shipped.replace(source=None)
-    for a, b in zip(s.shapes, shipped.shapes):
-        if a.kind == "mesh":
-            np.testing.assert_array_equal(a.vertices, b.vertices)
 
 
 def test_fog_balls_values():
