@@ -43,6 +43,9 @@ def _args(argv=None):
     ap.add_argument("--devices", type=int, default=1, help="SweepSolver(devices=...) if > 1")
     ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched"],
                     help="SweepSolver(kernel=...): the face sweep's program (auto: the backend's)")
+    ap.add_argument("--phase-order", nargs="+", default=["auto"],
+                    help="SweepSolver(phase_order=...) values (anisotropic scattering; \"auto\": "
+                         "the scene's)")
     ap.add_argument("--grad-size", type=int, default=None, help="N of the forward/gradient case")
     ap.add_argument("--no-grad", action="store_true")
     ap.add_argument("--no-bandwidth", action="store_true")
@@ -81,7 +84,7 @@ def _hlo_ops(text: str) -> int:
     return sum(1 for line in text.splitlines() if re.match(r"\s*(ROOT\s+)?%?[\w.\-]+ = ", line))
 
 
-def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto"):
+def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto", phase_order="auto"):
     """Seconds per Jacobi iteration as the solver runs it: the forward iteration (``_iterate``,
     a while loop over ``_jacobi``, tol = 0) timed at 1 and ``k_iter`` iterations; the
     difference per extra iteration is the marginal cost of an iteration (one-time work hoisted
@@ -89,15 +92,15 @@ def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto"):
     import jax
     import jax.numpy as jnp
 
-    from difffog.forward.sweep._solver import _jacobi  # the internal being measured
+    from difffog.forward.sweep._solver import _jacobi, _zero_state  # the internals measured
 
-    geom, pb, prep_s = C.sweep_problem(scene, N, M, devices, kernel=kernel)
-    zero = jnp.zeros(geom.shape, jnp.float32)
-    ops_pre = _hlo_ops(jax.jit(_jacobi).lower((zero, zero), pb).as_text(dialect="hlo"))
+    geom, pb, prep_s = C.sweep_problem(scene, N, M, devices, kernel=kernel,
+                                       phase_order=phase_order)
+    ops_pre = _hlo_ops(jax.jit(_jacobi).lower(_zero_state(pb), pb).as_text(dialect="hlo"))
     it = C.iteration_seconds(pb, k_iter, repeat)
     D = (2 * M + 1) ** 2
     updates = 6 * int(geom.free.size) * D
-    return dict(N=N, M=M, D=D, shape=tuple(geom.shape), prep_s=prep_s,
+    return dict(N=N, M=M, D=D, L=geom.order, shape=tuple(geom.shape), prep_s=prep_s,
                 compile_s=it["compile_s"], ops_pre=ops_pre,
                 ops_opt=_hlo_ops(it["compiled"].as_text()),
                 temp_mb=C.xla_mib(it["compiled"]), arg_mb=C.xla_mib(it["compiled"], "argument"),
@@ -174,20 +177,22 @@ def main(argv=None):
     emit("## One Jacobi iteration (six sweeps)")
     emit()
     results, rows = [], []
+    orders = [o if o == "auto" else int(o) for o in a.phase_order]
     for N in a.sizes:
-        for M in a.Ms:
-            r = iteration_case(scene, N, M, a.repeat, a.devices, kernel=a.kernel)
+        for M, order in ((m, o) for m in a.Ms for o in orders):
+            r = iteration_case(scene, N, M, a.repeat, a.devices, kernel=a.kernel,
+                               phase_order=order)
             results.append(r)
             pct = f"{100 * r['rate'] / roof:.0f}%" if roof else "–"
-            rows.append([N, M, r["D"], f"{r['s_iter']:.3f}", f"{r['s_best']:.3f}",
+            rows.append([N, M, r["L"], r["D"], f"{r['s_iter']:.3f}", f"{r['s_best']:.3f}",
                          f"{r['rate'] / C.GB:.2f}", pct, f"{r['setup_s']:.2f}",
                          f"{r['compile_s']:.1f}", f"{r['ops_pre']} / {r['ops_opt']}",
                          f"{r['temp_mb']:.0f}", f"{r['arg_mb']:.0f}", f"{r['prep_s']:.1f}"])
-            print(f"N={N} M={M}: {r['s_iter']:.3f} s/iter", flush=True)
-    for ln in C.md_table(["N", "M", "D", "s/iter (median)", "min", "G ray updates/s",
-                          "% roofline", "setup s", "compile s",
+            print(f"N={N} M={M} L={r['L']}: {r['s_iter']:.3f} s/iter", flush=True)
+    for ln in C.md_table(["N", "M", "phase order L", "D", "s/iter (median)", "min",
+                          "G ray updates/s", "% roofline", "setup s", "compile s",
                           "HLO ops: Jacobi step lowered / solve compiled", "XLA temp MiB",
-                          "args MiB", "prepare s"], rows, "rrrrrrrrrlrrr"):
+                          "args MiB", "prepare s"], rows, "rrrrrrrrrrlrrr"):
         emit(ln)
     emit()
     emit("All runs (s/iter): " + "; ".join(

@@ -59,7 +59,8 @@ FULL_EXTRA = [(96, 3)]
 QUICK_SETTINGS = [(16, 2)]
 
 
-def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int):
+def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int,
+                phase_order="auto"):
     """Images and timings of one (N, M) setting.
 
     ``difffog.render`` compiles the light solve and the images ahead of time
@@ -71,7 +72,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=tol,
-                                 max_iterations=max_iterations)
+                                 max_iterations=max_iterations, phase_order=phase_order)
     notes = sorted({str(w.message).split(":")[0] for w in caught})
     out = df.render(model)
     t = out.timings
@@ -86,6 +87,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         "solve_s": t["light_s"],
         "render_s": t["images_s"],
         "warnings": "; ".join(notes),
+        "phase_order": model.geometry.order,
     }
     return images, info
 
@@ -162,6 +164,8 @@ def main(argv=None):
                     help="folder of the Mitsuba references (default: the shipped ones)")
     ap.add_argument("--out", type=Path, default=C.RESULTS)
     ap.add_argument("--no-png", action="store_true")
+    ap.add_argument("--phase-order", nargs="+", default=["auto"],
+                    help="SweepSolver.phase_order values to run (\"auto\" or integers)")
     C.add_quick(ap)
     args = C.parse(ap, argv)
     scenes = args.scenes or (["fog-balls"] if args.quick else list(INTENDED + OUTSIDE))
@@ -173,10 +177,11 @@ def main(argv=None):
     C.print_machine(mach)
 
     rows, kept = [], {}
+    orders = [o if o == "auto" else int(o) for o in args.phase_order]
     for scene in scenes:
-        for N, M in settings:
+        for (N, M), order in ((s, o) for s in settings for o in orders):
             t = time.perf_counter()
-            images, info = run_setting(scene, N, M, args.tol, args.max_iterations)
+            images, info = run_setting(scene, N, M, args.tol, args.max_iterations, order)
             for cam, img in images.items():
                 ref, noise = C.reference(scene, cam, args.references)
                 m = C.compare(img, ref, noise)
@@ -184,7 +189,8 @@ def main(argv=None):
                        "intended": scene in INTENDED, **m, **info}
                 rows.append(row)
                 kept[(scene, cam, N, M)] = (img, ref)
-                print(f"{scene:16s} {cam:8s} N={N:3d} M={M} bias {100 * m['bias']:+6.1f}% "
+                print(f"{scene:16s} {cam:8s} N={N:3d} M={M} L={row['phase_order']} "
+                      f"bias {100 * m['bias']:+6.1f}% "
                       f"rmse_corr {100 * m['rel_rmse_corr']:5.1f}% s3 "
                       f"{100 * m['rel_rmse_s3']:5.1f}%  iters {info['iterations']:3d} "
                       f"solve {info['solve_s']:.2f}s render {info['render_s']:.2f}s "

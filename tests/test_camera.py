@@ -375,7 +375,9 @@ def test_custom_backward_matches_autodiff(x64, periodic):
     n, h = (7, 6, 5), 0.15
     P = np.stack(np.meshgrid(*[(np.arange(k) + 0.5) * h for k in n], indexing="ij"), -1)
     sdf = np.linalg.norm(P - [0.5, 0.45, 0.3], axis=-1) - 0.2
-    chans = [0.5 + 3 * rng.random(n), rng.random(n), rng.random(n), sdf]
+    # σ_t, j_iso, two channels with per-ray coefficients (the sun's phase, an anisotropic
+    # source's basis value, which has either sign), sdf
+    chans = [0.5 + 3 * rng.random(n), rng.random(n), rng.random(n), rng.random(n) - 0.5, sdf]
     table = cm._flat_table([jnp.asarray(c) for c in chans], jnp.float64)
     R = 40
     o = np.column_stack([rng.uniform(-0.2, 1.2, R), rng.uniform(-0.2, 1.1, R),
@@ -388,8 +390,8 @@ def test_custom_backward_matches_autodiff(x64, periodic):
     valid = t1 > t0
     t0 = jnp.where(valid, t0, 0.0)
     t_end = jnp.where(valid, jnp.minimum(t1, t0 + 2.0), 0.0)
-    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), h, n, periodic), True, 40, h / 2)
-    phase = jnp.asarray(rng.random(R))
+    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), h, n, periodic), 2, 40, h / 2)
+    phase = jnp.asarray(rng.random((R, 2)))
     wT, wL, wH = (jnp.asarray(rng.random(R)) for _ in range(3))
 
     def loss(march):

@@ -72,14 +72,16 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  max_iterations: int = 500, method: str = "auto", devices: int = 1,
                  mesh=None, adjoint_rtol: float = 1e-6, terms: str = "auto",
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
-                 supersample: int = 2, precondition: str = "auto", kernel: str = "auto"):
+                 supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
+                 phase_order="auto"):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 
     solver = SweepSolver(M=M, tol=tol, max_iterations=max_iterations, method=method,
                          devices=devices, mesh=mesh, adjoint_rtol=adjoint_rtol, terms=terms,
                          sky_quadrature=sky_quadrature, restart=restart, progress=progress,
-                         throw=throw, precondition=precondition, kernel=kernel)
+                         throw=throw, precondition=precondition, kernel=kernel,
+                         phase_order=phase_order)
     return SweepModel(scene, resolution=resolution, solver=solver, supersample=supersample,
                       cameras=cameras)
 

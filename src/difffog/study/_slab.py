@@ -74,18 +74,51 @@ def slab_problem(tau: float, albedo: float, n_fog: int, M: int, *, sky: float = 
 
 
 def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky: float,
-                     sun: tuple[float, float] | None = None, n_mu: int = 64):
+                     sun: tuple[float, float] | None = None, n_mu: int = 64, basis=None,
+                     n_phi: int = 64, sun_scatter: tuple | None = None):
     """(R, T) of a slab column from its converged source radiance (formal solution).
 
     sigma_t, source: (nz,) extinction and step source Q of the column (emission per unit
-    length σ_t·Q, constant over each node's cell).  Incident flux is π·sky (+ F·μ₀ for a sun);
-    T includes the unscattered sky and sun.
+    length σ_t·Q, constant over each node's cell); with an anisotropic phase ``source`` is
+    (nz, 1 + K) (``_solver.source_field``) and ``basis`` the solver's ``_harmonics.Basis``:
+    direction ω's source is Q_0 + Σ_k Ỹ_k(ω) Q_k, averaged over azimuth here (n_phi points).
+    Incident flux is π·sky (+ F·μ₀ for a sun); T includes the unscattered sky and sun.
+    ``sun_scatter`` = (ζ (scalar or per cell), g, sun (nz,), σ_sun (nz,)): add the sun's
+    single scattering with the exact Henyey–Greenstein phase, ζ·p(Θ)·sun per unit length
+    (``sun``: the uncollided sun's fluence at each cell; ``source`` then leaves the sun out),
+    as the cameras do, and attenuate the unscattered sun by σ_sun (the true extinction, where
+    the solver scatters the sun's first collision exactly).
     """
     s = np.asarray(sigma_t, np.float64)
-    j = s * np.asarray(source, np.float64)
-    dtau = s * h
     x, w = np.polynomial.legendre.leggauss(n_mu)
     mu, wmu = 0.5 * (x + 1.0), 0.5 * w
+    q = np.asarray(source, np.float64)
+    if q.ndim == 2:  # anisotropic: the source towards +μ (up) and −μ (down), azimuth-averaged
+        phi = 2 * math.pi * (np.arange(n_phi) + 0.5) / n_phi
+        sin = np.sqrt(1.0 - mu**2)
+        om = np.stack([sin[:, None] * np.cos(phi), sin[:, None] * np.sin(phi),
+                       np.broadcast_to(mu[:, None], (n_mu, n_phi))], -1)
+        y_up = basis.evaluate(om).mean(1)  # (n_mu, K)
+        y_dn = basis.evaluate(om * np.array([1.0, 1.0, -1.0])).mean(1)
+        j_up = s[:, None] * (q[:, :1] + q[:, 1:] @ y_up.T)  # (nz, n_mu)
+        j_dn = s[:, None] * (q[:, :1] + q[:, 1:] @ y_dn.T)
+    else:
+        j_up = j_dn = (s * q)[:, None]
+    if sun_scatter is not None:
+        zeta, g, sun_flu, _ = sun_scatter
+        mu0 = math.cos(math.radians(sun[1]))
+        phi = 2 * math.pi * (np.arange(n_phi) + 0.5) / n_phi
+        sin, sin0 = np.sqrt(1.0 - mu**2), math.sqrt(max(0.0, 1.0 - mu0**2))
+        for sign, name in ((1.0, "up"), (-1.0, "dn")):
+            # cos Θ between the sun's light (going down, −μ₀) and light going ±μ
+            cos = -mu0 * sign * mu[:, None] + sin0 * sin[:, None] * np.cos(phi)[None]
+            p = ((1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * cos) ** 1.5)).mean(1)
+            add = (zeta * np.asarray(sun_flu, np.float64))[:, None] * p[None]
+            if name == "up":
+                j_up = j_up + add
+            else:
+                j_dn = j_dn + add
+    dtau = s * h
     above = np.cumsum(dtau[::-1])[::-1] - dtau  # optical depth above each cell
     below = np.cumsum(dtau) - dtau
     total = dtau.sum()
@@ -96,8 +129,8 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
             -np.expm1(-dtau[:, None] / mu[None]) / np.where(s > 0, s, 1.0)[:, None],
             h / mu[None],
         )
-    up = (j[:, None] * cell * np.exp(-above[:, None] / mu[None])).sum(0)
-    down = (j[:, None] * cell * np.exp(-below[:, None] / mu[None])).sum(0)
+    up = (j_up * cell * np.exp(-above[:, None] / mu[None])).sum(0)
+    down = (j_dn * cell * np.exp(-below[:, None] / mu[None])).sum(0)
     down = down + sky * np.exp(-total / mu)
     flux_up = 2 * math.pi * (wmu * mu * up).sum()
     flux_down = 2 * math.pi * (wmu * mu * down).sum()
@@ -106,5 +139,6 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
         F, zen = sun
         mu0 = math.cos(math.radians(zen))
         incident += F * mu0
-        flux_down += F * mu0 * math.exp(-total / mu0)
+        total_sun = total if sun_scatter is None else float(np.sum(sun_scatter[3]) * h)
+        flux_down += F * mu0 * math.exp(-total_sun / mu0)
     return flux_up / incident, flux_down / incident

@@ -66,12 +66,13 @@ class DiffusionOperator:
     """The lattice's diffusion operator A = −∇·D∇ + σ_a on fog nodes (identity elsewhere) and
     the scattering coefficient σ_s, for the preconditioner I + A⁻¹σ_s."""
 
-    def __init__(self, sigma_t, ssa, solid, h: float, periodic_xy: bool, M: int):
+    def __init__(self, sigma_t, ssa, solid, h: float, periodic_xy: bool, M: int, mu_bar=0.0):
         dt = sigma_t.dtype
         self.fog = (sigma_t > 0) & ~solid
         shape = sigma_t.shape
         size = max(shape) * h
-        sig = jnp.maximum(sigma_t, 1.0 / size)
+        # transport-corrected with an anisotropic phase (mean cosine mu_bar of the scaled phase)
+        sig = jnp.maximum(sigma_t * (1.0 - ssa * mu_bar), 1.0 / size)
         D = jnp.where(self.fog, 1.0 / (3.0 * sig) + h * _mean_length(M) / 6.0, 0.0)
         self.sigma_s = jnp.where(self.fog, ssa * sigma_t, 0.0)
         sigma_a = jnp.where(self.fog, (1.0 - ssa) * sigma_t, 0.0)

@@ -210,6 +210,19 @@ class SweepConsts(eqx.Module):
     pq: jax.Array  # (D, 2) int in-plane steps (p, q)
     length: jax.Array  # (D,) |L| in lattice units
     weight: jax.Array  # (D,) solid-angle weights
+    harm: jax.Array | None = None  # (D, K) the anisotropic basis Ỹ_k at each direction
+    #                                (``_harmonics.Basis``; None or K = 0: isotropic)
+    sun_phase: jax.Array | None = None  # (D,) the sun's phase function averaged over each
+    #                                     direction's cell (the first-collision sun's channel)
+
+
+def _source_table(consts: SweepConsts, dt):
+    """(D, J) per-direction coefficients of the source channels beyond the isotropic one: the
+    K moments' basis, then the sun's phase when there is one; and K."""
+    harm = consts.harm.astype(dt)
+    if consts.sun_phase is None:
+        return harm, harm.shape[1]
+    return jnp.concatenate([harm, consts.sun_phase.astype(dt)[:, None]], axis=1), harm.shape[1]
 
 
 #: The two programs of one face sweep (same arithmetic, same values and derivatives): "loop"
@@ -325,11 +338,15 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     instead of 25/49/121).  The padded carry's border holds ``bc`` (open sides) and is never
     written, or is refreshed by wrapping (periodic sides).
     """
-    nw, nu, nv = Q.shape
+    nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
     D = P * P
     per_w, per_u, per_v = periodic
     dt = Q.dtype
+    # Anisotropic: Q (nw, nu, nv, 1 + J), the isotropic part, then the sources that direction d
+    # weights by ``_source_table``'s row d (the K moments', then the sun's); Λ gets K moments
+    aniso = Q.ndim == 4
+    nk = nj = 0
 
     slabs, ns = _slabber(nw, M, per_w, warmup)
     total = ns * M  # planes swept (warm-up or padding included)
@@ -350,6 +367,11 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))
 
     Qs, Bs, ts = slabs(Q), slabs(B), slabs(tau_half_unit)
+    if aniso:  # channels first: (ns, 1 + J, M, nu, nv)
+        Qs = jnp.moveaxis(Qs, -1, 1)
+        table, nk = _source_table(consts, dt)  # (D, J)
+        nj = table.shape[1]
+        wharm = table[:, :nk] * weight[:, None]
     passes = (slabs(geo.free) | slabs(geo.surf)) if surfaces else slabs(geo.free)
     if surfaces:
         ns_ = jnp.moveaxis(slabs(geo.normal), -1, 1)  # (ns, 3, M, nu, nv)
@@ -367,10 +389,12 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         both = fluence and surfaces  # Λ + iE in one complex accumulator
 
         def tile(t, c):
-            dst, lam_s, irr_s = c
+            dst, lam_s, irr_s, mom_s = c
             u0 = jnp.asarray(t * tu, jnp.int32)  # int32 indices also under jax_enable_x64
             rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
             Qt, Bt, pt = rows(Qs_), rows(Bs_), rows(pass_s)
+            if aniso:  # (1 + K, M, tu, nv): the isotropic source and the moments' sources
+                Qa, Qt = Qt[1:], Qt[0]
             # half-segment factor expm1(-τ|L|) for each distinct |L|: (K, M, tu, nv)
             if attenuate:
                 tau_k = rows(ts_)[None] * length_k[:, None, None, None]  # half-segment depth
@@ -382,12 +406,18 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 nt, bt = rows(ns_s), rows(bits_s)
             zero = jnp.zeros((M, tu, nv), dt)
             acc0 = jax.lax.complex(zero, zero) if both else zero
+            macc0 = jnp.zeros((nk, M, tu, nv), dt)
+            c_Qt = Qt
 
             def direction(d, c):
-                dst, acc = c
+                dst, acc, macc = c
                 d = jnp.asarray(d, jnp.int32)
                 r_mid = jax.lax.dynamic_slice(src, (d, _I0, u0 + start[d, 0], start[d, 1]),
                                               (1, M, tu, nv))[0]
+                Qt = Qd = c_Qt  # this direction's source: Q_0 + Σ_k Ỹ_k(d) Q_k
+                if aniso:
+                    hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
+                    Qt = Qd + sum(hd[k] * Qa[k] for k in range(nj))
                 if attenuate:
                     em = jax.lax.dynamic_index_in_dim(em_k, kidx[d], 0, keepdims=False)
                     # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off fog
@@ -415,23 +445,30 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                         acc = acc + r_arr * cos_w
                 elif fluence:
                     acc = acc + r_avg * w
+                if aniso and fluence:  # the moments Σ_d w_d Ỹ_k(d) R̄_d
+                    wh = jax.lax.dynamic_index_in_dim(wharm, d, 0, keepdims=False)
+                    macc = macc + wh[:, None, None, None] * r_avg[None]
                 # second half-segment
                 r_through = r_arr + em * (r_arr - Qt) if attenuate else r_arr
                 r_out = jnp.where(pt, r_through, 0.0)
                 dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
-                return dst, acc
+                return dst, acc, macc
 
-            dst, acc = jax.lax.fori_loop(0, D, direction, (dst, acc0))
+            dst, acc, macc = jax.lax.fori_loop(0, D, direction, (dst, acc0, macc0))
             if both:
                 lam, irr = jnp.real(acc), jnp.imag(acc)
             else:
                 lam, irr = (zero, acc) if surfaces else ((acc, zero) if fluence else (zero, zero))
             lam_s = jax.lax.dynamic_update_slice_in_dim(lam_s, lam, u0, axis=1)
             irr_s = jax.lax.dynamic_update_slice_in_dim(irr_s, irr, u0, axis=1)
-            return dst, lam_s, irr_s
+            mom_s = jax.lax.dynamic_update_slice_in_dim(mom_s, macc, u0, axis=2)
+            return dst, lam_s, irr_s, mom_s
 
         zs = jnp.zeros((M, nu, nv), dt)
-        dst, lam, irr = jax.lax.fori_loop(0, nu // tu, tile, (dst, zs, zs))
+        zm = jnp.zeros((nk, M, nu, nv), dt)
+        dst, lam, irr, mom = jax.lax.fori_loop(0, nu // tu, tile, (dst, zs, zs, zm))
+        if aniso:  # (M, nu, nv, 1 + K): Λ, then the moments
+            lam = jnp.concatenate([lam[..., None], jnp.moveaxis(mom, 0, -1)], axis=-1)
         if halo is not None:  # border rows, then columns (corners included), from neighbours
             dst = halo.refresh(dst, M, per_u, per_v)
         else:  # refresh the wrapped border rows, then columns (corners included)
@@ -442,7 +479,9 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         return (dst, src), (lam, irr)
 
     bc4 = bc_d[:, None, None, None]
-    if per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
+    if per_w and aniso:  # equilibrium guess (below), each direction with its own source
+        init = (Qs[0][0][None] + jnp.einsum("dk,kmuv->dmuv", table, Qs[0][1:])).astype(dt)
+    elif per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
         init = jnp.broadcast_to(Qs[0][None], (D, M, nu, nv)).astype(dt)
     else:
         init = jnp.broadcast_to(bc4, (D, M, nu, nv))
@@ -485,11 +524,12 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     ``_sweep_face_loop`` but its linearization transposes into an equally compact program, so
     ``sweep_face`` uses it for derivatives (the implicit adjoint transposes the Jacobi map).
     """
-    nw, nu, nv = Q.shape
+    nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
     D = P * P
     per_w, per_u, per_v = periodic
     dt = Q.dtype
+    aniso = Q.ndim == 4  # Q (nw, nu, nv, 1 + J): see ``_sweep_face_loop``
 
     slabs, ns = _slabber(nw, M, per_w, warmup)
     total = ns * M  # planes swept (warm-up or padding included)
@@ -505,6 +545,14 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     byte_of = np.arange(D) // 8
     bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))[None, :, None, None]
     w4 = weight[None, :, None, None]
+    if aniso:
+        table, nk = _source_table(consts, dt)  # (D, J)
+        harm = table[:, :nk]
+
+    def source(Qs):  # (M, nu, nv[, 1 + J]) → per node and direction (M, D or 1, nu, nv)
+        if not aniso:
+            return Qs[:, None]
+        return Qs[..., 0][:, None] + jnp.einsum("muvk,dk->mduv", Qs[..., 1:], table)
     len4 = length[None, :, None, None]
     u4 = [unit[None, :, c, None, None] for c in range(3)]
 
@@ -516,7 +564,7 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         # with the elementwise work, 2-3x faster than dot_general here.)
         tau = ts[:, None] * len4
         em = jnp.expm1(-tau)
-        q4 = Qs[:, None]
+        q4 = source(Qs)
         r_arr = r_mid + em * (r_mid - q4)
         # Λ from the radiance averaged over the node's segment (conservative; see module doc)
         r_avg = q4 + (r_mid - q4) * one_minus_exp_over(2.0 * tau)
@@ -524,19 +572,25 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
             blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
             r_arr = jnp.where(blocked > 0, Bs[:, None], r_arr)
             r_avg = jnp.where(blocked > 0, q4 + (Bs[:, None] - q4) * one_minus_exp_over(tau), r_avg)
-        lam = (r_avg * w4).sum(1) if fluence else jnp.zeros_like(Qs)
+        if fluence:
+            lam = (r_avg * w4).sum(1)
+            if aniso:
+                mom = jnp.einsum("mduv,dk->muvk", r_avg * w4, harm)
+                lam = jnp.concatenate([lam[..., None], mom], axis=-1)
+        else:
+            lam = jnp.zeros_like(Qs)
         r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:
             ldotn = ns[0][:, None] * u4[0] + ns[1][:, None] * u4[1] + ns[2][:, None] * u4[2]
             irr = (r_arr * jnp.maximum(-ldotn, 0.0) * w4).sum(1)
             r_out = jnp.where(fs[:, None] | ss[:, None], r_through, 0.0)
         else:
-            irr = jnp.zeros_like(lam)
+            irr = jnp.zeros(lam.shape[:3], dt)
             r_out = jnp.where(fs[:, None], r_through, 0.0)
         return r_out, (lam, irr)
 
     if per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
-        init = jnp.broadcast_to(xs[0][0][:, None], (M, D, nu, nv)).astype(dt)
+        init = jnp.broadcast_to(source(xs[0][0]), (M, D, nu, nv)).astype(dt)
     else:
         init = jnp.broadcast_to(bc.astype(dt)[None, :, None, None], (M, D, nu, nv))
     exit_, (lam, irr) = jax.lax.scan(step, init, xs)
@@ -549,7 +603,9 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     return lam, irr, exit_
 
 
-def face_consts(dirs: DirectionSet, face: int) -> SweepConsts:
+def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None) -> SweepConsts:
+    """The constants of ``face``; ``harm``: (6, D, K) the anisotropic basis at every face's
+    directions (``_harmonics.Basis.faces``), or None (isotropic)."""
     axis, sign = FACE_AXES[face]
     u, v = face_plane_axes(axis)
     vec = dirs.vectors[face]
@@ -559,7 +615,30 @@ def face_consts(dirs: DirectionSet, face: int) -> SweepConsts:
         pq=jnp.asarray(dirs.pq, jnp.int32),
         length=jnp.asarray(dirs.length),
         weight=jnp.asarray(dirs.weights[face]),
+        harm=None if harm is None else jnp.asarray(harm[face]),
     )
+
+
+def cell_samples(dirs: DirectionSet, face: int, n: int = 8):
+    """(vectors (D, n², 3), weights (D, n²)): n × n points over each direction's cell of the
+    cube face (clipped to the face), as unit world vectors, with their solid angles
+    normalized to 1 per cell — to average a function of direction over the cell."""
+    axis, sign = FACE_AXES[face]
+    u, v = face_plane_axes(axis)
+    M = dirs.M
+    lo = np.maximum(dirs.pq - 0.5, -M)  # (D, 2)
+    hi = np.minimum(dirs.pq + 0.5, M)
+    t = (np.arange(n) + 0.5) / n
+    pu = lo[:, 0, None] + t[None] * (hi[:, 0] - lo[:, 0])[:, None]  # (D, n)
+    pv = lo[:, 1, None] + t[None] * (hi[:, 1] - lo[:, 1])[:, None]
+    gu = np.repeat(pu, n, axis=1)
+    gv = np.tile(pv, (1, n))
+    vec = np.zeros(gu.shape + (3,))
+    vec[..., axis] = sign * M
+    vec[..., u], vec[..., v] = gu, gv
+    r = np.linalg.norm(vec, axis=-1)
+    wt = M / r**3  # solid angle per unit face area
+    return vec / r[..., None], wt / wt.sum(1, keepdims=True)
 
 
 def sky_boundary(dirs: DirectionSet, face: int) -> np.ndarray:
@@ -643,6 +722,7 @@ def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, 
     lam, irr, ex = jax.shard_map(local, mesh=mesh, in_specs=specs_in, out_specs=specs_out,
                                  check_vma=False)(Q, B, tau, bc, geo, consts)
     if pu or pv:
-        lam, irr = lam[..., :nu, :nv], irr[..., :nu, :nv]
+        lam = lam[..., :nu, :nv, :] if lam.ndim > irr.ndim else lam[..., :nu, :nv]
+        irr = irr[..., :nu, :nv]
         ex = ex[..., :nu, :nv]
     return lam, irr, ex

@@ -30,6 +30,9 @@ class LightField(AbstractLight):
     iterations: applications of the one-bounce operator (six sweeps each).
     error_estimate: the estimated remaining relative error when the iteration stopped.
     result: a :class:`difffog.RESULTS` code (int32).
+    moments: with an anisotropic phase (``SweepSolver.phase_order`` L > 0), the K = (L+1)² − 1
+        angular moments Σ_L w_L Ỹ_k(L̂) R of the scattered light (``_harmonics.Basis``), else
+        None; sky_moments: those of the uncollided sky (None without a first-collision sky).
     origin, h: the lattice's lower corner and spacing (static).
     """
 
@@ -43,6 +46,8 @@ class LightField(AbstractLight):
     iterations: Int[Array, ""]
     error_estimate: Float[Array, ""]
     result: Int[Array, ""]
+    moments: Float[Array, "nx ny nz K"] | None = None
+    sky_moments: Float[Array, "nx ny nz K"] | None = None
     origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
     h: float = eqx.field(static=True, default=1.0)
 

@@ -36,6 +36,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..._numerics import one_minus_exp_over
 from ...scene._description import Camera
 from .._camera import camera_rays, hg_phase
+from ._harmonics import basis
 
 __all__ = [
     "LatticeFields",
@@ -118,6 +119,12 @@ class LatticeFields(eqx.Module):
     emission: Float[Array, " S"] | None = None
     sun_irradiance: Float[Array, ""] = eqx.field(default=0.0, converter=jnp.asarray)
     sun_extinction: Float[Array, ""] = eqx.field(default=0.0, converter=jnp.asarray)
+    # optional, for an anisotropic phase in the light solve (``SweepSolver.phase_order`` L > 0):
+    # the in-scatter source's angular part, (nx, ny, nz, K): radiance gained per unit length
+    # towards a camera ray d is j_iso + Σ_k Ỹ_k(−d)·j_aniso[..., k] (``_harmonics.basis(L, M)``,
+    # ``harmonics`` = (L, M), static)
+    j_aniso: Float[Array, "nx ny nz K"] | None = None
+    harmonics: tuple[int, int] | None = eqx.field(static=True, default=None)
 
     def __post_init__(self):
         if self.shape is None:
@@ -137,6 +144,13 @@ class LatticeFields(eqx.Module):
             raise ValueError(f"LatticeFields: h must be positive, got {self.h}")
         if jnp.shape(self.g) != () or jnp.shape(self.sky) != ():
             raise ValueError("LatticeFields: g and sky must be scalars")
+        if (self.j_aniso is None) != (self.harmonics is None):
+            raise ValueError("LatticeFields: j_aniso and harmonics go together")
+        if self.j_aniso is not None:
+            K = (self.harmonics[0] + 1) ** 2 - 1
+            if tuple(self.j_aniso.shape) != self.shape + (K,):
+                raise ValueError(f"LatticeFields: j_aniso has shape {tuple(self.j_aniso.shape)}, "
+                                 f"expected {self.shape + (K,)}")
 
     @property
     def lo(self) -> np.ndarray:
@@ -319,16 +333,19 @@ class _MarchConfig(NamedTuple):
     """Static configuration of a march (hashable)."""
 
     geo: tuple  # (lo (3 floats), h, shape, periodic_xy), as _stencil takes them
-    has_sun: bool
+    n_coef: int  # per-ray source coefficients (the sun's phase value, the basis Ỹ_k(−d))
     n_steps: int
     step: float
     has_sdf: bool = True  # False: the hits are given (exact), the table has no sdf channel
 
 
-def _mix(c, phase, cfg: _MarchConfig):
-    """(σ_t, source, sdf) from table samples c (..., C) and the per-ray phase value (R,); the
-    sdf is 1 (never a crossing) when the table has none."""
-    src = c[..., 1] + phase * c[..., 2] if cfg.has_sun else c[..., 1]
+def _mix(c, coef, cfg: _MarchConfig):
+    """(σ_t, source, sdf) from table samples c (..., C) — channels σ_t, j_iso, then one per
+    per-ray coefficient, then the sdf — and the per-ray coefficients (R, J): source =
+    j_iso + Σ_j coef_j·c_(2+j); the sdf is 1 (never a crossing) when the table has none."""
+    src = c[..., 1]
+    for j in range(cfg.n_coef):
+        src = src + coef[:, j] * c[..., 2 + j]
     return c[..., 0], src, (c[..., -1] if cfg.has_sdf else jnp.ones_like(c[..., 0]))
 
 
@@ -401,13 +418,13 @@ def _march_step_vjp(T, alive, ta, tb, a, b, lam_T, g_L, lam_hit):
     return lam_T, jnp.where(cross, 0.0, lam_hit), ga, gb
 
 
-def _unmix_ct(g, c, phase, cfg: _MarchConfig):
-    """Cotangents (σ_t, source, sdf) → raw table channels (R, C), and the phase's (R,)."""
+def _unmix_ct(g, c, coef, cfg: _MarchConfig):
+    """Cotangents (σ_t, source, sdf) → raw table channels (R, C), and the coefficients' (R, J)."""
     g_sig, g_src, g_sdf = g
     tail = [g_sdf] if cfg.has_sdf else []
-    if cfg.has_sun:
-        return jnp.stack([g_sig, g_src, phase * g_src] + tail, -1), g_src * c[:, 2]
-    return jnp.stack([g_sig, g_src] + tail, -1), jnp.zeros_like(g_src)
+    J = cfg.n_coef
+    chans = [g_sig, g_src] + [coef[:, j] * g_src for j in range(J)] + tail
+    return jnp.stack(chans, -1), g_src[:, None] * c[:, 2 : 2 + J]
 
 
 def _sample(table, p, geo):
@@ -449,8 +466,9 @@ def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: b
 def _march(table, phase, o, d, t0, t_end, cfg: _MarchConfig):
     """March a chunk of rays; returns (T, L, t_hit), each (R,) (t_hit = inf: no hit).
 
-    table: (n_nodes', C) flat table of σ_t, j_iso, [j_sun,] sdf (``_flat_table``); phase: (R,)
-    HG phase value of each ray; o, d: (R, 3); t0, t_end: (R,) the marched segment.
+    table: (n_nodes', C) flat table of σ_t, j_iso, [j_sun,] [j_aniso,] [sdf] (``_flat_table``);
+    phase: (R, J) per-ray source coefficients (the HG phase value towards the sun, the
+    anisotropic basis; see ``_mix``); o, d: (R, 3); t0, t_end: (R,) the marched segment.
     Differentiable in ``table`` and ``phase``; the march points do not depend on them, so
     ``o, d, t0, t_end`` get no cotangent.
 
@@ -506,7 +524,7 @@ _march.defvjp(_march_fwd, _march_bwd)
 
 
 def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
-    """What a chunk's march needs: (geo, has_sun, phase (R,), t0, t_end, reached).  The
+    """What a chunk's march needs: (geo, has_sun, coef (R, J), t0, t_end, reached).  The
     marched segment of each ray runs from its box entry to min(box exit, ``stop``) (``stop``:
     (R,) or None), capped at n_steps·step; ``reached``: the march gets to its segment's end."""
     dtype = o.dtype
@@ -514,10 +532,13 @@ def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
     hi = jnp.asarray(fields.hi, dtype)
     geo = (tuple(fields.lo.tolist()), fields.h, fields.shape, fields.periodic_xy)
     has_sun = fields.sun_dir is not None
+    coef = []
     if has_sun:
-        phase = hg_phase(d @ jnp.asarray(fields.sun_dir, dtype), jnp.asarray(fields.g, dtype))
-    else:
-        phase = jnp.zeros(o.shape[0], dtype)
+        coef.append(hg_phase(d @ jnp.asarray(fields.sun_dir, dtype),
+                             jnp.asarray(fields.g, dtype))[:, None])
+    if fields.harmonics is not None:  # light going towards the camera: −d
+        coef.append(basis(*fields.harmonics).evaluate(-d, jnp).astype(dtype))
+    phase = jnp.concatenate(coef, axis=1) if coef else jnp.zeros((o.shape[0], 0), dtype)
     t0, t1 = _clip(lo, hi, o, d, fields.periodic_xy, jnp)
     seg_end = t1 if stop is None else jnp.minimum(t1, stop)
     valid = seg_end > t0
@@ -535,7 +556,7 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
     TraceResult of (R,) arrays."""
     dtype = o.dtype
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, None, n_steps, step)
-    cfg = _MarchConfig(geo, has_sun, int(n_steps), float(step))
+    cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step))
     T, L, t_hit = _march(table, phase, o, d, t0, t_end, cfg)
 
     hit = (t_end > t0) & jnp.isfinite(t_hit)  # t_end > t0: the ray meets the box
@@ -589,7 +610,7 @@ def _trace_chunk_exact(fields: LatticeFields, table, surf_table, o, d, hits, *, 
     t_hit, n_hit, shape, sun_cos, sun_depth = hits
     dtype = o.dtype
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, t_hit, n_steps, step)
-    cfg = _MarchConfig(geo, has_sun, int(n_steps), float(step), has_sdf=False)
+    cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step), has_sdf=False)
     T, L, _ = _march(table, phase, o, d, t0, t_end, cfg)
 
     hit = (shape >= 0) & reached
@@ -624,13 +645,22 @@ def _chunks(arrays, chunk: int):
     return out, n
 
 
+def _source_channels(fields: LatticeFields) -> list:
+    """σ_t, j_iso, then one channel per per-ray coefficient of ``_segments``: j_sun (with a
+    sun), the K of j_aniso (with harmonics)."""
+    chans = [fields.sigma_t, fields.j_iso]
+    if fields.sun_dir is not None:
+        chans.append(fields.j_sun)
+    if fields.j_aniso is not None:
+        chans += [fields.j_aniso[..., k] for k in range(fields.j_aniso.shape[-1])]
+    return chans
+
+
 @partial(jax.jit, static_argnames=("n_steps", "step", "chunk"))
 def _trace_exact_jit(fields, origins, directions, hits, *, n_steps: int, step: float,
                      chunk: int):
     dtype = origins.dtype
-    chans = [fields.sigma_t, fields.j_iso] + ([fields.j_sun] if fields.sun_dir is not None
-                                              else [])
-    table = _flat_table(chans, dtype)
+    table = _flat_table(_source_channels(fields), dtype)
     surf_table = None
     if fields.irradiance is not None and fields.surface_normal is not None:
         nrm = jnp.asarray(fields.surface_normal, dtype)
@@ -647,9 +677,7 @@ def _trace_exact_jit(fields, origins, directions, hits, *, n_steps: int, step: f
 @partial(jax.jit, static_argnames=("n_steps", "step", "chunk"))
 def _trace_jit(fields, origins, directions, *, n_steps: int, step: float, chunk: int):
     dtype = origins.dtype
-    chans = [fields.sigma_t, fields.j_iso]
-    chans += ([fields.j_sun] if fields.sun_dir is not None else []) + [fields.sdf]
-    table = _flat_table(chans, dtype)  # (n_nodes', C), built once for all chunks
+    table = _flat_table(_source_channels(fields) + [fields.sdf], dtype)  # built once for all chunks
     rad = [fields.radiosity_ext]
     if fields.surface_normal is not None:
         nrm = jnp.asarray(fields.surface_normal, dtype)

@@ -22,8 +22,9 @@ from ...scene._description import Camera, Scene
 from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
+from ._harmonics import basis, delta_m
 from ._march import LatticeFields, RayHits, camera_hits, render_camera
-from ._solver import SweepGeometry, SweepSolver
+from ._solver import SweepGeometry, SweepSolver, check_point_sun
 from ._terms import check_terms
 
 #: step optical depth σ_t·h·M above which render and fit warn (ThickStepWarning): measured on
@@ -53,9 +54,11 @@ class CameraGeometry(eqx.Module):
     sun_dir: tuple[float, float, float] | None = eqx.field(static=True)
     periodic_xy: bool = eqx.field(static=True)
     has_surfaces: bool = eqx.field(static=True)
+    M: int = eqx.field(static=True, default=0)  # the light solve's direction half-width
 
     @classmethod
-    def build(cls, scene: Scene, lattice, exact_hits: bool = False) -> "CameraGeometry":
+    def build(cls, scene: Scene, lattice, exact_hits: bool = False,
+              M: int = 0) -> "CameraGeometry":
         nt = np.asarray(lattice.node_type)
         periodic = lattice.boundary == "periodic-xy"
         surf = nt == SURFACE
@@ -71,14 +74,18 @@ class CameraGeometry(eqx.Module):
             sun_dir=None if scene.sun is None else tuple(float(x) for x in scene.sun.direction),
             periodic_xy=periodic,
             has_surfaces=bool(surf.any()),
+            M=int(M),
         )
 
 
 def camera_fields(cam: CameraGeometry, density, light: LightField, params: Params) -> LatticeFields:
     """The node fields a camera marches through, from a converged light field.
 
-    Extinction and the isotropic source use the solver's δ-isotropic scaling ζ' = ζ(1−g) (exact
-    for g = 0); the sun's single scattering uses the full ζ with the Henyey–Greenstein phase.
+    Extinction and the multiply scattered source use the solver's δ-M scaling ζ' = ζ(1 − f)
+    (``SweepSolver.phase_order`` L: f = g^(L+1); L = 0 is the δ-isotropic ζ(1 − g), exact for
+    g = 0), with the source's angular part from the light's moments when L > 0; the sun's
+    single scattering uses the full ζ with the Henyey–Greenstein phase (for L > 0 the
+    uncollided sun is attenuated by the true extinction, as the solve's first collision is).
     Values are extended from the nearest fluid node into solids and from the nearest SURFACE
     node for the radiosity, so that trilinear interpolation near a surface stays sensible.
     With exact hits the density is the fog's own, ignoring solids (``cam.fog_density``): the
@@ -90,10 +97,18 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         dens = cam.fog_density.astype(dt)
     else:
         dens = ext(density.astype(dt), cam.near_fluid)
-    zeta_r = params.scattering * (1.0 - params.g)
+    K = 0 if light.moments is None else light.moments.shape[-1]
+    order = math.isqrt(K + 1) - 1
+    f, coef = delta_m(params.g, order, jnp)
+    zeta_r = params.scattering * (1.0 - f)
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
     j_sun = params.scattering * dens * ext(light.sun_fluence, cam.near_fluid)
+    j_aniso = None
+    if order > 0:
+        mom = light.moments if light.sky_moments is None else light.moments + light.sky_moments
+        mom = jax.vmap(lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(mom)
+        j_aniso = (zeta_r * dens)[..., None] * coef[basis(order, cam.M).degree - 1] * mom
     if cam.has_surfaces:
         rad = ext(light.radiosity, cam.near_surface)
         irr = ext(light.irradiance, cam.near_surface)
@@ -116,7 +131,9 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         albedo=params.albedo,
         emission=params.emission,
         sun_irradiance=params.sun_irradiance,
-        sun_extinction=zeta_r + params.absorption,
+        sun_extinction=(zeta_r if order == 0 else params.scattering) + params.absorption,
+        j_aniso=j_aniso,
+        harmonics=None if order == 0 else (order, cam.M),
     )
 
 
@@ -149,6 +166,7 @@ class SweepModel(AbstractForwardModel):
 
     def __init__(self, scene: Scene, *, resolution: int = 64, solver: SweepSolver | None = None,
                  supersample: int = 2, cameras=None):
+        check_point_sun(scene)  # before any work
         self.scene = scene
         self.solver = solver if solver is not None else SweepSolver()
         self.supersample = int(supersample)
@@ -162,7 +180,7 @@ class SweepModel(AbstractForwardModel):
         self.geometry = self.solver.prepare(scene, lattice)
         periodic = lattice.boundary == "periodic-xy"
         exact = not (periodic and scene.shapes)
-        self.camera_geometry = CameraGeometry.build(scene, lattice, exact)
+        self.camera_geometry = CameraGeometry.build(scene, lattice, exact, M)
         self.density = jnp.asarray(lattice.density, jnp.float32)
         prepare_s = time.perf_counter() - t
         t = time.perf_counter()
@@ -189,8 +207,8 @@ class SweepModel(AbstractForwardModel):
     def step_warning(self, params: Params) -> str | None:
         """Warn above a step optical depth σ_t·h·M of 1 (``THICK_STEP``)."""
         try:
-            ext = (float(params.scattering) * (1.0 - float(params.g))
-                   + float(params.absorption))
+            f = float(params.g) ** (self.geometry.order + 1)
+            ext = float(params.scattering) * (1.0 - f) + float(params.absorption)
         except (TypeError, jax.errors.ConcretizationTypeError):  # traced or batched: no check
             return None
         lat = self.lattice
@@ -223,6 +241,7 @@ class SweepModel(AbstractForwardModel):
                                "tol": s.tol, "sky_quadrature": s.sky_quadrature,
                                "terms": s.terms, "devices": s.devices,
                                "precondition": s.resolved_precondition(self.geometry),
+                               "phase_order": self.geometry.order,
                                "kernel": s.resolved_kernel()},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides

@@ -33,6 +33,7 @@ from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
 from ._implicit import CheckedSolver, fixed_point
 from ._dsa import DiffusionOperator
+from ._harmonics import MAX_ORDER, basis, delta_m
 from ._krylov import gmres
 from ._lightfield import LightField
 from ...scene._params import Params
@@ -41,6 +42,7 @@ from ._uncollided import sky_uncollided, sun_transmittance
 from ._kernel import (
     FaceGeometry,
     SweepConsts,
+    cell_samples,
     face_consts,
     from_face,
     sky_boundary,
@@ -52,6 +54,8 @@ from ._kernel import (
 )
 
 METHODS = ("auto", "jacobi", "gmres")
+#: phase_order="auto" for a Henyey–Greenstein fog with g ≠ 0 (measured: docs/validation.md)
+DEFAULT_PHASE_ORDER = 3
 PRECONDITIONERS = ("auto", "none", "diffusion")
 #: precondition="auto" uses the diffusion preconditioner from this diffusive size on (the
 #: lesser of the fog's optical size and its diffusion length, in mean free paths:
@@ -85,6 +89,15 @@ class SweepGeometry(eqx.Module):
     warmup: int = eqx.field(static=True)
     terms: Terms = eqx.field(static=True, default=None)
     optical_size: float = eqx.field(static=True, default=0.0)  # of the scene's fog (prepare)
+    order: int = eqx.field(static=True, default=0)  # δ-M order L of the phase (0: isotropic)
+    # order > 0 with a sun: cos Θ to the sun's light at n² points over each face direction's
+    # cell and their weights, (6, D, n²) each (the cell-averaged phase of the first-collision sun)
+    sun_cells: tuple[jax.Array, jax.Array] | None = None
+
+    @property
+    def n_moments(self) -> int:
+        """K = (L+1)² − 1: the angular moments carried per node beyond the fluence."""
+        return (self.order + 1) ** 2 - 1
 
     def vol_range(self, face: int) -> tuple[int, int] | None:
         """Planes [lo, hi) along a face's sweep (face frame) where the fog step is needed: the
@@ -108,8 +121,23 @@ class SweepGeometry(eqx.Module):
         return per(axis), per(u), per(v)
 
 
-def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto") -> SweepGeometry:
-    """Host-side preparation of the static geometry (once per scene and lattice)."""
+def check_point_sun(scene) -> None:
+    """The sweep's sun is a point: refuse a scene whose sun has an angular radius (the light
+    solve's first collision, the shadow rays of the cameras' exact hits and the single
+    scattering towards the cameras all use the sun's centre), rather than ignore it."""
+    if scene.sun is not None and scene.sun.angular_radius_deg > 0:
+        raise SceneError(
+            f"sun.angular_radius_deg = {scene.sun.angular_radius_deg:g}: the sweep solver treats "
+            f"the sun as a point (hard shadows); set it to 0 (--set sun.angular_radius_deg=0; "
+            f"the real sun, 0.27°, blurs a shadow edge over ~1% of its occluder's distance) "
+            f"or render with solver \"splat\", which draws the penumbra")
+
+
+def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
+                  order: int = 0) -> SweepGeometry:
+    """Host-side preparation of the static geometry (once per scene and lattice); ``order``:
+    the δ-M order L of the anisotropic phase (0: isotropic or δ-isotropic)."""
+    check_point_sun(scene)
     M = int(M or lattice.M)
     if M > lattice.M:
         raise SceneError(
@@ -117,6 +145,7 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto") -> 
             f"voxelize with M >= {M} so rays cannot jump over a surface"
         )
     dirs = direction_set(M)
+    harm = basis(order, M) if order > 0 else None
     nt = np.asarray(lattice.node_type)
     free, surf, solid = nt == FREE, nt == SURFACE, nt == SOLID
     normal = np.asarray(lattice.normal, dtype=np.float64)
@@ -157,7 +186,8 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto") -> 
     warmup = int(M * lattice.shape[2]) if periodic_xy else 0
     return SweepGeometry(
         faces=tuple(faces),
-        consts=tuple(face_consts(dirs, f) for f in range(6)),
+        consts=tuple(face_consts(dirs, f, None if harm is None else harm.faces)
+                     for f in range(6)),
         sky_frac=f32(np.stack([sky_boundary(dirs, f) for f in range(6)])),
         free=jnp.asarray(free),
         surf=jnp.asarray(surf),
@@ -176,7 +206,18 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto") -> 
         warmup=warmup,
         terms=choose_terms(scene, lattice, terms=terms),
         optical_size=_optical_size(scene, lattice, solid),
+        order=int(order),
+        sun_cells=None if harm is None or sun_dir is None else _sun_cells(dirs, sun_dir),
     )
+
+
+def _sun_cells(dirs, sun_dir):
+    cos, wt = [], []
+    for f in range(6):
+        vec, w = cell_samples(dirs, f)
+        cos.append(vec @ -np.asarray(sun_dir))  # the sun's light propagates along −sun_dir
+        wt.append(w)
+    return jnp.asarray(np.stack(cos), jnp.float32), jnp.asarray(np.stack(wt), jnp.float32)
 
 
 def _host_face(x: np.ndarray, axis: int, sign: int) -> np.ndarray:
@@ -232,6 +273,10 @@ class _Problem(eqx.Module):
     precondition: str = eqx.field(static=True, default="none")  # "none" | "diffusion" (resolved)
     kernel: str = eqx.field(static=True, default="loop")  # "loop" | "batched" (resolved)
     fog_mask: jax.Array | None = None  # the terms restrict the fog work: nodes whose Λ is kept
+    phase_coef: jax.Array | None = None  # (K,) δ-M Legendre coefficient g'_l of each moment
+    sky_moments: jax.Array | None = None  # (nx, ny, nz, K) uncollided sky Σ_k w_k T_k Ỹ(ω_k)
+    sun_albedo: jax.Array | None = None  # ζ/(ζ' + γ): the first-collision sun's albedo
+    sun_phase: tuple[jax.Array, ...] | None = None  # per face (D,): its cell-averaged phase
 
 
 def _report(meter: AbstractProgressMeter):
@@ -245,12 +290,38 @@ def _report(meter: AbstractProgressMeter):
     return report
 
 
+def _mask(cond, x, value=0.0):
+    """``where(cond, value, x)`` with ``cond`` (nx, ny, nz) broadcast over x's channels."""
+    return jnp.where(cond[..., None] if x.ndim > cond.ndim else cond, value, x)
+
+
 def _sources(state, pb: _Problem):
+    """(Q, B): the step source radiance at fog nodes — (nx, ny, nz), or with an anisotropic
+    phase (nx, ny, nz, 1 + K [+ 1]): the isotropic part, then each moment's ζ'/σ_t'·g'_l·m_k
+    (the collided light's and the uncollided sky's moments), then with a sun the
+    first-collision sun's ζ/σ_t'·F·T̄, so that direction d's source is
+    Q_0 + Σ_k Ỹ_k(d) Q_k + P_d Q_sun (P_d: the exact phase averaged over d's cell) — and the
+    radiosity B of surface nodes."""
     lam, irr = state
     g = pb.geom
-    q = jnp.where(g.solid, 0.0, pb.ssa * (lam + pb.sun_fluence + pb.sky_fluence) / FOUR_PI)
+    if g.order == 0:
+        q = jnp.where(g.solid, 0.0, pb.ssa * (lam + pb.sun_fluence + pb.sky_fluence) / FOUR_PI)
+    else:
+        q0 = pb.ssa * (lam[..., 0] + pb.sky_fluence) / FOUR_PI
+        mom = lam[..., 1:] if pb.sky_moments is None else lam[..., 1:] + pb.sky_moments
+        parts = [q0[..., None], pb.ssa[..., None] * pb.phase_coef * mom]
+        if pb.sun_phase is not None:
+            parts.append((pb.sun_albedo * pb.sun_fluence)[..., None])
+        q = _mask(g.solid, jnp.concatenate(parts, axis=-1))
     b = jnp.where(g.surf, pb.emission + pb.rho / math.pi * (g.cnorm * irr + pb.direct), 0.0)
     return q, b
+
+
+def _zero_state(pb: _Problem):
+    g = pb.geom
+    dt = pb.sigma_t.dtype
+    lam_shape = g.shape + ((1 + g.n_moments,) if g.order > 0 else ())
+    return jnp.zeros(lam_shape, dt), jnp.zeros(g.shape, dt)
 
 
 def segment_depth(sigma_t, M: int, axis: int, periodic: bool):
@@ -276,14 +347,17 @@ def segment_depth(sigma_t, M: int, axis: int, periodic: bool):
 
 def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     g = pb.geom
-    lam = jnp.zeros_like(q)
-    irr = jnp.zeros_like(q)
+    lam = jnp.zeros(q.shape[:3] + ((1 + g.n_moments,) if g.order > 0 else ()), q.dtype)
+    irr = jnp.zeros(q.shape[:3], q.dtype)
     exits = [None] * len(FACE_AXES)
 
     def face_args(f):
         axis, sign = FACE_AXES[f]
+        consts = g.consts[f]
+        if pb.sun_phase is not None:
+            consts = dataclasses.replace(consts, sun_phase=pb.sun_phase[f])
         return (to_face(q, axis, sign), to_face(b, axis, sign), pb.tau_half[f],
-                pb.sky * g.sky_frac[f], g.faces[f], g.consts[f])
+                pb.sky * g.sky_frac[f], g.faces[f], consts)
 
     pl = g.terms
     kw = dict(M=g.M, warmup=g.warmup, surfaces=g.has_surfaces, kernel=pb.kernel,
@@ -317,14 +391,14 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                                                        periodic=g.periodic(f), **kw)
                     lam = lam + from_face(lf, axis, sign)
                     irr = irr + from_face(ef, axis, sign)
-    lam = jnp.where(g.solid, 0.0, lam)
+    lam = _mask(g.solid, lam)
     if pb.fog_mask is not None and nf * npu * npv == 1:
         # Λ only where some segment has fog (τ > 0): the restricted sweeps skip the rest, and
         # it is never used there (the source is multiplied by τ; the camera by the density).
         # On a device mesh the sweeps are not restricted and the mask is applied to the result
         # only (``solve``): inside the operator it stalled the sharded adjoint's GMRES (seen on
         # fog-balls, mesh (1, 2, 2): the gradient off by 10-40x while the JVP was right).
-        lam = jnp.where(pb.fog_mask, lam, 0.0)
+        lam = _mask(~pb.fog_mask, lam)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
 
@@ -370,7 +444,6 @@ def _iterate(pb: _Problem):
     Δ·ρ/(1-ρ) (geometric tail); stopping on Δ alone stops too early when ρ is near 1.
     """
     dt = pb.sigma_t.dtype
-    zero = jnp.zeros(pb.geom.shape, dt)
     hist0 = jnp.full((pb.max_iterations,), jnp.nan, dt)
 
     def cond(c):
@@ -387,20 +460,22 @@ def _iterate(pb: _Problem):
             jax.debug.callback(report, k + 1, d, err)
         return new, k + 1, d, err, hist.at[k].set(d)
 
-    init = ((zero, zero), jnp.asarray(0), jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt), hist0)
+    init = (_zero_state(pb), jnp.asarray(0), jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt),
+            hist0)
     state, k, _, err, hist = jax.lax.while_loop(cond, body, init)
     return state, (hist, k, err)
 
 
-_SOURCE_FIELDS = ("sun_fluence", "sky_fluence", "emission", "direct", "sky")
+_SOURCE_FIELDS = ("sun_fluence", "sky_fluence", "emission", "direct", "sky", "sky_moments")
 
 
 def _with_sources(pb: _Problem, on) -> _Problem:
     """The same problem with its sources (emission, sun, sky) kept where ``on`` (a traced bool)
     and zeroed elsewhere: without them the Jacobi map is the linear one-bounce operator K of
     x = Kx + b."""
-    return eqx.tree_at(lambda p: tuple(getattr(p, f) for f in _SOURCE_FIELDS), pb,
-                       tuple(jnp.where(on, getattr(pb, f), 0.0) for f in _SOURCE_FIELDS))
+    fields = [f for f in _SOURCE_FIELDS if getattr(pb, f) is not None]
+    return eqx.tree_at(lambda p: tuple(getattr(p, f) for f in fields), pb,
+                       tuple(jnp.where(on, getattr(pb, f), 0.0) for f in fields))
 
 
 def _iterate_gmres(pb: _Problem):
@@ -411,8 +486,9 @@ def _iterate_gmres(pb: _Problem):
     """
     dt = pb.sigma_t.dtype
     shape = pb.geom.shape
-    n = math.prod(shape)
-    zero = jnp.zeros(shape, dt)
+    zero_lam, zero = _zero_state(pb)
+    lam_shape = zero_lam.shape
+    n = math.prod(lam_shape)
     surfaces = pb.geom.has_surfaces
 
     def flat(state):
@@ -420,33 +496,46 @@ def _iterate_gmres(pb: _Problem):
         return jnp.concatenate([lam.ravel(), irr.ravel()]) if surfaces else lam.ravel()
 
     def unflat(v):
-        return (v[:n].reshape(shape), v[n:].reshape(shape) if surfaces else zero)
+        return (v[:n].reshape(lam_shape), v[n:].reshape(shape) if surfaces else zero)
 
     def apply_k(v, with_sources):
         return flat(_jacobi(unflat(v), _with_sources(pb, with_sources)))
 
     precondition = None
     if pb.precondition == "diffusion":
+        # the transport-corrected diffusion coefficient: σ_t' − σ_s'·g'_1
+        mu_bar = 0.0 if pb.geom.order == 0 else pb.phase_coef[0]
         dsa = DiffusionOperator(pb.sigma_t, pb.ssa, pb.geom.solid, pb.geom.h,
-                                pb.geom.periodic_xy, pb.geom.M)
+                                pb.geom.periodic_xy, pb.geom.M, mu_bar=mu_bar)
 
         def precondition(v):
-            lam = dsa.precondition(v[:n].reshape(shape)).ravel()
-            return jnp.concatenate([lam, v[n:]]) if surfaces else lam
+            lam = v[:n].reshape(lam_shape)
+            if pb.geom.order == 0:
+                lam = dsa.precondition(lam)
+            else:  # the fluence (channel 0); the moments pass through
+                lam = lam.at[..., 0].set(dsa.precondition(lam[..., 0]))
+            return jnp.concatenate([lam.ravel(), v[n:]]) if surfaces else lam.ravel()
 
-    x, hist, k, err = gmres(apply_k, (n * (2 if surfaces else 1),), dt, restart=pb.restart,
+    size = n + (math.prod(shape) if surfaces else 0)
+    x, hist, k, err = gmres(apply_k, (size,), dt, restart=pb.restart,
                             max_matvecs=pb.max_iterations, tol=pb.tol,
                             progress=_report(pb.progress), precondition=precondition)
     # Λ and E are non-negative; GMRES's iterate can dip below 0 by its residual.  Projecting
-    # onto x ≥ 0 only moves it closer to the (non-negative) solution.
-    return unflat(jnp.maximum(x, 0.0)), (hist, k, err)
+    # onto x ≥ 0 only moves it closer to the (non-negative) solution.  (The moments of an
+    # anisotropic phase have either sign.)
+    lam, irr = unflat(x)
+    if pb.geom.order == 0:
+        lam = jnp.maximum(lam, 0.0)
+    else:
+        lam = lam.at[..., 0].set(jnp.maximum(lam[..., 0], 0.0))
+    return (lam, jnp.maximum(irr, 0.0)), (hist, k, err)
 
 
 def _single_pass(pb: _Problem):
     """Nothing scatters or reflects (the terms): K = 0 and one pass is the solution."""
-    zero = jnp.zeros(pb.geom.shape, pb.sigma_t.dtype)
-    hist = jnp.full((pb.max_iterations,), jnp.nan, zero.dtype).at[0].set(1.0)
-    return _jacobi((zero, zero), pb), (hist, jnp.asarray(1), jnp.asarray(0.0, zero.dtype))
+    dt = pb.sigma_t.dtype
+    hist = jnp.full((pb.max_iterations,), jnp.nan, dt).at[0].set(1.0)
+    return _jacobi(_zero_state(pb), pb), (hist, jnp.asarray(1), jnp.asarray(0.0, dt))
 
 
 def _solve_fixed_point(pb: _Problem):
@@ -509,6 +598,14 @@ class SweepSolver(eqx.Module):
         row tiles and directions: 2-3x faster on a CPU), "batched" (all directions of a slab
         in one array: 130x faster than "loop" on an H100, measured), or "auto" (default): the
         one for JAX's default backend (``kernel_for``).  Same values and derivatives.
+    phase_order: the order L of the Henyey–Greenstein phase in the light solve (δ-M scaling,
+        ``_harmonics.py``): each fog node carries (L+1)² angular moments of its radiance and
+        each direction's in-scatter source is rebuilt from them; the forward peak g^(L+1) is
+        treated as unscattered.  0 is the δ-isotropic scaling (one moment, the fluence: what
+        an isotropic fog needs).  "auto" (default): 0 for an isotropic fog (g = 0 at
+        ``prepare``), else ``DEFAULT_PHASE_ORDER``.  The cameras' single scattering of the sun
+        always uses the exact phase.  Cost: about K = (L+1)² − 1 more multiply-adds per node
+        and direction, and K more numbers per node in the solve's vectors.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -526,6 +623,7 @@ class SweepSolver(eqx.Module):
     terms: str = eqx.field(static=True, default="auto")
     precondition: str = eqx.field(static=True, default="auto")
     kernel: str = eqx.field(static=True, default="auto")
+    phase_order: int | str = eqx.field(static=True, default="auto")
 
     def layout(self) -> tuple[int, int, int]:
         """The (faces, u, v) device mesh the sweeps run on."""
@@ -562,6 +660,11 @@ class SweepSolver(eqx.Module):
         if self.kernel not in KERNELS:
             raise SceneError(f"SweepSolver: kernel must be one of {', '.join(KERNELS)}, "
                              f"got {self.kernel!r}")
+        po = self.phase_order
+        if po != "auto" and (isinstance(po, bool) or not isinstance(po, int)
+                             or not 0 <= po <= MAX_ORDER):
+            raise SceneError(f"SweepSolver: phase_order must be \"auto\" or an integer in "
+                             f"[0, {MAX_ORDER}], got {po!r}")
         if not isinstance(self.restart, int) or self.restart < 2:
             raise SceneError(f"SweepSolver: restart must be an integer >= 2, got {self.restart!r}")
 
@@ -580,18 +683,40 @@ class SweepSolver(eqx.Module):
         """The face-sweep program ``kernel`` stands for on JAX's default backend."""
         return kernel_for() if self.kernel == "auto" else self.kernel
 
+    def resolved_phase_order(self, scene=None) -> int:
+        """The δ-M order ``phase_order`` stands for in ``scene``."""
+        if self.phase_order != "auto":
+            return int(self.phase_order)
+        g = 0.0 if scene is None or scene.fog is None else float(scene.fog.g or 0.0)
+        return 0 if g == 0.0 else DEFAULT_PHASE_ORDER
+
     def prepare(self, scene, lattice) -> SweepGeometry:
         """The static structure of ``scene`` on ``lattice`` (host, once)."""
-        return prepare_sweep(scene, lattice, self.M, self.terms)
+        return prepare_sweep(scene, lattice, self.M, self.terms, self.resolved_phase_order(scene))
 
     def problem(self, geom: SweepGeometry, params: Params) -> _Problem:
         dt = params.scattering.dtype
-        zeta = params.scattering * (1.0 - params.g)  # δ-isotropic scaling for HG (exact if g=0)
+        # δ-M scaling of the HG phase at the geometry's order (order 0: δ-isotropic, f = g;
+        # exact for g = 0): the forward peak f is unscattered, ζ' = ζ(1 − f)
+        f, phase_coef = delta_m(params.g, geom.order, jnp)
+        zeta = params.scattering * (1.0 - f)
         ext = zeta + params.absorption
         sigma_t = ext * geom.density.astype(dt)
+        sun_albedo = sun_phase = None
+        if geom.sun_dir is not None and geom.order > 0:
+            # the first collision of the sun exactly: its beam loses all it scatters (true
+            # extinction), and scatters with the exact phase averaged over each direction's
+            # cell; only the light scattered again is δ-M scaled
+            sigma_sun = (params.scattering + params.absorption) * geom.density.astype(dt)
+            # ζ/σ_t' per unit density, like ``ssa``: a node without fog of its own whose
+            # segments reach into fog must re-emit what they take (energy)
+            sun_albedo = safe_div(params.scattering, ext)
+            sun_phase = _cell_phase(geom, params.g, dt)
+        else:
+            sigma_sun = sigma_t
         if geom.sun_dir is not None:
             # the point value lights surfaces; the segment average feeds the fog's source
-            t_sun, t_sun_avg = sun_transmittance(sigma_t, geom.solid, np.array(geom.sun_dir),
+            t_sun, t_sun_avg = sun_transmittance(sigma_sun, geom.solid, np.array(geom.sun_dir),
                                                  geom.h, geom.periodic_xy, average=True)
             sun_point = params.sun_irradiance * t_sun
             sun_fluence = params.sun_irradiance * t_sun_avg
@@ -599,15 +724,20 @@ class SweepSolver(eqx.Module):
             sun_point = sun_fluence = jnp.zeros(geom.shape, dt)
         n_mu, n_phi = self.sky_quadrature or ((0, 0) if geom.periodic_xy else (8, 16))
         no_sky = geom.terms is not None and geom.terms.sky == "none"
+        sky_moments = None
         if no_sky:  # the terms: no [sky], no sky pass
             sky_fluence = jnp.zeros(geom.shape, dt)
             sky_direct = jnp.zeros(geom.shape, dt)
             lattice_sky = jnp.zeros_like(params.sky_radiance)
         elif n_mu > 0 and n_phi > 0:
             sdirs, swts = sky_quadrature(n_mu, n_phi)
-            flu, irr = sky_uncollided(sigma_t, geom.solid, geom.normal, sdirs, swts, geom.h,
-                                      geom.periodic_xy)
+            harm = (basis(geom.order, geom.M).evaluate(-np.asarray(sdirs)) if geom.order > 0
+                    else None)  # the sky light's propagation directions
+            flu, irr, *mom = sky_uncollided(sigma_t, geom.solid, geom.normal, sdirs, swts,
+                                            geom.h, geom.periodic_xy, harm=harm)
             sky_fluence = jnp.where(geom.solid, 0.0, params.sky_radiance * flu)
+            if mom:
+                sky_moments = _mask(geom.solid, params.sky_radiance * mom[0])
             sky_direct = jnp.where(geom.surf, params.sky_radiance * irr, 0.0)
             lattice_sky = jnp.zeros_like(params.sky_radiance)
         else:
@@ -640,6 +770,11 @@ class SweepSolver(eqx.Module):
             direct=sun_point * geom.sun_cos.astype(dt) + sky_direct,
             sky_direct=sky_direct,
             sky=lattice_sky,
+            phase_coef=(None if geom.order == 0
+                        else phase_coef[geom_degrees(geom) - 1].astype(dt)),
+            sky_moments=sky_moments,
+            sun_albedo=sun_albedo,
+            sun_phase=sun_phase,
             max_iterations=self.max_iterations,
             tol=self.tol,
             progress=self.progress,
@@ -669,9 +804,17 @@ class SweepSolver(eqx.Module):
         root, (hist, k, err) = fixed_point(_solve_fixed_point, _rewrite, pb, linear_solver)
         q, b = _sources(root, pb)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
-        fluence = root[0] if pb.fog_mask is None else jnp.where(pb.fog_mask, root[0], 0.0)
+        lam = root[0] if pb.fog_mask is None else _mask(~pb.fog_mask, root[0])
+        moments = None
+        if geom.order > 0:
+            lam, moments = lam[..., 0], lam[..., 1:]
+            q = q[..., 0]  # the isotropic part (with the sun's, as if it scattered isotropically)
+            if pb.sun_phase is not None:
+                q = q + pb.sun_albedo * pb.sun_fluence / FOUR_PI
         return LightField(
-            fluence=fluence,
+            fluence=lam,
+            moments=moments,
+            sky_moments=pb.sky_moments,
             sun_fluence=pb.sun_fluence,
             sky_fluence=pb.sky_fluence,
             radiosity=b,
@@ -684,6 +827,40 @@ class SweepSolver(eqx.Module):
             origin=geom.origin,
             h=geom.h,
         )
+
+
+def source_field(pb: _Problem, light: LightField, sun: bool = True):
+    """The converged step source Q of ``light``: (nx, ny, nz), or with an anisotropic phase
+    (nx, ny, nz, 1 + K [+ 1]) (see ``_sources``).  ``sun=False``: without the uncollided sun's
+    part (what a camera replaces by the exact phase function's single scattering; no sun
+    channel)."""
+    if pb.geom.order == 0 and sun:
+        return light.source
+    if not sun:
+        pb = eqx.tree_at(lambda p: p.sun_fluence, pb, jnp.zeros_like(pb.sun_fluence))
+    lam = light.fluence if pb.geom.order == 0 else jnp.concatenate(
+        [light.fluence[..., None], light.moments], axis=-1)
+    q = _sources((lam, jnp.zeros(pb.geom.shape, lam.dtype)), pb)[0]
+    if pb.geom.order > 0 and not sun and pb.sun_phase is not None:
+        q = q[..., :-1]
+    return q
+
+
+def _cell_phase(geom: SweepGeometry, g, dt):
+    """Per face (D,): the Henyey–Greenstein phase of the sun's light averaged over each
+    direction's cell, normalized so that Σ_d w_d P_d = 1 over all faces (the first collision
+    re-emits exactly what it scatters)."""
+    cos, wt = geom.sun_cells
+    cos, wt = cos.astype(dt), wt.astype(dt)
+    p = (wt * (1.0 - g * g) / (FOUR_PI * (1.0 + g * g - 2.0 * g * cos) ** 1.5)).sum(-1)  # (6, D)
+    w = jnp.stack([c.weight.astype(dt) for c in geom.consts])
+    p = p / (w * p).sum()
+    return tuple(p[f] for f in range(6))
+
+
+def geom_degrees(geom: SweepGeometry) -> np.ndarray:
+    """(K,) the degree l ≥ 1 of each moment the geometry carries."""
+    return basis(geom.order, geom.M).degree
 
 
 def _result_code(root, k, err, tol: float, max_iterations: int):
@@ -726,5 +903,10 @@ def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2
     if geom.terms is not None and not geom.terms.volume_source:  # the moment needs accumulating
         full = dataclasses.replace(geom.terms, volume_source=True, fog_slabs=None)
         pb_m = eqx.tree_at(lambda p: p.geom, pb_m, dataclasses.replace(pb_m.geom, terms=full))
+    if geom.order > 0:  # the full anisotropic source, from the converged state
+        lam = jnp.concatenate([light.fluence[..., None], light.moments], axis=-1)
+        q, _ = _sources((lam, jnp.zeros(geom.shape, lam.dtype)), pb)
+        flux, _ = _sweep_all(q, light.radiosity, pb_m)
+        return flux[..., 0]
     flux, _ = _sweep_all(light.source, light.radiosity, pb_m)
     return flux

@@ -92,8 +92,10 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
     return (t_arr, t_avg) if average else t_arr
 
 
-def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
-    """Uncollided sky light at every node: Σ_k w_k T_k and Σ_k w_k T_k max(0, ω_k·N).
+def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, harm=None):
+    """Uncollided sky light at every node: Σ_k w_k T_k and Σ_k w_k T_k max(0, ω_k·N), and with
+    ``harm`` ((n_dirs, K) basis values at each direction's propagation direction) the moments
+    Σ_k w_k T̄_k Ỹ(−ω_k) (nx, ny, nz, K) as a third result.
 
     The directions are grouped by their dominant axis and each group is swept sheet by sheet
     along that axis, so the lateral offset per sheet is at most one voxel: marching every
@@ -113,6 +115,7 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
             groups.setdefault(key, []).append(k)
     flu = jnp.zeros_like(sigma_t)
     irr = jnp.zeros_like(sigma_t)
+    mom = None if harm is None else jnp.zeros(sigma_t.shape + (harm.shape[1],), sigma_t.dtype)
     for (a, sgn), idx in groups.items():
         idx = np.asarray(idx)
         u, v = face_plane_axes(a)
@@ -123,14 +126,18 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy):
         op = flip(jnp.transpose(opaque, perm))
         nm = normal[..., list(perm)] * jnp.asarray([1.0, 1.0, float(sgn)], normal.dtype)
         nm = flip(jnp.transpose(nm, perm + (3,)))
-        f, e = _sheet_sweep(st, op, nm, d, wts[idx], h, periodic_xy)
+        out = _sheet_sweep(st, op, nm, d, wts[idx], h, periodic_xy,
+                           harm=None if harm is None else np.asarray(harm)[idx])
         inv = np.argsort(perm)
-        flu = flu + jnp.transpose(flip(f), inv)
-        irr = irr + jnp.transpose(flip(e), inv)
-    return flu, irr
+        flu = flu + jnp.transpose(flip(out[0]), inv)
+        irr = irr + jnp.transpose(flip(out[1]), inv)
+        if harm is not None:
+            mom = mom + jnp.transpose(flip(out[2]), tuple(inv) + (3,))
+    return (flu, irr) if harm is None else (flu, irr, mom)
 
 
-def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_shift=None):
+def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_shift=None,
+                 harm=None):
     """Batched light-aligned sheet sweep along −z (the frame of :func:`sky_uncollided`).
 
     For each quadrature direction ω_k (towards the sky) the transmittance T_k(x) from the top
@@ -141,6 +148,8 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
     sigma_t, opaque: (nx, ny, nz); normal: (nx, ny, nz, 3); sky_dirs (K, 3) static.
     by_shift: resample by whole-sheet shifts (open domains whose offsets per sheet are within
     one voxel; None: whenever they are) or by gathers (False).
+    harm: (K_dirs, K) basis values per direction: also return the moments Σ_k w_k T̄_k harm_k
+    (nx, ny, nz, K), T̄ averaged like the fluence's.
     """
     nx, ny, nz = sigma_t.shape
     dirs = np.asarray(sky_dirs, np.float64)
@@ -169,6 +178,7 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
     path = jnp.asarray(h / (2.0 * dirs[:, 2]), dt)[:, None, None]  # half-sheet path length
     w = jnp.asarray(sky_wts, dt)
     wd = jnp.asarray(dirs, dt)
+    wh = None if harm is None else jnp.asarray(np.asarray(sky_wts)[:, None] * harm, dt)
 
     # Each direction's lateral offset per sheet lies in [−1, 1] voxels when the directions are
     # grouped by dominant axis (open domains): then the bilinear resampling is a combination of
@@ -209,14 +219,17 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
         t_arr = t_in * half
         t_out = jnp.where(o_k[None], 0.0, t_arr * half)
         # the source's fluence: averaged over the node's segment (see sun_transmittance)
-        flu = jnp.einsum("kij,k->ij", t_in * one_minus_exp_over(2.0 * tau), w)
+        t_avg = t_in * one_minus_exp_over(2.0 * tau)
+        flu = jnp.einsum("kij,k->ij", t_avg, w)
         cos = jnp.maximum(jnp.einsum("ijc,kc->kij", n_k, wd), 0.0)
         irr = jnp.einsum("kij,k->ij", t_arr * cos, w)
+        if wh is not None:
+            return t_out, (flu, irr, jnp.einsum("kij,kc->ijc", t_avg, wh))
         return t_out, (flu, irr)
 
     # sheets from the top (z = nz-1) down
     xs = (jnp.moveaxis(sigma_t, 2, 0)[::-1], jnp.moveaxis(opaque, 2, 0)[::-1],
           jnp.moveaxis(normal.astype(dt), 2, 0)[::-1])
     init = jnp.ones((K, nx, ny), dt)
-    _, (flu, irr) = jax.lax.scan(step, init, xs)
-    return jnp.moveaxis(flu[::-1], 0, 2), jnp.moveaxis(irr[::-1], 0, 2)
+    _, out = jax.lax.scan(step, init, xs)
+    return tuple(jnp.moveaxis(a[::-1], 0, 2) for a in out)

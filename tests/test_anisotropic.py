@@ -1,0 +1,235 @@
+"""Henyey–Greenstein scattering in the sweep (``SweepSolver.phase_order``): the angular basis,
+exact limits (an isotropic phase through the anisotropic path, the furnace), slabs against
+adding-doubling, the two kernels, and gradients against finite differences."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import difffog as df
+from difffog import Params, get_param, load_scene, set_param
+from difffog.forward.sweep._harmonics import basis, delta_m, real_sh
+from difffog.forward.sweep._solver import SweepSolver, source_field
+from difffog.geometry._directions import direction_set
+from difffog.geometry._lattice import voxelize
+from difffog.study import references
+from difffog.study._slab import slab_problem, slab_reflectance
+from helpers import build_model, small_scene
+
+AD_ROWS = references.slab_table()
+
+
+# ---------------------------------------------------------------- the basis
+def test_real_harmonics_obey_the_addition_theorem():
+    """Σ_m Y_lm(a) Y_lm(b) = (2l+1)/4π · P_l(a·b) for random unit vectors (orthonormal real
+    spherical harmonics, whatever their sign convention)."""
+    rng = np.random.default_rng(0)
+    v = rng.standard_normal((2, 50, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    L = 5
+    Y = real_sh(v, L)
+    cos = (v[0] * v[1]).sum(-1)
+    for l in range(L + 1):
+        s = (Y[0][:, l * l : (l + 1) ** 2] * Y[1][:, l * l : (l + 1) ** 2]).sum(-1)
+        P = np.polynomial.legendre.legval(cos, [0] * l + [1])
+        np.testing.assert_allclose(s, (2 * l + 1) / (4 * math.pi) * P, atol=1e-12)
+
+
+@pytest.mark.parametrize("M", [2, 3, 5])
+@pytest.mark.parametrize("L", [1, 3, 4])
+def test_basis_is_orthonormal_on_the_lattice_and_conserves(M, L):
+    """Under the lattice's own quadrature the basis is orthonormal, and every function of order
+    ≥ 1 integrates to 0 (a node re-emits exactly the power it scatters)."""
+    B = basis(L, M)
+    ds = direction_set(M)
+    w = ds.weights.reshape(-1)
+    Y = B.faces.reshape(-1, B.K)
+    np.testing.assert_allclose(Y.T @ (w[:, None] * Y), np.eye(B.K), atol=1e-12)
+    np.testing.assert_allclose(w @ Y, 0.0, atol=1e-12)
+    assert list(B.degree) == [l for l in range(1, L + 1) for _ in range(2 * l + 1)]
+
+
+def test_delta_m_coefficients():
+    f, c = delta_m(0.85, 3)
+    assert f == pytest.approx(0.85 ** 4)
+    np.testing.assert_allclose(c, [(0.85 ** l - f) / (1 - f) for l in (1, 2, 3)])
+    f0, c0 = delta_m(0.0, 2)
+    assert f0 == 0 and not np.any(c0)
+    assert delta_m(0.6, 0)[0] == pytest.approx(0.6)  # order 0 is the δ-isotropic scaling
+
+
+# ---------------------------------------------------------------- exact limits
+def test_isotropic_phase_through_the_anisotropic_path_changes_nothing(x64):
+    """g = 0 with phase_order 2 (moments, the sun's cell-averaged phase, the sky's moments) gives
+    the isotropic solve's light to rounding (the moments of the radiance are not 0, but an
+    isotropic phase does not scatter them)."""
+    scene = load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+    lat = voxelize(scene, 10, 2)
+    p = Params.from_scene(scene, jnp.float64)
+    out = {}
+    for L in (0, 2):
+        solver = SweepSolver(M=2, tol=1e-11, max_iterations=300, phase_order=L)
+        geom = solver.prepare(scene, lat)
+        out[L] = jax.jit(solver.solve)(geom, p)
+    assert out[2].moments.shape == out[0].fluence.shape + (8,)
+    np.testing.assert_allclose(out[2].fluence, out[0].fluence, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out[2].radiosity, out[0].radiosity, rtol=1e-9, atol=1e-12)
+    assert float(jnp.max(jnp.abs(out[2].moments))) > 1e-3 * float(jnp.max(out[0].fluence))
+
+
+def test_furnace_with_forward_scattering_fog(x64):
+    """A closed box (emission 1, albedo 0.9) filled with conservative fog of g = 0.85: the
+    radiance is 10 everywhere and isotropic, whatever the phase (scattering an isotropic field
+    leaves it isotropic), so the moments vanish."""
+    scene = load_scene("furnace", ["fog.phase=henyey-greenstein", "fog.g=0.85"])
+    solver = SweepSolver(M=2, tol=1e-10, max_iterations=2000, terms="all", phase_order=3)
+    geom = solver.prepare(scene, voxelize(scene, 12, 2))
+    light = jax.jit(solver.solve)(geom, Params.from_scene(scene, jnp.float64))
+    assert int(light.result) == df.RESULTS.successful
+    B = np.asarray(light.radiosity)[np.asarray(geom.surf)]
+    J = np.asarray(light.fluence)[~np.asarray(geom.solid)] / (4 * math.pi)
+    np.testing.assert_allclose(B, 10.0, rtol=1e-6)
+    np.testing.assert_allclose(J, 10.0, rtol=1e-6)
+    assert float(jnp.max(jnp.abs(light.moments))) < 1e-6 * 4 * math.pi * 10
+
+
+# ---------------------------------------------------------------- slabs vs adding-doubling
+def _reference(albedo, tau, g, illumination, zenith=None):
+    for r in AD_ROWS:
+        if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == g
+                and r["illumination"] == illumination
+                and (zenith is None or r["zenith_deg"] == zenith)):
+            return r["R_total"], r["T_total"]
+    raise KeyError((albedo, tau, g, illumination, zenith))
+
+
+def slab_rt(tau, albedo, g, n_fog, M, L, sun=None):
+    """(R, T) of an HG slab as a camera sees it: the lattice's scattered light (its moments) plus
+    the sun's single scattering with the exact phase (``slab_reflectance``)."""
+    scene, lat, margin = slab_problem(tau, albedo, n_fog, M, sun=sun, sky=0.0 if sun else 1.0,
+                                      g=g)
+    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-9, phase_order=L)
+    geom = solver.prepare(scene, lat)
+    params = Params.from_scene(scene, jnp.float64)
+
+    @jax.jit
+    def run(p):
+        light = solver.solve(geom, p)
+        pb = solver.problem(geom, p)
+        return light, pb.sigma_t, source_field(pb, light, sun=sun is None)
+
+    light, sigma, q = run(params)
+    assert int(light.result) == df.RESULTS.successful
+    dens = np.asarray(lat.density)[0, 0]
+    ss = None
+    if sun:  # the exact single scattering, and the sun's beam through the true extinction
+        ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
+    return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
+                            sky=0.0 if sun else 1.0, sun=sun, basis=basis(L, M),
+                            sun_scatter=ss)
+
+
+# Measured at N = 32, M = 3, L = 3 (benchmarks/slab_anisotropic.py; docs/validation.md), the
+# bounds ~1 point above: (albedo, tau, illumination) → (|R err|, |T err|)
+HG_BOUNDS = {
+    (0.9, 1.0, "diffuse"): (0.025, 0.012), (0.99, 4.0, "diffuse"): (0.015, 0.015),
+    (0.9, 1.0, "collimated"): (0.035, 0.015), (0.99, 4.0, "collimated"): (0.02, 0.02),
+}
+
+
+@pytest.mark.parametrize("albedo,tau,illumination", [
+    (0.9, 1.0, "diffuse"), (0.99, 4.0, "collimated"),
+    pytest.param(0.99, 4.0, "diffuse", marks=pytest.mark.slow),
+    pytest.param(0.9, 1.0, "collimated", marks=pytest.mark.slow)])
+def test_hg_slab_against_adding_doubling(albedo, tau, illumination, x64):
+    sun = (1.0, 0.0) if illumination == "collimated" else None
+    R, T = slab_rt(tau, albedo, 0.85, 32, 3, 3, sun=sun)
+    R_ref, T_ref = _reference(albedo, tau, 0.85, illumination, 0.0 if sun else None)
+    eR, eT = HG_BOUNDS[(albedo, tau, illumination)]
+    assert abs(R / R_ref - 1) < eR, (R, R_ref)
+    assert abs(T / T_ref - 1) < eT, (T, T_ref)
+
+
+# ---------------------------------------------------------------- kernels
+@pytest.mark.parametrize("sun", [False, True])
+def test_kernels_agree_with_an_anisotropic_source(sun):
+    """The direction-loop and batched sweeps with per-direction sources (moments, the sun's
+    channel), every combination of periodic sides."""
+    import itertools
+
+    from difffog.forward.sweep._kernel import (FaceGeometry, _sweep_face_batched,
+                                               _sweep_face_loop, face_consts)
+
+    M, L, shape = 2, 2, (7, 6, 8)
+    B = basis(L, M)
+    D = (2 * M + 1) ** 2
+    rng = np.random.default_rng(3)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    J = B.K + (1 if sun else 0)
+    Q = f32(np.concatenate([rng.random(shape + (1,)), rng.random(shape + (J,)) - 0.5], -1))
+    Bv, tau, bc = f32(rng.random(shape)), f32(0.4 * rng.random(shape)), f32(rng.random(D))
+    free = rng.random(shape) > 0.2
+    geo = FaceGeometry(
+        free=jnp.asarray(free), surf=jnp.asarray(~free & (rng.random(shape) > 0.5)),
+        normal=f32(rng.standard_normal(shape + (3,))),
+        blocked=jnp.asarray(rng.integers(0, 256, shape + ((D + 7) // 8,)), jnp.uint8))
+    consts = face_consts(direction_set(M), 0, B.faces)
+    if sun:
+        import dataclasses
+        consts = dataclasses.replace(consts, sun_phase=f32(rng.random(D)))
+    combos = list(itertools.product([False, True], repeat=3))
+
+    @jax.jit
+    def both(*args):
+        out = []
+        for periodic in combos:
+            kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=True)
+            out.append((_sweep_face_loop(*args, **kw), _sweep_face_batched(*args, **kw)))
+        return out
+
+    for periodic, (a, b) in zip(combos, both(Q, Bv, tau, bc, geo, consts)):
+        assert a[0].shape == shape + (1 + B.K,)
+        for x, y in zip(a, b):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=5e-6, atol=5e-6,
+                                       err_msg=str(periodic))
+
+
+# ---------------------------------------------------------------- gradients
+@pytest.mark.slow
+def test_image_gradients_in_g_and_the_rest_match_finite_differences(x64):
+    """The whole chain with an anisotropic light solve (cloud-plane, L = 2): the gradient of an
+    image loss with respect to g, ζ, γ, an albedo and the sun against central differences."""
+    scene = small_scene("cloud-plane", size=(10, 8))
+    m = build_model("sweep", scene, resolution=12, max_iterations=1000, tol=1e-12,
+                    adjoint_rtol=1e-11, phase_order=2)
+    p0 = m.params(jnp.float64)
+    target = jax.tree.map(lambda a: 0.9 * a, m(p0))
+
+    def loss(p):
+        imgs = m(p)
+        return sum(jnp.sum((imgs[k] - target[k]) ** 2) for k in imgs)
+
+    g = jax.jit(jax.grad(loss))(p0)
+    f = jax.jit(loss)
+    for path in ("fog.g", "fog.scattering", "fog.absorption", "shape.ground.albedo",
+                 "sun.irradiance"):
+        v = float(get_param(p0, scene, path))
+        eps = 1e-5 * v
+        fd = float(f(set_param(p0, scene, path, v + eps)) - f(set_param(p0, scene, path, v - eps)))
+        fd /= 2 * eps
+        assert fd != 0
+        assert float(get_param(g, scene, path)) == pytest.approx(fd, rel=1e-5), path
+
+
+def test_phase_order_is_checked():
+    with pytest.raises(df.SceneError, match="phase_order"):
+        SweepSolver(phase_order=-1)
+    with pytest.raises(df.SceneError, match="phase_order"):
+        SweepSolver(phase_order="high")
+    scene = load_scene("cloud-plane")
+    assert SweepSolver().resolved_phase_order(scene) == 3
+    assert SweepSolver().resolved_phase_order(load_scene("fog-balls")) == 0
+    assert SweepSolver(phase_order=1).resolved_phase_order(scene) == 1
