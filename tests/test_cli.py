@@ -22,6 +22,12 @@ def test_info_summarizes_scene(capsys):
         assert needle in out
 
 
+def test_info_names_the_phase_order_of_a_forward_scattering_fog(capsys):
+    assert main(["info", "cloud-plane", "-N", "16", "-M", "2", "--phase-order", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "(L+1)² = 9 angular moments" in out and "g^(L+1) = 0.614" in out
+
+
 def test_info_periodic_slab_has_no_lateral_margin(capsys):
     assert main(["info", "slab", "-N", "16", "-M", "2"]) == 0
     assert "16x16x22 nodes" in capsys.readouterr().out
@@ -36,6 +42,11 @@ def test_info_periodic_slab_has_no_lateral_margin(capsys):
         (["render", "fog-balls", "--camera", "nope", "--out", "OUT"], "has no camera 'nope'"),
         (["render", "fog-balls", "-N", "0", "--out", "OUT"], "--resolution must be a positive"),
         (["render", "fog-balls", "--tol", "-1", "--out", "OUT"], "--tol must be a positive"),
+        (["render", "cloud-plane", "--set", "sun.angular_radius_deg=2", "--out", "OUT"],
+         "treats the sun as a point"),
+        (["render", "cloud-plane", "--phase-order", "-1", "--out", "OUT"], "phase_order"),
+        (["render", "cloud-plane", "--solver", "splat", "--phase-order", "2", "--out", "OUT"],
+         "--phase-order does not apply to --solver splat"),
     ],
 )
 def test_errors_are_one_line_and_exit_2(argv, needle, capsys, tmp_path):

@@ -57,6 +57,12 @@ EDGE_SAMPLES = 16
 #: cost (sources, face-frame copies, the Krylov step), fitted to bench_cost.py's 9 sweep rows
 #: (fog-balls N = 32-96, M = 2-5, this 2-core CPU: each within 0.75-1.2× of the measured)
 CPU_UPDATES_PER_S = 0.42e9
+#: an anisotropic phase (``SweepSolver.phase_order`` L, K = (L+1)² − 1 moments): the light
+#: iteration's time grows by this fraction per moment (every direction's source built from K
+#: moments, K accumulations per update).  cloud-plane N = 64, M = 3, this 2-core CPU
+#: (bench_sweep.py --phase-order 0 1 2 3): 0.162 / 0.241 / 0.468 / 0.700 s per iteration at
+#: L = 0 / 1 / 2 / 3, i.e. 0.16 / 0.24 / 0.22 per moment
+CPU_COST_PER_MOMENT = 0.22
 CPU_SECONDS_PER_NODE = 6.5e-7
 #: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
 #: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
@@ -201,11 +207,13 @@ def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras
 
 def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int = 2,
                    cameras=None, restart: int = 30, backend: str | None = None,
-                   kernel: str = "auto", gradient: bool = False, **_ignored) -> CostEstimate:
+                   kernel: str = "auto", gradient: bool = False, phase_order="auto",
+                   **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
-    gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian)."""
+    gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian);
+    phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``)."""
     backend = backend or _backend()
     if kernel == "auto":
         from .forward.sweep._kernel import kernel_for
@@ -218,7 +226,10 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     D = (2 * M + 1) ** 2
     rays = camera_rays(scene, cameras, int(supersample))
     surfaces = bool(scene.shapes)
-    state = n * (2 if surfaces else 1)
+    from .forward.sweep._solver import SweepSolver
+
+    K = (SweepSolver(phase_order=phase_order).resolved_phase_order(scene) + 1) ** 2 - 1
+    state = n * (2 + K if surfaces else 1 + K)  # Λ and its K moments, E
     nu = sorted(shape)[-1] + 2 * M
     nv = sorted(shape)[-2] + 2 * M
     mem = {
@@ -228,7 +239,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         # device, and while they are built a mask and its face-frame copy per worker thread
         "blocking masks": ((12 + 2 * min(6, os.cpu_count() or 1)) * n * math.ceil(D / 8)
                            if surfaces else 0),
-        "light solve": n * SOLVE_BYTES_PER_NODE,
+        # per-node fields; an anisotropic phase adds its moments' sources and accumulators
+        # (face-frame copies of 1 + K + 1 channels in and 1 + K out): ~4 (K + 1) floats
+        "light solve": n * (SOLVE_BYTES_PER_NODE + 16 * K * f),
         # GMRES: restart + 1 Krylov vectors (+ restart preconditioned ones, flexible GMRES,
         # where the diffusion preconditioner is chosen), x and b
         "Krylov vectors": ((2 * restart if _diffusive(scene) else restart) + 3) * state * f,
@@ -248,6 +261,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         per_iter = 6 * D * n / CPU_UPDATES_PER_S + CPU_SECONDS_PER_NODE * n
         if kernel == "batched":
             per_iter *= CPU_BATCHED_SLOWDOWN
+    # (the GPU's programs are assumed to grow alike: not measured there)
+    per_iter *= 1.0 + CPU_COST_PER_MOMENT * K
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
                  + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0))

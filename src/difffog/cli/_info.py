@@ -29,13 +29,13 @@ def physics_needed(scene: Scene) -> dict[str, bool]:
 INFO_VOXELIZE_MAX_NODES = 20_000_000
 
 
-def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
+def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="auto") -> str:
     from .._cost import machine_line
     from ..forward.sweep._kernel import kernel_for
     from ..forward._registry import model_estimate
 
     d = scene.domain
-    est = model_estimate(scene, "sweep", resolution=resolution, M=M)
+    est = model_estimate(scene, "sweep", resolution=resolution, M=M, phase_order=phase_order)
     big = est.nodes > INFO_VOXELIZE_MAX_NODES
     fmt = lambda v: "[" + ", ".join(f"{x:g}" for x in v) + "]"  # noqa: E731
     lines = [f"scene      {scene.title}" + (f"  ({scene.source})" if scene.source else "")]
@@ -75,13 +75,24 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3) -> str:
             f"fog        ζ = {f.scattering:g}, γ = {f.absorption:g} per unit, albedo "
             f"{f.single_scattering_albedo:.4g}, {ph}" + ("; " + "; ".join(extra) if extra else "")
         )
+        zeta_lattice = f.scattering
+        if f.phase == "henyey-greenstein" and f.g:
+            from ..forward.sweep._solver import SweepSolver
+
+            L = SweepSolver(phase_order=phase_order).resolved_phase_order(scene)
+            fpeak = f.g ** (L + 1)
+            zeta_lattice = f.scattering * (1.0 - fpeak)
+            lines.append(
+                f"phase      the sweep carries (L+1)² = {(L + 1) ** 2} angular moments per fog "
+                f"node (δ-M order L = {L}, --phase-order); the forward "
+                f"peak g^(L+1) = {fpeak:.3g} of the scattering passes on unscattered")
         if lat is not None:
             tau = lat.optical_depth_range(f.scattering, f.absorption)
             lines.append(
                 "opt.depth  across the domain: "
                 + ", ".join(f"{a}: {lo:.3g}..{hi:.3g}" for a, (lo, hi) in tau.items())
             )
-            seg = lat.max_segment_optical_depth(f.scattering, f.absorption)
+            seg = lat.max_segment_optical_depth(zeta_lattice, f.absorption)
             warn = "  (> 0.3: accuracy suffers, raise --resolution)" if seg > 0.3 else ""
             lines.append(f"segment    max optical depth of one lattice step σ_t·h·M = "
                          f"{seg:.3g}{warn}")
@@ -127,5 +138,6 @@ def run(args) -> int:
     s = preset("sweep", args.accuracy)
     scene = load_scene(args.scene, args.overrides)
     print(scene_info(scene, resolution=args.resolution or s["resolution"],
-                     M=args.directions or s["M"]))
+                     M=args.directions or s["M"],
+                     phase_order="auto" if args.phase_order is None else args.phase_order))
     return 0

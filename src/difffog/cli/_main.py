@@ -32,6 +32,10 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--directions", "-M", type=int, default=None,
                    help="sweep: direction half-width M, (2M+1)^2 directions per cube face "
                         f"(default: from --accuracy, {preset('sweep')['M']} at default)")
+    p.add_argument("--phase-order", type=int, default=None, metavar="L",
+                   help="sweep: order of a Henyey-Greenstein fog's phase in the light solve "
+                        "((L+1)^2 angular moments per node, delta-M; 0: delta-isotropic; default: "
+                        "0 for an isotropic fog, 3 otherwise)")
 
 
 def positive_int(name: str, value: int | None) -> int | None:
@@ -51,7 +55,8 @@ def model_settings(args, solver: str, *, accuracy: str | None) -> dict:
              "tol": ("--tol", getattr(args, "tol", None)),
              "max_iterations": ("--max-iterations", getattr(args, "max_iterations", None)),
              "supersample": ("--supersample", getattr(args, "supersample", None)),
-             "devices": ("--devices", getattr(args, "devices", None))}
+             "devices": ("--devices", getattr(args, "devices", None)),
+             "phase_order": ("--phase-order", getattr(args, "phase_order", None))}
     if getattr(args, "iterations", None) is not None:
         flags["max_iterations"] = ("--iterations", args.iterations)
         flags["tol"] = ("--iterations", 0.0)  # exactly K iterations

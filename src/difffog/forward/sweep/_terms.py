@@ -10,8 +10,9 @@
 - sun → the first-collision sun pass (shadow buffer); sky → the first-collision sky pass (or
   sky radiance entering through the lattice's boundary, for periodic domains).
 - nothing scatters or reflects (no fog scattering, every albedo 0) → one pass, no iteration.
-- isotropic fog → scalar Λ only; Henyey–Greenstein fog → δ-isotropic scalar Λ for the multiple
-  scattering plus the exact phase for the sun's single scattering at the camera.
+- isotropic fog → scalar Λ only; Henyey–Greenstein fog → Λ and (L+1)² − 1 angular moments
+  (δ-M, ``SweepSolver.phase_order`` L; L = 0: δ-isotropic, Λ only) for the multiple scattering,
+  the exact phase for the sun's first collision and its single scattering at the camera.
 - meshes → voxelized on the host; none → no mesh rasterization at all.
 
 A term is dropped when the scene has no such object (no ``[fog]``, no shapes, no ``[sun]``, no
@@ -70,7 +71,8 @@ class Terms:
                     f"[{lo}, {hi})" for lo, hi in self.fog_slabs) + f" ({100 * frac:.0f}% of the lattice)")
             out.append(f"volume     {src}{box}")
             ph = ("scalar Λ (isotropic)" if self.phase == "isotropic" else
-                  "δ-isotropic scalar Λ + Henyey–Greenstein sun single scattering at the camera")
+                  "Henyey–Greenstein: Λ + δ-M angular moments (phase_order), the sun's first "
+                  "collision and single scattering with the exact phase")
             out.append(f"phase      {ph}")
         out.append(f"surfaces   {yn(self.surfaces)}" + ("" if self.surfaces else ": no radiosity terms"))
         out.append(f"sun pass   {yn(self.sun)}")

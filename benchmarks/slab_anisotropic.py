@@ -1,0 +1,138 @@
+"""Henyey–Greenstein slabs (g = 0.85) against the adding-doubling table, per phase order L.
+
+For each L, N, M: R and T of laterally infinite slabs (τ ∈ {1, 2, 4, 16}, albedo ∈ {0.9, 0.99})
+under a diffuse sky and a collimated sun at zenith 0° and 60°, as a camera integrating over
+the hemisphere would measure them (``difffog.study._slab.slab_reflectance``: the lattice's
+scattered light from its moments, plus the sun's single scattering with the exact phase),
+relative to the table (``difffog/data/references/slab_adding_doubling.csv``), float64.
+
+    python benchmarks/slab_anisotropic.py [--n 32] [--m 3] [--orders 0 1 2 3 4]
+        [--out benchmarks/results/slab_anisotropic.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+
+import _common as C
+
+CASES = [("diffuse", None), ("collimated", 0.0), ("collimated", 60.0)]
+
+
+def slab(tau, albedo, g, N, M, L, illumination, zenith):
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from difffog import Params
+    from difffog.forward.sweep._harmonics import basis
+    from difffog.forward.sweep._solver import SweepSolver, source_field
+    from difffog.study._slab import slab_problem, slab_reflectance
+
+    sun = None if illumination == "diffuse" else (1.0, zenith)
+    scene, lat, margin = slab_problem(tau, albedo, N, M, sun=sun, sky=0.0 if sun else 1.0, g=g)
+    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-8, phase_order=L)
+    geom = solver.prepare(scene, lat)
+
+    @jax.jit
+    def run(p):
+        light = solver.solve(geom, p)
+        pb = solver.problem(geom, p)
+        exact_sun = sun is not None and L > 0  # L = 0: the sun scatters as the lattice's
+        return light, pb.sigma_t, source_field(pb, light, sun=not exact_sun)
+
+    light, sigma, q = run(Params.from_scene(scene, jnp.float64))
+    dens = np.asarray(lat.density)[0, 0]
+    ss = None
+    if sun is not None and L > 0:
+        ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
+    R, T = slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
+                            sky=0.0 if sun else 1.0, sun=sun,
+                            basis=basis(L, M) if L else None, sun_scatter=ss)
+    return R, T, int(light.iterations)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, nargs="+", default=[32])
+    ap.add_argument("--m", type=int, nargs="+", default=[3])
+    ap.add_argument("--orders", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    ap.add_argument("--taus", type=float, nargs="+", default=[1.0, 2.0, 4.0, 16.0])
+    ap.add_argument("--albedos", type=float, nargs="+", default=[0.9, 0.99])
+    ap.add_argument("--g", type=float, default=0.85)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from difffog.study import references
+
+    table = references.slab_table()
+
+    def ref(albedo, tau, ill, zen):
+        for r in table:
+            if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == a.g
+                    and r["illumination"] == ill
+                    and (zen is None or r["zenith_deg"] == zen)):
+                return r["R_total"], r["T_total"]
+        raise KeyError((albedo, tau, ill, zen))
+
+    rows = []
+    for N in a.n:
+        for M in a.m:
+            for L in a.orders:
+                for ill, zen in CASES:
+                    for albedo in a.albedos:
+                        for tau in a.taus:
+                            t = time.perf_counter()
+                            R, T, k = slab(tau, albedo, a.g, N, M, L, ill, zen)
+                            Rr, Tr = ref(albedo, tau, ill, zen)
+                            row = dict(N=N, M=M, L=L, illumination=ill + ("" if zen is None
+                                                                          else f" {zen:g}°"),
+                                       albedo=albedo, tau=tau, R=R, T=T, R_ref=Rr, T_ref=Tr,
+                                       R_err=R / Rr - 1, T_err=T / Tr - 1, iterations=k,
+                                       s=time.perf_counter() - t)
+                            rows.append(row)
+                            print(f"N={N} M={M} L={L} {row['illumination']:15s} a={albedo} "
+                                  f"τ={tau:g}: R {100 * row['R_err']:+6.1f}% "
+                                  f"T {100 * row['T_err']:+6.1f}%", flush=True)
+    lines = ["# Henyey–Greenstein slabs against adding-doubling", "",
+             f"g = {a.g}; relative error of R / T in % (float64); "
+             "`python benchmarks/slab_anisotropic.py`", ""]
+    lines += C.machine_lines(C.machine(bandwidth=False)) + [""]
+    taus = a.taus
+    head = ["N", "M", "L", "illumination", "albedo"] + [f"τ = {t:g}" for t in taus]
+    body = []
+    keys = sorted({(r["N"], r["M"], r["L"], r["illumination"], r["albedo"]) for r in rows},
+                  key=lambda k: (k[0], k[1], k[2], k[3], k[4]))
+    for key in keys:
+        cells = []
+        for t in taus:
+            r = next(r for r in rows
+                     if (r["N"], r["M"], r["L"], r["illumination"], r["albedo"]) == key
+                     and r["tau"] == t)
+            cells.append(f"{100 * r['R_err']:+.1f} / {100 * r['T_err']:+.1f}")
+        body.append(list(key) + cells)
+    lines += C.md_table(head, body, "rrrlr" + "r" * len(taus))
+    worst = {}
+    for r in rows:
+        if r["tau"] <= 4:
+            k = (r["N"], r["M"], r["L"])
+            worst[k] = max(worst.get(k, 0.0), abs(r["R_err"]), abs(r["T_err"]))
+    lines += ["", "Largest |error| over τ ≤ 4 (R and T): " + "; ".join(
+        f"N={k[0]} M={k[1]} L={k[2]}: {100 * v:.1f}%" for k, v in sorted(worst.items()))]
+    text = "\n".join(lines)
+    print(text)
+    if a.out:
+        with open(a.out, "w") as f:
+            f.write(text + "\n")
+        with open(a.out.replace(".md", ".csv"), "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+
+if __name__ == "__main__":
+    main()
