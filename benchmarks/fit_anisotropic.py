@@ -25,12 +25,18 @@ def main(argv=None):
     ap.add_argument("--M", type=int, default=3)
     ap.add_argument("--downsample", type=int, default=4)
     ap.add_argument("--phase-order", type=int, default=3)
+    ap.add_argument("--set", dest="overrides", action="append", default=[],
+                    help="a scene override (PATH=VALUE) of the truth, e.g. fog.scattering=20")
+    ap.add_argument("--model-error", default=None,
+                    help="fit(model_error=...): \"refine\" or a finer resolution")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     import difffog as df
 
-    scene = df.load_scene("cloud-plane")
-    truth = {"fog.scattering": 60.0, "fog.absorption": 0.6, "fog.g": 0.85}
+    scene = df.load_scene("cloud-plane", a.overrides)
+    p0 = df.Params.from_scene(scene)
+    truth = {k: float(df.get_param(p0, scene, k))
+             for k in ("fog.scattering", "fog.absorption", "fog.g")}
     t = time.perf_counter()
     targets = df.render(scene, accuracy=None, resolution=a.target_N, M=a.M,
                         phase_order=a.phase_order).images
@@ -38,22 +44,28 @@ def main(argv=None):
     start = {"fog.scattering": 0.7 * truth["fog.scattering"],
              "fog.absorption": 1.5 * truth["fog.absorption"], "fog.g": 0.7}
     t = time.perf_counter()
+    me = a.model_error
     res = df.fit(scene, targets, start, resolution=a.N, downsample=a.downsample,
-                 model_settings={"M": a.M, "phase_order": a.phase_order}, progress=True)
+                 model_settings={"M": a.M, "phase_order": a.phase_order}, progress=True,
+                 model_error=int(me) if me and me.isdigit() else me)
     fit_s = time.perf_counter() - t
     lines = ["# Fit of ζ, γ and g to cloud-plane (anisotropic sweep)", "",
              *C.machine_lines(C.machine(bandwidth=False)),
+             f"- scene: cloud-plane {' '.join(a.overrides)}",
              f"- targets: sweep N = {a.target_N}, M = {a.M}, phase_order {a.phase_order} "
              f"({target_s:.0f} s); fit: N = {a.N}, phase_order {a.phase_order}, both cameras / "
              f"{a.downsample}; start ζ × 0.7, γ × 1.5, g = 0.7", "",
-             "| unknown | truth | estimate | error % | stated standard error % |",
-             "|---|---:|---:|---:|---:|"]
+             "| unknown | truth | estimate | error % | stated standard error % | model error % "
+             "| total uncertainty % |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for path, v in truth.items():
         est = float(res.estimates[path])
         se = res.stderr.get(path)
         se = float("nan") if se is None else float(se)
+        me_p = res.model_error.get(path, float("nan"))
+        tot = res.uncertainty.get(path, float("nan"))
         lines.append(f"| {path} | {v:g} | {est:.4g} | {100 * (est / v - 1):+.2f} | "
-                     f"{100 * se / v:.2f} |")
+                     f"{100 * se / v:.2f} | {100 * me_p / v:.2f} | {100 * tot / v:.2f} |")
     lines += ["", f"{res.result}, {res.iterations} steps, fit {fit_s:.0f} s"]
     text = "\n".join(lines)
     print(text)

@@ -62,12 +62,13 @@ def test_delta_m_coefficients():
 
 
 # ---------------------------------------------------------------- exact limits
+@pytest.mark.slow  # 20 s; the furnace below and the kernels' test guard the path by default
 def test_isotropic_phase_through_the_anisotropic_path_changes_nothing(x64):
     """g = 0 with phase_order 2 (moments, the sun's cell-averaged phase, the sky's moments) gives
     the isotropic solve's light to rounding (the moments of the radiance are not 0, but an
     isotropic phase does not scatter them)."""
     scene = load_scene("fog-balls", ["shape.walls.thickness=0.1"])
-    lat = voxelize(scene, 8, 2)
+    lat = voxelize(scene, 10, 2)
     p = Params.from_scene(scene, jnp.float64)
     out = {}
     for L in (0, 2):

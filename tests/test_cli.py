@@ -260,6 +260,11 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
     assert rep["estimates"]["fog.scattering"] == pytest.approx(2.0, rel=1e-3)
     assert rep["estimates"]["fog.absorption"] == pytest.approx(0.5, rel=1e-3)
     assert set(rep["stderr"]) == {"fog.scattering", "fog.absorption"}
+    # --model-error refine (the default): the model's own error, from a render at N = 24
+    assert [lv["resolution"] for lv in rep["ladder"]] == [12, 24]
+    for path in ("fog.scattering", "fog.absorption"):
+        assert rep["model_error"][path] > 0
+        assert rep["uncertainty"][path] >= max(rep["stderr"][path], rep["model_error"][path])
     assert len(rep["correlation"]) == 2 and rep["converged"]
     assert rep["settings"]["forward"] == "sweep" and rep["settings"]["optimizer"] == "lm"
     assert rep["settings"]["model"]["resolution"] == 12
@@ -302,6 +307,8 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
      "'camera.top.exposure'?"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering=abc"], "not a number"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--resume"], "no checkpoint"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--model-error", "finer"],
+     "--model-error finer: use refine, none or a finer resolution"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",
       "fog.scattering=3,9"], "outside"),
     # FIT_SMALL gives -M, a setting the splat does not take

@@ -27,6 +27,17 @@ def _ladder(text: str):
     return levels
 
 
+def _model_error(text: str):
+    """--model-error: "refine", "none" or a resolution N."""
+    if text in ("refine", "none"):
+        return None if text == "none" else "refine"
+    try:
+        return int(text)
+    except ValueError:
+        raise DifffogError(f"--model-error {text}: use refine, none or a finer resolution N "
+                           f"(e.g. 64)") from None
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("fit", help="fit fog and surface parameters to target images")
     add_scene_args(p)
@@ -66,6 +77,12 @@ def add_parser(sub) -> None:
                         "resolution first (auto: 3/4 of -N), then at -N from there; the "
                         "change, extrapolated to first order, is each estimate's model error, "
                         "added to its uncertainty in fit.json (default none: noise only)")
+    p.add_argument("--model-error", default="refine", metavar="refine|none|N",
+                   help="estimate the model's own error in each estimate and add it to its "
+                        "uncertainty in fit.json: render the fitted model once more on a "
+                        "lattice twice as fine (or N) and take the Gauss-Newton step that "
+                        "image change causes, extrapolated to first order (default refine; "
+                        "none: noise only)")
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="sweep: share each light solve over N devices (on a CPU, N host "
                         "devices sharing its cores; the same estimates; default 1)")
@@ -212,7 +229,9 @@ def run(args) -> int:
                      resolution=resolution, model_settings=settings or None, downsample=down,
                      weights=weights or None, loss=args.loss, max_steps=args.max_steps,
                      channel=args.channel, transfer=args.transfer, checkpoint=ckpt,
-                     resume=args.resume, progress=progress, ladder=_ladder(args.ladder))
+                     resume=args.resume, progress=progress, ladder=_ladder(args.ladder),
+                     model_error=(None if args.ladder != "none"
+                                  else _model_error(args.model_error)))
     for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)
         if issubclass(w.category, MemoryWarning):
             print(f"difffog: warning: {w.message}", file=sys.stderr)

@@ -279,7 +279,7 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         size = st.tgt[n].size
         images[n] = y[off:off + size].reshape(st.tgt[n].shape).astype(np.float32)
         off += size
-    return FitResult(
+    res = FitResult(
         paths=[c.path for c in st.coords],
         estimates=st.values(u),
         stderr={c.path: float(s) for c, s in zip(st.coords, se)},
@@ -301,6 +301,9 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         target_files=st.target_files,
         mask_files=st.mask_files,
     )
+    # what a model-error estimate needs: the optimum and its linearization (not serialized)
+    res._linear = dict(setup=st, u=np.asarray(u), J=J, y=y)
+    return res
 
 
 def _step_warning(st: _Setup, u) -> str | None:
@@ -332,7 +335,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
         checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
         callback: Callable[[dict], None] | None = None,
-        ladder=None) -> FitResult:
+        ladder=None, model_error=None) -> FitResult:
     """Fit the unknowns of ``scene`` to target images.
 
     targets: {camera name: (H, W) image or image file}, one or several views, at the scene
@@ -381,6 +384,13 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         resolutions.  None (default): one fit, ``uncertainty`` = ``stderr``.  Measured limit
         (docs/fitting.md): on small lattices the estimates jump between neighbouring
         resolutions, and two levels can miss most of the error.
+    model_error: the forward model's own error in each estimate, added to the standard error
+        in ``uncertainty``: "refine" (for a named solver) renders the fitted model once more at
+        the estimate on a lattice twice as fine (or at the resolution given as an int), takes
+        the Gauss–Newton step that image change would cause, J⁺·Δy (the estimate a fit with
+        the finer model would reach, to first order), and extrapolates it to first order in
+        the voxel size (× N_f/(N_f − N): 2 for a doubled lattice).  One light solve and the
+        images at the finer resolution, after the fit.  None (default): no estimate.
     callback: called after every step with that step's history entry (of the last level).
 
     The result is "light_solve_failed" (not converged) when the light solve at the estimate
@@ -388,13 +398,19 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     See :func:`fit_batch` for many target sets at once.
     """
     levels = _ladder_levels(scene, forward, resolution, model_settings, ladder)
+    fine_n = _refine_resolution(scene, forward, resolution, model_settings, model_error, levels)
     kw = dict(forward=forward, downsample=downsample, model_settings=model_settings,
               optimizer=optimizer, weights=weights, loss=loss, loss_scale=loss_scale, rtol=rtol,
               atol=atol, max_steps=max_steps, stall_steps=stall_steps, dtype=dtype,
               channel=channel, transfer=transfer, progress=progress)
     if len(levels) < 2:
-        return _fit_level(scene, targets, unknowns, resolution=resolution, checkpoint=checkpoint,
-                          resume=resume, callback=callback, **kw)
+        res = _fit_level(scene, targets, unknowns, resolution=resolution, checkpoint=checkpoint,
+                         resume=resume, callback=callback, **kw)
+        if fine_n is not None:
+            t0 = time.perf_counter()
+            _with_refined_error(res, scene, forward, fine_n, downsample, model_settings)
+            res.time_s += time.perf_counter() - t0
+        return res
     if checkpoint is not None or resume:
         raise DifffogError("checkpoint/resume is not supported with a ladder yet (the coarse "
                            "level would be refitted); use ladder=None (--ladder none)")
@@ -408,6 +424,68 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     out = _with_model_error(fine, coarse, levels)  # (its ladder keeps each level's own time)
     out.time_s = time.perf_counter() - t0
     return out
+
+
+def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_error,
+                       levels) -> int | None:
+    """The finer resolution of ``model_error`` ("refine": twice the fit's; an int: that one)."""
+    if model_error is None:
+        return None
+    if levels:
+        raise DifffogError("give one of ladder and model_error (both estimate the model's "
+                           "error); model_error=\"refine\" is the one measured honest")
+    if isinstance(forward, str):
+        n = int(resolution or {**solver_entry(forward).fit_defaults,
+                               **(model_settings or {})}.get("resolution", 32))
+    elif hasattr(forward, "at_resolution"):
+        n = int(forward.resolution)
+    else:
+        raise DifffogError(f"model_error needs a named solver or a model that can be rebuilt "
+                           f"at another resolution ({type(forward).__name__} cannot); use "
+                           f"model_error=None")
+    if model_error == "refine":
+        return 2 * n
+    if isinstance(model_error, bool) or not isinstance(model_error, (int, np.integer)) \
+            or model_error <= n:
+        raise DifffogError(f"model_error={model_error!r}: use \"refine\", None or a resolution "
+                           f"finer than the fit's ({n})")
+    return int(model_error)
+
+
+def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
+                        downsample: int, model_settings) -> FitResult:
+    """``res`` with the model error from one render at ``fine_n`` (see ``fit``'s
+    ``model_error``) and the total uncertainty."""
+    lin = getattr(res, "_linear", None)
+    if lin is None or not res.converged:
+        res.warnings.append("the model error is not estimated: the fit did not converge")
+        res.model_error = {p: float("nan") for p in res.paths}
+        return res
+    st, u, J, y = lin["setup"], lin["u"], lin["J"], lin["y"]
+    n = int(st.model.resolution)
+    if isinstance(forward, str):
+        fine = make_model(scene, forward, cameras=st.names, downsample=downsample,
+                          resolution=fine_n, model_settings=model_settings)
+    else:
+        fine = forward.at_resolution(fine_n)
+    y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u), (fine, st.data)))
+    if int(code) != RESULTS.successful:
+        res.warnings.append(f"the model error is not estimated: the light solve at resolution "
+                            f"{fine_n} did not converge ({RESULTS(int(code)).name})")
+        res.model_error = {p: float("nan") for p in res.paths}
+        return res
+    sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
+    dy = sqrt_w * (y_f.astype(np.float64) - y) / scale  # in the residual's units
+    du = -np.linalg.lstsq(J, dy, rcond=None)[0]  # the Gauss–Newton step the finer model takes
+    dv = np.array([c.dv_du(float(x)) for c, x in zip(st.coords, u)]) * du
+    factor = fine_n / (fine_n - n)  # θ(h) = θ* + c·h: θ(h) − θ* = (θ(h) − θ(h_f))·h/(h − h_f)
+    res.model_error = {p: float(factor * abs(x)) for p, x in zip(res.paths, dv)}
+    res.uncertainty = {p: math.hypot(res.stderr[p], res.model_error[p]) for p in res.paths}
+    res.ladder = [{"resolution": n, "estimates": dict(res.estimates)},
+                  {"resolution": fine_n, "estimates": {p: res.estimates[p] + float(x)
+                                                       for p, x in zip(res.paths, dv)},
+                   "linearized": True}]
+    return res
 
 
 def _ladder_levels(scene: Scene, forward, resolution, model_settings, ladder) -> tuple:

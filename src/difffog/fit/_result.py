@@ -103,8 +103,9 @@ class FitResult:
                 if math.isfinite(self.model_error[p]) and math.isfinite(self.stderr[p]):
                     by["model error" if self.model_error[p] > self.stderr[p] else "noise"].append(p)
             lines.append("uncertainty dominated by " + "; ".join(
-                f"{k}: {', '.join(v)}" for k, v in by.items() if v) + " (ladder " + " → ".join(
-                str(lv["resolution"]) for lv in self.ladder) + ")")
+                f"{k}: {', '.join(v)}" for k, v in by.items() if v)
+                + " (model error from resolution "
+                + " → ".join(str(lv["resolution"]) for lv in self.ladder) + ")")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
         for cam, f in self.target_files.items():

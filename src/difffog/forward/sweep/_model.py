@@ -195,6 +195,11 @@ class SweepModel(AbstractForwardModel):
             "voxelize_s": voxelize_s, "prepare_s": prepare_s,
             "camera_hits_s": time.perf_counter() - t})
 
+    def at_resolution(self, resolution: int) -> "SweepModel":
+        """The same model (scene, cameras, solver, supersampling) on another lattice."""
+        return SweepModel(self.scene, resolution=resolution, solver=self.solver,
+                          supersample=self.supersample, cameras=self.cameras)
+
     @property
     def lattice(self) -> Lattice:
         """The voxelized scene (host NumPy arrays)."""
