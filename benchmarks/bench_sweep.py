@@ -90,7 +90,6 @@ def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto", phas
     difference per extra iteration is the marginal cost of an iteration (one-time work hoisted
     out of the loop by XLA, e.g. the static geometry's face layouts, is reported as setup)."""
     import jax
-    import jax.numpy as jnp
 
     from difffog.forward.sweep._solver import _jacobi, _zero_state  # the internals measured
 

@@ -77,10 +77,11 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
         )
         zeta_lattice = f.scattering
         if f.phase == "henyey-greenstein" and f.g:
+            from ..forward.sweep._harmonics import delta_m
             from ..forward.sweep._solver import SweepSolver
 
             L = SweepSolver(phase_order=phase_order).resolved_phase_order(scene)
-            fpeak = f.g ** (L + 1)
+            fpeak = delta_m(f.g, L)[0]
             zeta_lattice = f.scattering * (1.0 - fpeak)
             lines.append(
                 f"phase      the sweep carries (L+1)² = {(L + 1) ** 2} angular moments per fog "

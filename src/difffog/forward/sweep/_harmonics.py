@@ -110,6 +110,12 @@ def basis(L: int, M: int) -> Basis:
     return Basis(L, M)
 
 
+def moment_coefficients(g, L: int, M: int, xp=np):
+    """(f, (K,) the δ-M coefficient g'_l of each moment of ``basis(L, M)``) (see ``delta_m``)."""
+    f, coef = delta_m(g, L, xp)
+    return f, (coef[basis(L, M).degree - 1] if L > 0 else coef)
+
+
 def delta_m(g, L: int, xp=np):
     """δ-M scaling of a Henyey–Greenstein phase cut at order L: (f, coefficients) with f =
     g^(L+1) the forward-peak fraction (ζ' = ζ(1 − f)) and the coefficients (L,) the scaled

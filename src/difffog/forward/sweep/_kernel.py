@@ -414,10 +414,10 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 d = jnp.asarray(d, jnp.int32)
                 r_mid = jax.lax.dynamic_slice(src, (d, _I0, u0 + start[d, 0], start[d, 1]),
                                               (1, M, tu, nv))[0]
-                Qt = Qd = c_Qt  # this direction's source: Q_0 + Σ_k Ỹ_k(d) Q_k
+                Qt = c_Qt  # this direction's source: Q_0 + Σ_j table[d, j] Q_j
                 if aniso:
                     hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
-                    Qt = Qd + sum(hd[k] * Qa[k] for k in range(nj))
+                    Qt = c_Qt + sum(hd[k] * Qa[k] for k in range(nj))
                 if attenuate:
                     em = jax.lax.dynamic_index_in_dim(em_k, kidx[d], 0, keepdims=False)
                     # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off fog

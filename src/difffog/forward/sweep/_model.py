@@ -22,7 +22,7 @@ from ...scene._description import Camera, Scene
 from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
-from ._harmonics import basis, delta_m
+from ._harmonics import delta_m, moment_coefficients
 from ._march import LatticeFields, RayHits, camera_hits, render_camera
 from ._solver import SweepGeometry, SweepSolver, check_point_sun
 from ._terms import check_terms
@@ -99,7 +99,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         dens = ext(density.astype(dt), cam.near_fluid)
     K = 0 if light.moments is None else light.moments.shape[-1]
     order = math.isqrt(K + 1) - 1
-    f, coef = delta_m(params.g, order, jnp)
+    f, coef = moment_coefficients(params.g, order, cam.M, jnp)
     zeta_r = params.scattering * (1.0 - f)
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
@@ -108,7 +108,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     if order > 0:
         mom = light.moments if light.sky_moments is None else light.moments + light.sky_moments
         mom = jax.vmap(lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(mom)
-        j_aniso = (zeta_r * dens)[..., None] * coef[basis(order, cam.M).degree - 1] * mom
+        j_aniso = (zeta_r * dens)[..., None] * coef * mom
     if cam.has_surfaces:
         rad = ext(light.radiosity, cam.near_surface)
         irr = ext(light.irradiance, cam.near_surface)
@@ -212,7 +212,7 @@ class SweepModel(AbstractForwardModel):
     def step_warning(self, params: Params) -> str | None:
         """Warn above a step optical depth σ_t·h·M of 1 (``THICK_STEP``)."""
         try:
-            f = float(params.g) ** (self.geometry.order + 1)
+            f = delta_m(float(params.g), self.geometry.order)[0]
             ext = float(params.scattering) * (1.0 - f) + float(params.absorption)
         except (TypeError, jax.errors.ConcretizationTypeError):  # traced or batched: no check
             return None

@@ -33,7 +33,7 @@ from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
 from ._implicit import CheckedSolver, fixed_point
 from ._dsa import DiffusionOperator
-from ._harmonics import MAX_ORDER, basis, delta_m
+from ._harmonics import MAX_ORDER, basis, moment_coefficients
 from ._krylov import gmres
 from ._lightfield import LightField
 from ...scene._params import Params
@@ -98,6 +98,12 @@ class SweepGeometry(eqx.Module):
     def n_moments(self) -> int:
         """K = (L+1)² − 1: the angular moments carried per node beyond the fluence."""
         return (self.order + 1) ** 2 - 1
+
+    @property
+    def fluence_shape(self) -> tuple[int, ...]:
+        """Of the state's fluence part: (nx, ny, nz), with an anisotropic phase (nx, ny, nz,
+        1 + K) (Λ, then its moments)."""
+        return self.shape + ((1 + self.n_moments,) if self.order > 0 else ())
 
     def vol_range(self, face: int) -> tuple[int, int] | None:
         """Planes [lo, hi) along a face's sweep (face frame) where the fog step is needed: the
@@ -318,10 +324,14 @@ def _sources(state, pb: _Problem):
 
 
 def _zero_state(pb: _Problem):
-    g = pb.geom
     dt = pb.sigma_t.dtype
-    lam_shape = g.shape + ((1 + g.n_moments,) if g.order > 0 else ())
-    return jnp.zeros(lam_shape, dt), jnp.zeros(g.shape, dt)
+    return jnp.zeros(pb.geom.fluence_shape, dt), jnp.zeros(pb.geom.shape, dt)
+
+
+def _on_fluence(fn, lam, order: int):
+    """``fn`` applied to Λ, the fluence part of the state's ``lam`` (channel 0 with an
+    anisotropic phase; the moments pass through)."""
+    return fn(lam) if order == 0 else lam.at[..., 0].set(fn(lam[..., 0]))
 
 
 def segment_depth(sigma_t, M: int, axis: int, periodic: bool):
@@ -347,8 +357,8 @@ def segment_depth(sigma_t, M: int, axis: int, periodic: bool):
 
 def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     g = pb.geom
-    lam = jnp.zeros(q.shape[:3] + ((1 + g.n_moments,) if g.order > 0 else ()), q.dtype)
-    irr = jnp.zeros(q.shape[:3], q.dtype)
+    lam = jnp.zeros(g.fluence_shape, q.dtype)
+    irr = jnp.zeros(g.shape, q.dtype)
     exits = [None] * len(FACE_AXES)
 
     def face_args(f):
@@ -509,11 +519,7 @@ def _iterate_gmres(pb: _Problem):
                                 pb.geom.periodic_xy, pb.geom.M, mu_bar=mu_bar)
 
         def precondition(v):
-            lam = v[:n].reshape(lam_shape)
-            if pb.geom.order == 0:
-                lam = dsa.precondition(lam)
-            else:  # the fluence (channel 0); the moments pass through
-                lam = lam.at[..., 0].set(dsa.precondition(lam[..., 0]))
+            lam = _on_fluence(dsa.precondition, v[:n].reshape(lam_shape), pb.geom.order)
             return jnp.concatenate([lam.ravel(), v[n:]]) if surfaces else lam.ravel()
 
     size = n + (math.prod(shape) if surfaces else 0)
@@ -524,10 +530,7 @@ def _iterate_gmres(pb: _Problem):
     # onto x ≥ 0 only moves it closer to the (non-negative) solution.  (The moments of an
     # anisotropic phase have either sign.)
     lam, irr = unflat(x)
-    if pb.geom.order == 0:
-        lam = jnp.maximum(lam, 0.0)
-    else:
-        lam = lam.at[..., 0].set(jnp.maximum(lam[..., 0], 0.0))
+    lam = _on_fluence(lambda a: jnp.maximum(a, 0.0), lam, pb.geom.order)
     return (lam, jnp.maximum(irr, 0.0)), (hist, k, err)
 
 
@@ -698,7 +701,7 @@ class SweepSolver(eqx.Module):
         dt = params.scattering.dtype
         # δ-M scaling of the HG phase at the geometry's order (order 0: δ-isotropic, f = g;
         # exact for g = 0): the forward peak f is unscattered, ζ' = ζ(1 − f)
-        f, phase_coef = delta_m(params.g, geom.order, jnp)
+        f, phase_coef = moment_coefficients(params.g, geom.order, geom.M, jnp)
         zeta = params.scattering * (1.0 - f)
         ext = zeta + params.absorption
         sigma_t = ext * geom.density.astype(dt)
@@ -770,8 +773,7 @@ class SweepSolver(eqx.Module):
             direct=sun_point * geom.sun_cos.astype(dt) + sky_direct,
             sky_direct=sky_direct,
             sky=lattice_sky,
-            phase_coef=(None if geom.order == 0
-                        else phase_coef[geom_degrees(geom) - 1].astype(dt)),
+            phase_coef=None if geom.order == 0 else phase_coef.astype(dt),
             sky_moments=sky_moments,
             sun_albedo=sun_albedo,
             sun_phase=sun_phase,
@@ -858,11 +860,6 @@ def _cell_phase(geom: SweepGeometry, g, dt):
     return tuple(p[f] for f in range(6))
 
 
-def geom_degrees(geom: SweepGeometry) -> np.ndarray:
-    """(K,) the degree l ≥ 1 of each moment the geometry carries."""
-    return basis(geom.order, geom.M).degree
-
-
 def _result_code(root, k, err, tol: float, max_iterations: int):
     """The RESULTS code of a finished iteration (see ``SweepSolver.solve``)."""
     finite = jnp.all(jnp.isfinite(root[0])) & jnp.all(jnp.isfinite(root[1]))
@@ -903,10 +900,5 @@ def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2
     if geom.terms is not None and not geom.terms.volume_source:  # the moment needs accumulating
         full = dataclasses.replace(geom.terms, volume_source=True, fog_slabs=None)
         pb_m = eqx.tree_at(lambda p: p.geom, pb_m, dataclasses.replace(pb_m.geom, terms=full))
-    if geom.order > 0:  # the full anisotropic source, from the converged state
-        lam = jnp.concatenate([light.fluence[..., None], light.moments], axis=-1)
-        q, _ = _sources((lam, jnp.zeros(geom.shape, lam.dtype)), pb)
-        flux, _ = _sweep_all(q, light.radiosity, pb_m)
-        return flux[..., 0]
-    flux, _ = _sweep_all(light.source, light.radiosity, pb_m)
-    return flux
+    flux, _ = _sweep_all(source_field(pb, light), light.radiosity, pb_m)
+    return flux if geom.order == 0 else flux[..., 0]
