@@ -351,7 +351,7 @@ def fit_model(scene, cameras, resolution: int, M: int, downsample: int):
 
 # ----------------------------------------------------------------------------- sweep internals
 def sweep_problem(scene, N: int, M: int, devices: int = 1, mesh=None, kernel: str = "auto",
-                  phase_order="auto"):
+                  phase_order="auto", scheme: str = "step"):
     """(geometry, problem, prepare seconds) of the sweep's light problem on an N³ lattice with
     no vacuum margin (float32, the scene's parameters): ``SweepSolver.problem``, the input of
     one Jacobi iteration."""
@@ -365,7 +365,7 @@ def sweep_problem(scene, N: int, M: int, devices: int = 1, mesh=None, kernel: st
     kw = {"devices": devices} if devices > 1 else {}
     if mesh is not None:
         kw["mesh"] = tuple(mesh)
-    solver = df.SweepSolver(M=M, kernel=kernel, phase_order=phase_order, **kw)
+    solver = df.SweepSolver(M=M, kernel=kernel, phase_order=phase_order, scheme=scheme, **kw)
     geom = solver.prepare(scene, lat)
     prep_s = time.perf_counter() - t
     pb = jax.jit(solver.problem)(geom, df.Params.from_scene(scene, jnp.float32))

@@ -46,6 +46,8 @@ def _args(argv=None):
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver(phase_order=...) values (anisotropic scattering; \"auto\": "
                          "the scene's)")
+    ap.add_argument("--scheme", default="step", choices=["step", "linear"],
+                    help="SweepSolver(scheme=...): the transport along a segment")
     ap.add_argument("--grad-size", type=int, default=None, help="N of the forward/gradient case")
     ap.add_argument("--no-grad", action="store_true")
     ap.add_argument("--no-bandwidth", action="store_true")
@@ -84,7 +86,8 @@ def _hlo_ops(text: str) -> int:
     return sum(1 for line in text.splitlines() if re.match(r"\s*(ROOT\s+)?%?[\w.\-]+ = ", line))
 
 
-def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto", phase_order="auto"):
+def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto", phase_order="auto",
+                   scheme="step"):
     """Seconds per Jacobi iteration as the solver runs it: the forward iteration (``_iterate``,
     a while loop over ``_jacobi``, tol = 0) timed at 1 and ``k_iter`` iterations; the
     difference per extra iteration is the marginal cost of an iteration (one-time work hoisted
@@ -94,7 +97,7 @@ def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto", phas
     from difffog.forward.sweep._solver import _jacobi, _zero_state  # the internals measured
 
     geom, pb, prep_s = C.sweep_problem(scene, N, M, devices, kernel=kernel,
-                                       phase_order=phase_order)
+                                       phase_order=phase_order, scheme=scheme)
     ops_pre = _hlo_ops(jax.jit(_jacobi).lower(_zero_state(pb), pb).as_text(dialect="hlo"))
     it = C.iteration_seconds(pb, k_iter, repeat)
     D = (2 * M + 1) ** 2
@@ -180,7 +183,7 @@ def main(argv=None):
     for N in a.sizes:
         for M, order in ((m, o) for m in a.Ms for o in orders):
             r = iteration_case(scene, N, M, a.repeat, a.devices, kernel=a.kernel,
-                               phase_order=order)
+                               phase_order=order, scheme=a.scheme)
             results.append(r)
             pct = f"{100 * r['rate'] / roof:.0f}%" if roof else "–"
             rows.append([N, M, r["L"], r["D"], f"{r['s_iter']:.3f}", f"{r['s_best']:.3f}",

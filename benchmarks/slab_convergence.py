@@ -50,7 +50,8 @@ def ad_reference(table: list[dict], albedo: float, tau: float) -> tuple[float, f
     raise KeyError((albedo, tau))
 
 
-def run_column(N: int, M: int, sky_q: tuple[int, int], cases, max_iterations: int, tol: float):
+def run_column(N: int, M: int, sky_q: tuple[int, int], cases, max_iterations: int, tol: float,
+               scheme: str = "step"):
     """R, T, iterations, warm solve seconds for every (albedo, τ) on one compiled lattice."""
     import equinox as eqx
     import jax.numpy as jnp
@@ -58,7 +59,8 @@ def run_column(N: int, M: int, sky_q: tuple[int, int], cases, max_iterations: in
     from difffog import Params, SweepSolver
     from difffog.study import slab_problem, slab_reflectance
 
-    solver = SweepSolver(M=M, max_iterations=max_iterations, tol=tol, sky_quadrature=sky_q)
+    solver = SweepSolver(M=M, max_iterations=max_iterations, tol=tol, sky_quadrature=sky_q,
+                         scheme=scheme)
     scene0, lat, margin = slab_problem(1.0, 0.5, N, M)
     geom = solver.prepare(scene0, lat)  # the lattice does not depend on (albedo, τ)
     solve = eqx.filter_jit(solver.solve)
@@ -70,8 +72,10 @@ def run_column(N: int, M: int, sky_q: tuple[int, int], cases, max_iterations: in
         t = C.time_calls(lambda: solve(geom, params), 1)  # after the compile (first case) / warm-up
         light, dt = t.value, t.times[0]
         sigma = float(params.scattering + params.absorption) * density  # g = 0
+        slope = (None if light.source_slope is None
+                 else np.asarray(light.source_slope)[0, 0, :, 2])  # the linear scheme's
         R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h,
-                                sky=1.0)
+                                sky=1.0, slope=slope)
         out.append((albedo, tau, R, T, int(light.iterations), float(light.error_estimate), dt))
     return out
 
@@ -224,6 +228,10 @@ def main(argv=None):
     ap.add_argument("--references", type=Path, default=None,
                     help="folder of the references (default: the shipped ones)")
     ap.add_argument("--out", type=Path, default=C.RESULTS)
+    ap.add_argument("--scheme", choices=("step", "linear"), default="step",
+                    help="SweepSolver.scheme (default step)")
+    ap.add_argument("--name", default="slab_convergence",
+                    help="stem of the result files (default slab_convergence)")
     ap.add_argument("--from-csv", action="store_true",
                     help="only rebuild the markdown from an existing slab_convergence.csv")
     args = C.parse(ap, argv)
@@ -231,11 +239,11 @@ def main(argv=None):
     args.taus = args.taus or ([1.0] if args.quick else list(TAUS))
     args.variants = args.variants or (["lattice"] if args.quick else list(VARIANTS))
     if args.from_csv:
-        rows = read_csv(args.out / "slab_convergence.csv")
+        rows = read_csv(args.out / f"{args.name}.csv")
         variants = [v for v in VARIANTS if any(r["variant"] == v for r in rows)]
         md = markdown(rows, sorted({r["N"] for r in rows}), sorted({r["M"] for r in rows}),
                       variants)
-        (args.out / "slab_convergence.md").write_text(md)
+        (args.out / f"{args.name}.md").write_text(md)
         print(md)
         return
     import jax
@@ -257,7 +265,8 @@ def main(argv=None):
         for M in args.m:
             for N in args.n:
                 t0 = time.perf_counter()
-                res = run_column(N, M, VARIANTS[v], cases, args.max_iterations, args.tol)
+                res = run_column(N, M, VARIANTS[v], cases, args.max_iterations, args.tol,
+                                 args.scheme)
                 for a, tau, R, T, it, err, dt in res:
                     Rr, Tr = refs[(a, tau)]
                     rows.append({"variant": v, "albedo": a, "tau": tau, "N": N, "M": M,
@@ -267,13 +276,15 @@ def main(argv=None):
                 worst = max(abs(r["err_R"]) for r in rows[-len(cases):])
                 print(f"{v:15s} M={M} N={N:3d}: max |R err| {100 * worst:5.1f}%  "
                       f"({time.perf_counter() - t0:.0f}s)", flush=True)
-    with open(args.out / "slab_convergence.csv", "w", newline="") as f:
+    with open(args.out / f"{args.name}.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         for r in rows:
             w.writerow({k: (f"{x:.7g}" if isinstance(x, float) else x) for k, x in r.items()})
     md = markdown(rows, args.n, args.m, args.variants, info)
-    (args.out / "slab_convergence.md").write_text(md)
+    if args.scheme != "step":
+        md = md.replace("of the sweep solver", f"of the sweep solver (scheme={args.scheme})", 1)
+    (args.out / f"{args.name}.md").write_text(md)
     print()
     print(md)
     print(f"total {time.perf_counter() - t_all:.0f} s, warm solves "

@@ -58,7 +58,7 @@ QUICK_SETTINGS = [(16, 2)]
 
 
 def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int,
-                phase_order="auto"):
+                phase_order="auto", scheme="step"):
     """Images and timings of one (N, M) setting.
 
     ``difffog.render`` compiles the light solve and the images ahead of time
@@ -70,7 +70,8 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=tol,
-                                 max_iterations=max_iterations, phase_order=phase_order)
+                                 max_iterations=max_iterations, phase_order=phase_order,
+                                 scheme=scheme)
     notes = sorted({str(w.message).split(":")[0] for w in caught})
     out = df.render(model)
     t = out.timings
@@ -86,6 +87,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         "render_s": t["images_s"],
         "warnings": "; ".join(notes),
         "phase_order": model.geometry.order,
+        "scheme": "linear" if model.geometry.linear else "step",
     }
     return images, info
 
@@ -162,6 +164,8 @@ def main(argv=None):
                     help="folder of the Mitsuba references (default: the shipped ones)")
     ap.add_argument("--out", type=Path, default=C.RESULTS)
     ap.add_argument("--no-png", action="store_true")
+    ap.add_argument("--scheme", default="step", choices=("step", "linear"),
+                    help="SweepSolver.scheme")
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver.phase_order values to run (\"auto\" or integers)")
     C.add_quick(ap)
@@ -179,7 +183,8 @@ def main(argv=None):
     for scene in scenes:
         for (N, M), order in ((s, o) for s in settings for o in orders):
             t = time.perf_counter()
-            images, info = run_setting(scene, N, M, args.tol, args.max_iterations, order)
+            images, info = run_setting(scene, N, M, args.tol, args.max_iterations, order,
+                                       args.scheme)
             for cam, img in images.items():
                 ref, noise = C.reference(scene, cam, args.references)
                 m = C.compare(img, ref, noise)

@@ -39,7 +39,9 @@ def test_thick_slab_conserves_energy(albedo, tau, x64):
     light = _solve(geom, p)
     assert int(light.result) == df.RESULTS.successful
     sigma = np.asarray(SLAB_SOLVER.problem(geom, p).sigma_t)[0, 0]
-    R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h, sky=1.0)
+    slope = None if light.source_slope is None else np.asarray(light.source_slope)[0, 0, :, 2]
+    R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h, sky=1.0,
+                            slope=slope)
     A = float(np.sum((1 - albedo) * sigma * np.asarray(light.fluence)[0, 0] * lat.h)) / math.pi
     r_err, balance = THICK_SLABS[(albedo, tau)]
     assert abs(R + T + A - 1) <= balance, (R, T, A)

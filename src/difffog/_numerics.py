@@ -33,6 +33,42 @@ def one_minus_exp_over(tau):
     return jnp.where(small, series, -jnp.expm1(-ts) / ts)
 
 
+def linear_source_terms(tau):
+    """(φ, ψ, χ, χ₂) of a segment of optical depth τ whose source is linear in optical depth:
+
+    φ = (1 − e^{−τ})/τ,  ψ = (1 − φ)/τ,  χ = (1/τ)∫₀^τ e^{−u}(u/τ − ½) du,  χ₂ = 1/12 + χ/τ.
+
+    Over such a segment, entered with radiance R_a by a source going from Q_a to Q_b, the exit
+    radiance is Q_b + e^{−τ}(R_a − Q_a) − φ(Q_b − Q_a), the mean radiance Q̄ + φ(R_a − Q_a) −
+    ψ(Q_b − Q_a), and its first moment (1/τ)∫R(u/τ − ½)du is χ(R_a − Q_a) + χ₂(Q_b − Q_a)
+    (the linear-characteristic sweep, ``forward/sweep/_kernel.py``).  Below τ = 0.5 each is
+    its Taylor series (the closed forms cancel there); value and gradient finite at τ = 0.
+    """
+    small = jnp.abs(tau) < 0.5
+    t = jnp.where(small, 1.0, tau)
+    em = jnp.expm1(-t)
+    phi_c = -em / t
+    psi_c = (t + em) / (t * t)
+    chi_c = (((-em) - t * (1.0 + em)) / t + em / 2.0) / t
+    chi2_c = 1.0 / 12.0 + chi_c / t
+    # series: e^{−u} = Σ (−u)^n/n!; each term integrated exactly
+    phi_s = psi_s = chi_s = chi2_s = 0.0
+    fact = 1.0
+    for n in range(11):
+        if n:
+            fact *= n
+        a = (-1.0) ** n / fact  # coefficient of u^n in e^{-u}
+        phi_s = phi_s + a / (n + 1) * tau**n  # (1/τ)∫₀^τ u^n du = τ^n/(n+1)
+        if n >= 1:  # ψ = (1 − φ)/τ: φ's series without its leading 1, over τ
+            psi_s = psi_s - a / (n + 1) * tau ** (n - 1)
+        c = a * n / (2.0 * (n + 1) * (n + 2))  # ∫₀^τ u^n (u/τ − ½) du / τ = τ^n · n/(2(n+1)(n+2))
+        chi_s = chi_s + c * tau**n
+        if n >= 2:  # χ₂ = 1/12 + χ/τ: the n = 1 term of χ/τ is −1/12
+            chi2_s = chi2_s + c * tau ** (n - 1)
+    return (jnp.where(small, phi_s, phi_c), jnp.where(small, psi_s, psi_c),
+            jnp.where(small, chi_s, chi_c), jnp.where(small, chi2_s, chi2_c))
+
+
 def bilinear(buf, u, v, xp=jnp):
     """Bilinear lookup of ``buf[..., H, W]`` at continuous index coordinates (u, v) (any
     matching shapes), clamped to the buffer: a point outside reads the nearest edge value.

@@ -36,6 +36,11 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                    help="sweep: order of a Henyey-Greenstein fog's phase in the light solve "
                         "((L+1)^2 angular moments per node, delta-M; 0: delta-isotropic; default: "
                         "0 for an isotropic fog, 3 otherwise)")
+    p.add_argument("--scheme", choices=("step", "linear"), default=None,
+                   help="sweep: the transport scheme along lattice rays: step (default: a "
+                        "constant source per node) or linear (the source linear along each "
+                        "segment: the right diffusion limit where a lattice step is optically "
+                        "thick; see docs/validation.md)")
 
 
 def positive_int(name: str, value: int | None) -> int | None:
@@ -56,7 +61,8 @@ def model_settings(args, solver: str, *, accuracy: str | None) -> dict:
              "max_iterations": ("--max-iterations", getattr(args, "max_iterations", None)),
              "supersample": ("--supersample", getattr(args, "supersample", None)),
              "devices": ("--devices", getattr(args, "devices", None)),
-             "phase_order": ("--phase-order", getattr(args, "phase_order", None))}
+             "phase_order": ("--phase-order", getattr(args, "phase_order", None)),
+             "scheme": ("--scheme", getattr(args, "scheme", None))}
     if getattr(args, "iterations", None) is not None:
         flags["max_iterations"] = ("--iterations", args.iterations)
         flags["tol"] = ("--iterations", 0.0)  # exactly K iterations

@@ -75,7 +75,7 @@ def slab_problem(tau: float, albedo: float, n_fog: int, M: int, *, sky: float = 
 
 def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky: float,
                      sun: tuple[float, float] | None = None, n_mu: int = 64, basis=None,
-                     n_phi: int = 64, sun_scatter: tuple | None = None):
+                     n_phi: int = 64, sun_scatter: tuple | None = None, slope=None):
     """(R, T) of a slab column from its converged source radiance (formal solution).
 
     sigma_t, source: (nz,) extinction and step source Q of the column (emission per unit
@@ -88,6 +88,8 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     (``sun``: the uncollided sun's fluence at each cell; ``source`` then leaves the sun out),
     as the cameras do, and attenuate the unscattered sun by σ_sun (the true extinction, where
     the solver scatters the sun's first collision exactly).
+    ``slope``: (nz,) h·∂Q/∂z of the linear-source scheme (``LightField.source_slope``): the
+    isotropic source then varies linearly across each cell, q + slope·t for t ∈ [−½, ½].
     """
     s = np.asarray(sigma_t, np.float64)
     x, w = np.polynomial.legendre.leggauss(n_mu)
@@ -129,8 +131,19 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
             -np.expm1(-dtau[:, None] / mu[None]) / np.where(s > 0, s, 1.0)[:, None],
             h / mu[None],
         )
-    up = (j_up * cell * np.exp(-above[:, None] / mu[None])).sum(0)
-    down = (j_dn * cell * np.exp(-below[:, None] / mu[None])).sum(0)
+    up_cell, dn_cell = j_up * cell, j_dn * cell
+    if slope is not None:
+        # ∫₀^T (½ − u/T) e^{−u} du = −T·χ(T) over a cell of slant depth T = Δτ/μ, u measured
+        # back from where the ray leaves the cell (up: from its top, down: from its bottom)
+        T = dtau[:, None] / mu[None]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            tchi = np.where(T > 1e-4, ((1 - np.exp(-T) * (1 + T)) / T - (-np.expm1(-T)) / 2),
+                            -T * T / 12)
+        sl = np.asarray(slope, np.float64)[:, None]
+        up_cell = up_cell - sl * tchi
+        dn_cell = dn_cell + sl * tchi
+    up = (up_cell * np.exp(-above[:, None] / mu[None])).sum(0)
+    down = (dn_cell * np.exp(-below[:, None] / mu[None])).sum(0)
     down = down + sky * np.exp(-total / mu)
     flux_up = 2 * math.pi * (wmu * mu * up).sum()
     flux_down = 2 * math.pi * (wmu * mu * down).sum()

@@ -66,14 +66,17 @@ class DiffusionOperator:
     """The lattice's diffusion operator A = −∇·D∇ + σ_a on fog nodes (identity elsewhere) and
     the scattering coefficient σ_s, for the preconditioner I + A⁻¹σ_s."""
 
-    def __init__(self, sigma_t, ssa, solid, h: float, periodic_xy: bool, M: int, mu_bar=0.0):
+    def __init__(self, sigma_t, ssa, solid, h: float, periodic_xy: bool, M: int, mu_bar=0.0,
+                 linear: bool = False):
         dt = sigma_t.dtype
         self.fog = (sigma_t > 0) & ~solid
         shape = sigma_t.shape
         size = max(shape) * h
         # transport-corrected with an anisotropic phase (mean cosine mu_bar of the scaled phase)
         sig = jnp.maximum(sigma_t * (1.0 - ssa * mu_bar), 1.0 / size)
-        D = jnp.where(self.fog, 1.0 / (3.0 * sig) + h * _mean_length(M) / 6.0, 0.0)
+        # the linear scheme has the true diffusion limit: no lattice term
+        step_term = 0.0 if linear else h * _mean_length(M) / 6.0
+        D = jnp.where(self.fog, 1.0 / (3.0 * sig) + step_term, 0.0)
         self.sigma_s = jnp.where(self.fog, ssa * sigma_t, 0.0)
         sigma_a = jnp.where(self.fog, (1.0 - ssa) * sigma_t, 0.0)
         self.periodic = (periodic_xy, periodic_xy, False)

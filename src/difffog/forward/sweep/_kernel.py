@@ -56,7 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._errors import SolverError
-from ..._numerics import one_minus_exp_over
+from ..._numerics import linear_source_terms, one_minus_exp_over
 from ...geometry._directions import FACE_AXES, DirectionSet, direction_set, face_plane_axes
 
 # Rows of the plane processed per tile (see sweep_face): a tile's per-node data and expm1 table
@@ -214,15 +214,41 @@ class SweepConsts(eqx.Module):
     #                                (``_harmonics.Basis``; None or K = 0: isotropic)
     sun_phase: jax.Array | None = None  # (D,) the sun's phase function averaged over each
     #                                     direction's cell (the first-collision sun's channel)
+    slope: jax.Array | None = None  # (D, 3) the lattice vectors L in world (x, y, z)
+    #                                 components: the linear-source scheme (None: step scheme)
 
 
 def _source_table(consts: SweepConsts, dt):
     """(D, J) per-direction coefficients of the source channels beyond the isotropic one: the
-    K moments' basis, then the sun's phase when there is one; and K."""
-    harm = consts.harm.astype(dt)
+    K moments' basis, then the sun's phase when there is one; and K.  (The linear scheme's
+    three slope channels follow these J in Q; ``_slope_tables``.)"""
+    D = consts.weight.shape[0]
+    harm = jnp.zeros((D, 0), dt) if consts.harm is None else consts.harm.astype(dt)
     if consts.sun_phase is None:
         return harm, harm.shape[1]
     return jnp.concatenate([harm, consts.sun_phase.astype(dt)[:, None]], axis=1), harm.shape[1]
+
+
+def _linear_node(r_mid, q, s, em, omp_half, phi, psi):
+    """A node's segment (two halves of optical depth τ each) with the source linear along it:
+    q − s/2 where the segment enters, q at the node, q + s/2 where it leaves (q: the node's
+    source for this direction; s = L·G its change over the segment, G = h∇Q).  r_mid: the
+    radiance entering.  The tables are those of ``linear_source_terms(τ)``: em = e^{−τ} − 1,
+    omp_half = τψ/2 = (1 − φ)/2, φ, ψ.  Returns (radiance at the node, radiance leaving, the
+    segment's mean radiance R̄).
+
+    Each half's exact update (``_numerics.linear_source_terms``), with a = r_mid − (q − s/2)
+    entering the arrival half and b = R_node − q entering the departure half:
+    R_node = r_mid + em·a + s(1 − φ)/2, R_out = R_node + em·b + s(1 − φ)/2,
+    R̄ = q + φ(a + b)/2 − ψs/2.  The slope integrates to 0 over the segment, so the balance
+    R_out − R_in = 2τ(q − R̄) of the step scheme holds (energy is conserved); with s = 0 these
+    are the step scheme's updates."""
+    a = r_mid - q + 0.5 * s
+    r_node = r_mid + em * a + omp_half * s
+    b = r_node - q
+    r_out = r_node + em * b + omp_half * s
+    r_avg = q + 0.5 * phi * (a + b) - 0.5 * psi * s
+    return r_node, r_out, r_avg
 
 
 #: The two programs of one face sweep (same arithmetic, same values and derivatives): "loop"
@@ -343,9 +369,11 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     D = P * P
     per_w, per_u, per_v = periodic
     dt = Q.dtype
-    # Anisotropic: Q (nw, nu, nv, 1 + J), the isotropic part, then the sources that direction d
-    # weights by ``_source_table``'s row d (the K moments', then the sun's); Λ gets K moments
+    # Anisotropic: Q (nw, nu, nv, 1 + J [+ 3]), the isotropic part, then the sources that
+    # direction d weights by ``_source_table``'s row d (the K moments', then the sun's), then
+    # with the linear scheme the source's slope h∇Q (3 channels); Λ gets K moments
     aniso = Q.ndim == 4
+    linear = consts.slope is not None
     nk = nj = 0
 
     slabs, ns = _slabber(nw, M, per_w, warmup)
@@ -372,6 +400,8 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         table, nk = _source_table(consts, dt)  # (D, J)
         nj = table.shape[1]
         wharm = table[:, :nk] * weight[:, None]
+        if linear:
+            slope_in = consts.slope.astype(dt)  # (D, 3): L in world components
     passes = (slabs(geo.free) | slabs(geo.surf)) if surfaces else slabs(geo.free)
     if surfaces:
         ns_ = jnp.moveaxis(slabs(geo.normal), -1, 1)  # (ns, 3, M, nu, nv)
@@ -393,7 +423,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
             u0 = jnp.asarray(t * tu, jnp.int32)  # int32 indices also under jax_enable_x64
             rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
             Qt, Bt, pt = rows(Qs_), rows(Bs_), rows(pass_s)
-            if aniso:  # (1 + K, M, tu, nv): the isotropic source and the moments' sources
+            if aniso:  # (1 + J [+ 3], M, tu, nv): the isotropic source and the others
                 Qa, Qt = Qt[1:], Qt[0]
             # half-segment factor expm1(-τ|L|) for each distinct |L|: (K, M, tu, nv)
             if attenuate:
@@ -401,7 +431,11 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 em_k = jnp.expm1(-tau_k)
                 # segment averages (Λ): the whole node segment [2τ], or its departure half [τ]
                 # after a blocked arrival
-                avg2_k, avg1_k = one_minus_exp_over(2.0 * tau_k), one_minus_exp_over(tau_k)
+                if linear:
+                    avg1_k, psi_k = linear_source_terms(tau_k)[:2]
+                    omp_k = 0.5 * tau_k * psi_k
+                else:
+                    avg2_k, avg1_k = one_minus_exp_over(2.0 * tau_k), one_minus_exp_over(tau_k)
             if surfaces:
                 nt, bt = rows(ns_s), rows(bits_s)
             zero = jnp.zeros((M, tu, nv), dt)
@@ -415,16 +449,22 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 r_mid = jax.lax.dynamic_slice(src, (d, _I0, u0 + start[d, 0], start[d, 1]),
                                               (1, M, tu, nv))[0]
                 Qt = c_Qt  # this direction's source: Q_0 + Σ_j table[d, j] Q_j
-                if aniso:
+                if aniso and nj:
                     hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
                     Qt = c_Qt + sum(hd[k] * Qa[k] for k in range(nj))
-                if attenuate:
-                    em = jax.lax.dynamic_index_in_dim(em_k, kidx[d], 0, keepdims=False)
+                at_k = lambda a: jax.lax.dynamic_index_in_dim(a, kidx[d], 0, keepdims=False)  # noqa
+                if attenuate and linear:  # the source linear along the node's segment
+                    sd = jax.lax.dynamic_index_in_dim(slope_in, d, 0, keepdims=False)
+                    sl = sd[0] * Qa[nj] + sd[1] * Qa[nj + 1] + sd[2] * Qa[nj + 2]
+                    em = at_k(em_k)
+                    r_arr, r_through, r_avg = _linear_node(
+                        r_mid, Qt, sl, em, at_k(omp_k), at_k(avg1_k), at_k(psi_k))
+                elif attenuate:
+                    em = at_k(em_k)
                     # half-segment in this node (arrival): R + expm1(-τ)(R - Q); τ = 0 off fog
                     r_arr = r_mid + em * (r_mid - Qt)
                     # the radiance averaged over the node's segment, for Λ (conservative)
-                    r_avg = Qt + (r_mid - Qt) * jax.lax.dynamic_index_in_dim(
-                        avg2_k, kidx[d], 0, keepdims=False)
+                    r_avg = Qt + (r_mid - Qt) * at_k(avg2_k)
                 else:
                     r_arr = r_avg = r_mid
                 w = weight[d]
@@ -433,10 +473,11 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                     blocked = (byte >> bit_of[d]) & 1
                     r_arr = jnp.where(blocked > 0, Bt, r_arr)
                     if attenuate and fluence:  # blocked: only the departure half is in fog
-                        r_avg = jnp.where(blocked > 0, Qt + (Bt - Qt) * jax.lax.dynamic_index_in_dim(
-                            avg1_k, kidx[d], 0, keepdims=False), r_avg)
+                        r_avg = jnp.where(blocked > 0, Qt + (Bt - Qt) * at_k(avg1_k), r_avg)
                     else:
                         r_avg = r_arr
+                    if attenuate and linear:  # blocked: a constant source in the departure half
+                        r_through = jnp.where(blocked > 0, Bt + em * (Bt - Qt), r_through)
                     ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
                     cos_w = jnp.maximum(-ldotn, 0.0) * w
                     if both:
@@ -445,11 +486,12 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                         acc = acc + r_arr * cos_w
                 elif fluence:
                     acc = acc + r_avg * w
-                if aniso and fluence:  # the moments Σ_d w_d Ỹ_k(d) R̄_d
+                if aniso and fluence and nk:  # the moments Σ_d w_d Ỹ_k(d) R̄_d
                     wh = jax.lax.dynamic_index_in_dim(wharm, d, 0, keepdims=False)
                     macc = macc + wh[:, None, None, None] * r_avg[None]
                 # second half-segment
-                r_through = r_arr + em * (r_arr - Qt) if attenuate else r_arr
+                if not (attenuate and linear):
+                    r_through = r_arr + em * (r_arr - Qt) if attenuate else r_arr
                 r_out = jnp.where(pt, r_through, 0.0)
                 dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
                 return dst, acc, macc
@@ -467,7 +509,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         zs = jnp.zeros((M, nu, nv), dt)
         zm = jnp.zeros((nk, M, nu, nv), dt)
         dst, lam, irr, mom = jax.lax.fori_loop(0, nu // tu, tile, (dst, zs, zs, zm))
-        if aniso:  # (M, nu, nv, 1 + K): Λ, then the moments
+        if nk:  # (M, nu, nv, 1 + K): Λ, then the moments
             lam = jnp.concatenate([lam[..., None], jnp.moveaxis(mom, 0, -1)], axis=-1)
         if halo is not None:  # border rows, then columns (corners included), from neighbours
             dst = halo.refresh(dst, M, per_u, per_v)
@@ -480,7 +522,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
     bc4 = bc_d[:, None, None, None]
     if per_w and aniso:  # equilibrium guess (below), each direction with its own source
-        init = (Qs[0][0][None] + jnp.einsum("dk,kmuv->dmuv", table, Qs[0][1:])).astype(dt)
+        init = (Qs[0][0][None] + jnp.einsum("dk,kmuv->dmuv", table, Qs[0][1 : 1 + nj])).astype(dt)
     elif per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
         init = jnp.broadcast_to(Qs[0][None], (D, M, nu, nv)).astype(dt)
     else:
@@ -545,14 +587,18 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     byte_of = np.arange(D) // 8
     bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))[None, :, None, None]
     w4 = weight[None, :, None, None]
+    linear = consts.slope is not None
     if aniso:
         table, nk = _source_table(consts, dt)  # (D, J)
+        nj = table.shape[1]
         harm = table[:, :nk]
+        if linear:
+            slope_in = consts.slope.astype(dt)  # (D, 3): L in world components
 
-    def source(Qs):  # (M, nu, nv[, 1 + J]) → per node and direction (M, D or 1, nu, nv)
+    def source(Qs):  # (M, nu, nv[, 1 + J [+ 3]]) → per node and direction (M, D or 1, nu, nv)
         if not aniso:
             return Qs[:, None]
-        return Qs[..., 0][:, None] + jnp.einsum("muvk,dk->mduv", Qs[..., 1:], table)
+        return Qs[..., 0][:, None] + jnp.einsum("muvk,dk->mduv", Qs[..., 1 : 1 + nj], table)
     len4 = length[None, :, None, None]
     u4 = [unit[None, :, c, None, None] for c in range(3)]
 
@@ -565,21 +611,30 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         tau = ts[:, None] * len4
         em = jnp.expm1(-tau)
         q4 = source(Qs)
-        r_arr = r_mid + em * (r_mid - q4)
-        # Λ from the radiance averaged over the node's segment (conservative; see module doc)
-        r_avg = q4 + (r_mid - q4) * one_minus_exp_over(2.0 * tau)
+        if linear:  # the source linear along the node's segment (``_linear_node``)
+            sl = jnp.einsum("muvk,dk->mduv", Qs[..., 1 + nj :], slope_in)
+            phi, psi = linear_source_terms(tau)[:2]
+            r_arr, r_through, r_avg = _linear_node(r_mid, q4, sl, em, 0.5 * tau * psi, phi, psi)
+        else:
+            r_arr = r_mid + em * (r_mid - q4)
+            # Λ from the radiance averaged over the node's segment (conservative; module doc)
+            r_avg = q4 + (r_mid - q4) * one_minus_exp_over(2.0 * tau)
         if surfaces:
             blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
             r_arr = jnp.where(blocked > 0, Bs[:, None], r_arr)
             r_avg = jnp.where(blocked > 0, q4 + (Bs[:, None] - q4) * one_minus_exp_over(tau), r_avg)
+            if linear:  # blocked: a constant source in the departure half
+                r_through = jnp.where(blocked > 0, Bs[:, None] + em * (Bs[:, None] - q4),
+                                      r_through)
         if fluence:
             lam = (r_avg * w4).sum(1)
-            if aniso:
+            if aniso and nk:
                 mom = jnp.einsum("mduv,dk->muvk", r_avg * w4, harm)
                 lam = jnp.concatenate([lam[..., None], mom], axis=-1)
         else:
-            lam = jnp.zeros_like(Qs)
-        r_through = r_arr + em * (r_arr - q4)  # second half-segment
+            lam = jnp.zeros(Qs.shape[:3] + ((1 + nk,) if aniso and nk else ()), dt)
+        if not linear:
+            r_through = r_arr + em * (r_arr - q4)  # second half-segment
         if surfaces:
             ldotn = ns[0][:, None] * u4[0] + ns[1][:, None] * u4[1] + ns[2][:, None] * u4[2]
             irr = (r_arr * jnp.maximum(-ldotn, 0.0) * w4).sum(1)
@@ -603,9 +658,11 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     return lam, irr, exit_
 
 
-def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None) -> SweepConsts:
+def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None,
+                linear: bool = False) -> SweepConsts:
     """The constants of ``face``; ``harm``: (6, D, K) the anisotropic basis at every face's
-    directions (``_harmonics.Basis.faces``), or None (isotropic)."""
+    directions (``_harmonics.Basis.faces``), or None (isotropic); ``linear``: the
+    linear-source scheme's slope table."""
     axis, sign = FACE_AXES[face]
     u, v = face_plane_axes(axis)
     vec = dirs.vectors[face]
@@ -616,6 +673,7 @@ def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None) -
         length=jnp.asarray(dirs.length),
         weight=jnp.asarray(dirs.weights[face]),
         harm=None if harm is None else jnp.asarray(harm[face]),
+        slope=jnp.asarray(vec * np.asarray(dirs.length)[:, None]) if linear else None,
     )
 
 

@@ -33,6 +33,8 @@ class LightField(AbstractLight):
     moments: with an anisotropic phase (``SweepSolver.phase_order`` L > 0), the K = (L+1)² − 1
         angular moments Σ_L w_L Ỹ_k(L̂) R of the scattered light (``_harmonics.Basis``), else
         None; sky_moments: those of the uncollided sky (None without a first-collision sky).
+    source_slope: with the linear-source scheme (``SweepSolver.scheme``), h∇Q: the isotropic
+        source's change per lattice spacing along x, y, z (nx, ny, nz, 3), else None.
     origin, h: the lattice's lower corner and spacing (static).
     """
 
@@ -48,6 +50,7 @@ class LightField(AbstractLight):
     result: Int[Array, ""]
     moments: Float[Array, "nx ny nz K"] | None = None
     sky_moments: Float[Array, "nx ny nz K"] | None = None
+    source_slope: Float[Array, "nx ny nz 3"] | None = None
     origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
     h: float = eqx.field(static=True, default=1.0)
 

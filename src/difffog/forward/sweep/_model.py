@@ -246,7 +246,7 @@ class SweepModel(AbstractForwardModel):
                                "tol": s.tol, "sky_quadrature": s.sky_quadrature,
                                "terms": s.terms, "devices": s.devices,
                                "precondition": s.resolved_precondition(self.geometry),
-                               "phase_order": self.geometry.order,
+                               "phase_order": self.geometry.order, "scheme": s.scheme,
                                "kernel": s.resolved_kernel()},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides

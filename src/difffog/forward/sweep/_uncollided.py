@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._numerics import one_minus_exp_over
+from ..._numerics import linear_source_terms, one_minus_exp_over
 from ...geometry._directions import face_plane_axes
 
 
@@ -29,7 +29,11 @@ def sun_sweep_axis(sun_dir: np.ndarray, periodic_xy: bool) -> tuple[int, int]:
     return a, (-1 if sun_dir[a] > 0 else 1)
 
 
-def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
+#: a quantity changing linearly by Δ across a segment has first moment Δ/12 over it
+_MOMENT_TO_CHANGE = 12.0
+
+
+def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, slope=False):
     """Transmittance of the direct sun beam arriving at every node.
 
     sigma_t: (nx, ny, nz) extinction per unit length (ζ+γ)·density; opaque: (nx, ny, nz) bool
@@ -40,6 +44,9 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
     σ_t·F·average is exactly the power the beam loses in the node's segment, whatever its
     optical depth (the point value is e^(−τ/2) of the segment's entry value: 6e-4 of it at
     τ = 15, where the average is 0.067, and the node's source vanished in thick fog).
+    slope: also return h∇T̄ (nx, ny, nz, 3), the segment average's change per lattice spacing
+    along the beam, from the first moment of e^(−s) over the node's segment (the linear-source
+    scheme's first-collision slope: in a thick node the beam's power is spent near its entry).
     """
     sun_dir = np.asarray(sun_dir, dtype=np.float64)
     axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
@@ -76,26 +83,36 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False):
     tau = s * (h / (2.0 * along))  # half-segment optical depth per node
     half = jnp.exp(-tau)
     mean = one_minus_exp_over(2.0 * tau)  # mean of e^(−s) over the node's whole segment
+    # first moment over the segment, as a change per lattice spacing along the beam (segment
+    # length h/along)
+    first = (linear_source_terms(2.0 * tau)[2] * (_MOMENT_TO_CHANGE * along) if slope
+             else jnp.zeros_like(tau))
 
     def step(t_out_prev, sheet):
-        half_k, mean_k, opaque_k = sheet
+        half_k, mean_k, first_k, opaque_k = sheet
         t_in = resample(t_out_prev)
         t_arr = t_in * half_k
         t_out = jnp.where(opaque_k, 0.0, t_arr * half_k)
-        return t_out, (t_arr, t_in * mean_k)
+        return t_out, (t_arr, t_in * mean_k, t_in * first_k)
 
     init = jnp.ones(s.shape[1:], s.dtype)
-    _, out = jax.lax.scan(step, init, (half, mean, o))
+    _, out = jax.lax.scan(step, init, (half, mean, first, o))
     if sign < 0:
         out = jax.tree.map(lambda a: a[::-1], out)
-    t_arr, t_avg = (jnp.transpose(a, np.argsort(perm)) for a in out)
+    t_arr, t_avg, t_first = (jnp.transpose(a, np.argsort(perm)) for a in out)
+    if slope:  # along the light's propagation, −sun_dir
+        grad = t_first[..., None] * jnp.asarray(-sun_dir, t_first.dtype)
+        return t_arr, t_avg, jnp.where(opaque[..., None], 0.0, grad)
     return (t_arr, t_avg) if average else t_arr
 
 
-def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, harm=None):
+def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, harm=None,
+                   slope=False):
     """Uncollided sky light at every node: Σ_k w_k T_k and Σ_k w_k T_k max(0, ω_k·N), and with
     ``harm`` ((n_dirs, K) basis values at each direction's propagation direction) the moments
-    Σ_k w_k T̄_k Ỹ(−ω_k) (nx, ny, nz, K) as a third result.
+    Σ_k w_k T̄_k Ỹ(−ω_k) (nx, ny, nz, K) as a third result; with ``slope`` the fluence's
+    change per lattice spacing h∇(Σ_k w_k T̄_k) (nx, ny, nz, 3) last (each direction's T̄
+    changing along its own beam, as ``sun_transmittance``'s).
 
     The directions are grouped by their dominant axis and each group is swept sheet by sheet
     along that axis, so the lateral offset per sheet is at most one voxel: marching every
@@ -116,6 +133,7 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, h
     flu = jnp.zeros_like(sigma_t)
     irr = jnp.zeros_like(sigma_t)
     mom = None if harm is None else jnp.zeros(sigma_t.shape + (harm.shape[1],), sigma_t.dtype)
+    grad = jnp.zeros(sigma_t.shape + (3,), sigma_t.dtype) if slope else None
     for (a, sgn), idx in groups.items():
         idx = np.asarray(idx)
         u, v = face_plane_axes(a)
@@ -127,17 +145,22 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, h
         nm = normal[..., list(perm)] * jnp.asarray([1.0, 1.0, float(sgn)], normal.dtype)
         nm = flip(jnp.transpose(nm, perm + (3,)))
         out = _sheet_sweep(st, op, nm, d, wts[idx], h, periodic_xy,
-                           harm=None if harm is None else np.asarray(harm)[idx])
+                           harm=None if harm is None else np.asarray(harm)[idx], slope=slope)
         inv = np.argsort(perm)
         flu = flu + jnp.transpose(flip(out[0]), inv)
         irr = irr + jnp.transpose(flip(out[1]), inv)
         if harm is not None:
             mom = mom + jnp.transpose(flip(out[2]), tuple(inv) + (3,))
-    return (flu, irr) if harm is None else (flu, irr, mom)
+        if slope:  # the sweep frame's (u, v, ±a) components back to the world's
+            g = jnp.transpose(flip(out[-1]), tuple(inv) + (3,)) * jnp.asarray(
+                [1.0, 1.0, float(sgn)], grad.dtype)
+            grad = grad + g[..., np.argsort(perm)]
+    res = (flu, irr) if harm is None else (flu, irr, mom)
+    return res + (grad,) if slope else res
 
 
 def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_shift=None,
-                 harm=None):
+                 harm=None, slope=False):
     """Batched light-aligned sheet sweep along −z (the frame of :func:`sky_uncollided`).
 
     For each quadrature direction ω_k (towards the sky) the transmittance T_k(x) from the top
@@ -150,6 +173,8 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
     one voxel; None: whenever they are) or by gathers (False).
     harm: (K_dirs, K) basis values per direction: also return the moments Σ_k w_k T̄_k harm_k
     (nx, ny, nz, K), T̄ averaged like the fluence's.
+    slope: also return the fluence's change per lattice spacing, Σ_k w_k h∂T̄_k along each
+    direction's propagation (nx, ny, nz, 3), last.
     """
     nx, ny, nz = sigma_t.shape
     dirs = np.asarray(sky_dirs, np.float64)
@@ -179,6 +204,9 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
     w = jnp.asarray(sky_wts, dt)
     wd = jnp.asarray(dirs, dt)
     wh = None if harm is None else jnp.asarray(np.asarray(sky_wts)[:, None] * harm, dt)
+    # w_k · 12 ω_z · (−ω_k): a direction's first moment → its fluence's change per spacing
+    wgrad = jnp.asarray(-np.asarray(sky_wts)[:, None] * _MOMENT_TO_CHANGE * dirs[:, 2:3] * dirs,
+                        dt)
 
     # Each direction's lateral offset per sheet lies in [−1, 1] voxels when the directions are
     # grouped by dominant axis (open domains): then the bilinear resampling is a combination of
@@ -223,9 +251,14 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
         flu = jnp.einsum("kij,k->ij", t_avg, w)
         cos = jnp.maximum(jnp.einsum("ijc,kc->kij", n_k, wd), 0.0)
         irr = jnp.einsum("kij,k->ij", t_arr * cos, w)
+        res = (flu, irr)
         if wh is not None:
-            return t_out, (flu, irr, jnp.einsum("kij,kc->ijc", t_avg, wh))
-        return t_out, (flu, irr)
+            res = res + (jnp.einsum("kij,kc->ijc", t_avg, wh),)
+        if slope:  # first moment → change per spacing along −ω_k (segment length h/ω_z)
+            first = t_in * linear_source_terms(2.0 * tau)[2]
+            res = res + (jnp.where(o_k[..., None], 0.0,
+                                   jnp.einsum("kij,kc->ijc", first, wgrad)),)
+        return t_out, res
 
     # sheets from the top (z = nz-1) down
     xs = (jnp.moveaxis(sigma_t, 2, 0)[::-1], jnp.moveaxis(opaque, 2, 0)[::-1],
