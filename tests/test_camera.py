@@ -366,9 +366,11 @@ def test_march_steps():
 
 
 # the periodic case is slow (the default suite keeps the open box; both passed when last run)
-@pytest.mark.parametrize("periodic", [False, pytest.param(True, marks=pytest.mark.slow)])
-def test_custom_backward_matches_autodiff(x64, periodic):
-    """The march's hand-scheduled backward equals JAX's autodiff of the plain forward scan."""
+@pytest.mark.parametrize("periodic,slopes", [(False, False), (False, True),
+                                             pytest.param(True, False, marks=pytest.mark.slow)])
+def test_custom_backward_matches_autodiff(x64, periodic, slopes):
+    """The march's hand-scheduled backward equals JAX's autodiff of the plain forward scan
+    (``slopes``: with the linear scheme's three slope channels, sampled with offsets)."""
     from difffog.forward.sweep import _march as cm
 
     rng = np.random.default_rng(1)
@@ -377,7 +379,9 @@ def test_custom_backward_matches_autodiff(x64, periodic):
     sdf = np.linalg.norm(P - [0.5, 0.45, 0.3], axis=-1) - 0.2
     # σ_t, j_iso, two channels with per-ray coefficients (the sun's phase, an anisotropic
     # source's basis value, which has either sign), sdf
-    chans = [0.5 + 3 * rng.random(n), rng.random(n), rng.random(n), rng.random(n) - 0.5, sdf]
+    chans = [0.5 + 3 * rng.random(n), rng.random(n), rng.random(n), rng.random(n) - 0.5]
+    chans += [0.3 * rng.standard_normal(n) for _ in range(3)] if slopes else []
+    chans += [sdf]
     table = cm._flat_table([jnp.asarray(c) for c in chans], jnp.float64)
     R = 40
     o = np.column_stack([rng.uniform(-0.2, 1.2, R), rng.uniform(-0.2, 1.1, R),
@@ -390,7 +394,7 @@ def test_custom_backward_matches_autodiff(x64, periodic):
     valid = t1 > t0
     t0 = jnp.where(valid, t0, 0.0)
     t_end = jnp.where(valid, jnp.minimum(t1, t0 + 2.0), 0.0)
-    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), h, n, periodic), 2, 40, h / 2)
+    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), h, n, periodic), 2, 40, h / 2, slopes=slopes)
     phase = jnp.asarray(rng.random((R, 2)))
     wT, wL, wH = (jnp.asarray(rng.random(R)) for _ in range(3))
 

@@ -34,7 +34,9 @@ class LightField(AbstractLight):
         angular moments Σ_L w_L Ỹ_k(L̂) R of the scattered light (``_harmonics.Basis``), else
         None; sky_moments: those of the uncollided sky (None without a first-collision sky).
     source_slope: with the linear-source scheme (``SweepSolver.scheme``), h∇Q: the isotropic
-        source's change per lattice spacing along x, y, z (nx, ny, nz, 3), else None.
+        source's change per lattice spacing along x, y, z (nx, ny, nz, 3), else None;
+        fluence_slope: h∇(Λ + sky_fluence), the scattered light's (what the cameras' in-scatter
+        reads besides the sun's single scattering), likewise.
     origin, h: the lattice's lower corner and spacing (static).
     """
 
@@ -51,6 +53,7 @@ class LightField(AbstractLight):
     moments: Float[Array, "nx ny nz K"] | None = None
     sky_moments: Float[Array, "nx ny nz K"] | None = None
     source_slope: Float[Array, "nx ny nz 3"] | None = None
+    fluence_slope: Float[Array, "nx ny nz 3"] | None = None
     origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
     h: float = eqx.field(static=True, default=1.0)
 

@@ -125,6 +125,10 @@ class LatticeFields(eqx.Module):
     # ``harmonics`` = (L, M), static)
     j_aniso: Float[Array, "nx ny nz K"] | None = None
     harmonics: tuple[int, int] | None = eqx.field(static=True, default=None)
+    # optional, the linear scheme (``SweepSolver.scheme``): each node's source changes by
+    # j_slope[..., a] per lattice spacing along axis a (x, y, z); the march blends the nodes'
+    # own linear extrapolations j + j_slope·(x − x_node)/h with the trilinear weights
+    j_slope: Float[Array, "nx ny nz 3"] | None = None
 
     def __post_init__(self):
         if self.shape is None:
@@ -283,10 +287,11 @@ def _flat_table(arrays, dtype):
     return a.reshape(-1, a.shape[-1])
 
 
-def _stencil(p, lo, h: float, shape, periodic_xy: bool):
+def _stencil(p, lo, h: float, shape, periodic_xy: bool, offsets: bool = False):
     """Trilinear stencil at points p (R, 3): 8 pairs (flat index (R,) int32 into a table made
     by ``_flat_table``, weight (R,)).  Outside the node centres the value is clamped (wrapped
-    in x, y when periodic_xy)."""
+    in x, y when periodic_xy).  ``offsets``: triples, with the point's offset from each corner
+    node in spacings, (R, 3) (for the linear scheme's slopes, ``_interp``)."""
     nzp = _padded_z(shape)
     strides = (shape[1] * nzp, nzp, 1)
     corners = []  # per axis: ((flat offset, weight) at the lower node, ... at the upper node)
@@ -303,24 +308,44 @@ def _stencil(p, lo, h: float, shape, periodic_xy: bool):
             i0 = jnp.clip(jnp.floor(u), 0, max(n - 2, 0)).astype(jnp.int32)
             f = u - i0
             i1 = jnp.minimum(i0 + 1, n - 1)
-        corners.append(((i0 * strides[a], 1.0 - f), (i1 * strides[a], f)))
+        corners.append(((i0 * strides[a], 1.0 - f, f), (i1 * strides[a], f, f - 1.0)))
     out = []
-    for ox, wx in corners[0]:
-        for oy, wy in corners[1]:
-            for oz, wz in corners[2]:
-                out.append((ox + oy + oz, wx * wy * wz))
+    for ox, wx, dx in corners[0]:
+        for oy, wy, dy in corners[1]:
+            for oz, wz, dz in corners[2]:
+                if offsets:
+                    out.append((ox + oy + oz, wx * wy * wz, jnp.stack([dx, dy, dz], -1)))
+                else:
+                    out.append((ox + oy + oz, wx * wy * wz))
     return out
 
 
-def _interp(table, p, geo):
+def _weights(p, geo, slope_at: int | None, n_chan: int):
+    """The stencil of ``_interp`` as (flat index (R,), weight (R, C)) pairs: the trilinear
+    weight for every channel, times the point's offset from the corner node along x, y, z for
+    the three slope channels from ``slope_at`` on (each node's own linear extrapolation of the
+    source, blended trilinearly)."""
+    if slope_at is None:
+        return [(i, w[:, None]) for i, w in _stencil(p, *geo)]
+    out = []
+    for i, w, off in _stencil(p, *geo, offsets=True):
+        one = jnp.ones((p.shape[0], 1), p.dtype)
+        mult = jnp.concatenate([jnp.broadcast_to(one, (p.shape[0], slope_at)), off,
+                                jnp.broadcast_to(one, (p.shape[0], n_chan - slope_at - 3))], -1)
+        out.append((i, w[:, None] * mult))
+    return out
+
+
+def _interp(table, p, geo, slope_at: int | None = None):
     """Trilinear samples of a flat node table (``_flat_table``) at points p (R, 3) → (R, C).
 
     ``geo`` = (lo, h, shape, periodic_xy), static.  Eight separate (R, C) gathers: on XLA:CPU
-    this is ~3x faster than one (R, 8, C) gather and a contraction.
+    this is ~3x faster than one (R, 8, C) gather and a contraction.  ``slope_at``: the first
+    of three slope channels (``_weights``), or None.
     """
     out = 0.0
-    for i, w in _stencil(p, *geo):
-        out = out + w[:, None] * table.at[i].get(mode="promise_in_bounds")
+    for i, w in _weights(p, geo, slope_at, table.shape[-1]):
+        out = out + w * table.at[i].get(mode="promise_in_bounds")
     return out
 
 
@@ -337,15 +362,25 @@ class _MarchConfig(NamedTuple):
     n_steps: int
     step: float
     has_sdf: bool = True  # False: the hits are given (exact), the table has no sdf channel
+    slopes: bool = False  # the linear scheme: 3 slope channels after the coefficients'
+
+    @property
+    def slope_at(self) -> int | None:
+        return 2 + self.n_coef if self.slopes else None
 
 
 def _mix(c, coef, cfg: _MarchConfig):
     """(σ_t, source, sdf) from table samples c (..., C) — channels σ_t, j_iso, then one per
-    per-ray coefficient, then the sdf — and the per-ray coefficients (R, J): source =
-    j_iso + Σ_j coef_j·c_(2+j); the sdf is 1 (never a crossing) when the table has none."""
+    per-ray coefficient, [then the three slope channels, already weighted by the point's
+    offsets (``_weights``),] then the sdf — and the per-ray coefficients (R, J): source =
+    j_iso + Σ_j coef_j·c_(2+j) [+ the slopes']; the sdf is 1 (never a crossing) when the
+    table has none."""
     src = c[..., 1]
     for j in range(cfg.n_coef):
         src = src + coef[:, j] * c[..., 2 + j]
+    if cfg.slopes:
+        k = 2 + cfg.n_coef
+        src = src + c[..., k] + c[..., k + 1] + c[..., k + 2]
     return c[..., 0], src, (c[..., -1] if cfg.has_sdf else jnp.ones_like(c[..., 0]))
 
 
@@ -423,13 +458,14 @@ def _unmix_ct(g, c, coef, cfg: _MarchConfig):
     g_sig, g_src, g_sdf = g
     tail = [g_sdf] if cfg.has_sdf else []
     J = cfg.n_coef
-    chans = [g_sig, g_src] + [coef[:, j] * g_src for j in range(J)] + tail
+    slopes = [g_src] * 3 if cfg.slopes else []
+    chans = [g_sig, g_src] + [coef[:, j] * g_src for j in range(J)] + slopes + tail
     return jnp.stack(chans, -1), g_src[:, None] * c[:, 2 : 2 + J]
 
 
-def _sample(table, p, geo):
+def _sample(table, p, geo, slope_at: int | None = None):
     """Raw table samples (R, C) at points p (R, 3), made once (see the note inside)."""
-    c = _interp(table, p, geo)
+    c = _interp(table, p, geo, slope_at)
     if jax.default_backend() == "cpu":
         # XLA:CPU would otherwise fuse the eight gathers into each consumer of c and do them
         # several times (3x slower); a tiny dot is not fused, so c is materialised once.
@@ -443,7 +479,7 @@ def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: b
     each step (for the backward pass)."""
 
     def sample(t):
-        return _sample(table, o + t[:, None] * d, cfg.geo)
+        return _sample(table, o + t[:, None] * d, cfg.geo, cfg.slope_at)
 
     first = sample(t0)
 
@@ -493,8 +529,8 @@ def _march_bwd(cfg, res, ct):
 
     def scatter(acc, k, g):
         p = o + _step_times(t0, t_end, k, cfg.step)[:, None] * d
-        for i, w in _stencil(p, *cfg.geo):
-            acc = acc.at[i].add(w[:, None] * g, mode="promise_in_bounds")
+        for i, w in _weights(p, cfg.geo, cfg.slope_at, g.shape[-1]):
+            acc = acc.at[i].add(w * g, mode="promise_in_bounds")
         return acc
 
     def body(carry, x):
@@ -502,7 +538,7 @@ def _march_bwd(cfg, res, ct):
         k, T_a, alive = x
         ta = _step_times(t0, t_end, k, cfg.step)
         tb = _step_times(t0, t_end, k + 1, cfg.step)
-        c_a = _sample(table, o + ta[:, None] * d, cfg.geo)
+        c_a = _sample(table, o + ta[:, None] * d, cfg.geo, cfg.slope_at)
         a, b = _mix(c_a, phase, cfg), _mix(c_b, phase, cfg)
         lam_T, lam_hit, g_a, g_b = _march_step_vjp(T_a, alive, ta, tb, a, b, lam_T, g_L, lam_hit)
         g_a, g_ph_a = _unmix_ct(g_a, c_a, phase, cfg)
@@ -512,7 +548,8 @@ def _march_bwd(cfg, res, ct):
 
     n = cfg.n_steps
     ks = jnp.arange(n, dtype=t0.dtype)
-    c_last = _sample(table, o + _step_times(t0, t_end, n, cfg.step)[:, None] * d, cfg.geo)
+    c_last = _sample(table, o + _step_times(t0, t_end, n, cfg.step)[:, None] * d, cfg.geo,
+                     cfg.slope_at)
     init = (g_T, g_hit, c_last, jnp.zeros_like(c_last), jnp.zeros_like(phase),
             jnp.zeros_like(table))
     (_, _, _, g_first, g_phase, acc), _ = jax.lax.scan(body, init, (ks, T_k, alive_k),
@@ -556,7 +593,8 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
     TraceResult of (R,) arrays."""
     dtype = o.dtype
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, None, n_steps, step)
-    cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step))
+    cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step),
+                       slopes=fields.j_slope is not None)
     T, L, t_hit = _march(table, phase, o, d, t0, t_end, cfg)
 
     hit = (t_end > t0) & jnp.isfinite(t_hit)  # t_end > t0: the ray meets the box
@@ -610,7 +648,8 @@ def _trace_chunk_exact(fields: LatticeFields, table, surf_table, o, d, hits, *, 
     t_hit, n_hit, shape, sun_cos, sun_depth = hits
     dtype = o.dtype
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, t_hit, n_steps, step)
-    cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step), has_sdf=False)
+    cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step), has_sdf=False,
+                       slopes=fields.j_slope is not None)
     T, L, _ = _march(table, phase, o, d, t0, t_end, cfg)
 
     hit = (shape >= 0) & reached
@@ -653,6 +692,8 @@ def _source_channels(fields: LatticeFields) -> list:
         chans.append(fields.j_sun)
     if fields.j_aniso is not None:
         chans += [fields.j_aniso[..., k] for k in range(fields.j_aniso.shape[-1])]
+    if fields.j_slope is not None:
+        chans += [fields.j_slope[..., a] for a in range(3)]
     return chans
 
 

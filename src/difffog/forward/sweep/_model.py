@@ -104,6 +104,10 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
     j_sun = params.scattering * dens * ext(light.sun_fluence, cam.near_fluid)
+    j_slope = None
+    if light.fluence_slope is not None:  # the linear scheme: each node's source changes within it
+        j_slope = (zeta_r * dens / FOUR_PI)[..., None] * jax.vmap(
+            lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(light.fluence_slope)
     j_aniso = None
     if order > 0:
         mom = light.moments if light.sky_moments is None else light.moments + light.sky_moments
@@ -134,6 +138,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         sun_extinction=(zeta_r if order == 0 else params.scattering) + params.absorption,
         j_aniso=j_aniso,
         harmonics=None if order == 0 else (order, cam.M),
+        j_slope=j_slope,
     )
 
 

@@ -294,9 +294,10 @@ class _Problem(eqx.Module):
     sky_moments: jax.Array | None = None  # (nx, ny, nz, K) uncollided sky Σ_k w_k T_k Ỹ(ω_k)
     sun_albedo: jax.Array | None = None  # ζ/(ζ' + γ): the first-collision sun's albedo
     sun_phase: tuple[jax.Array, ...] | None = None  # per face (D,): its cell-averaged phase
-    # linear scheme: h∇ of the uncollided light the isotropic source holds (the sun's unless it
-    # has its own channel, and the first-collision sky's), (nx, ny, nz, 3)
-    first_slope: jax.Array | None = None
+    # linear scheme: h∇ of the uncollided sun's (unless it has its own channel) and the
+    # first-collision sky's fluence along their beams, (nx, ny, nz, 3)
+    sun_slope: jax.Array | None = None
+    sky_slope: jax.Array | None = None
     slope_nodes: jax.Array | None = None  # linear scheme: nodes whose segments hold fog (τ > 0)
 
 
@@ -346,32 +347,43 @@ def _sources(state, pb: _Problem):
 
 
 def _source_slope(lam, pb: _Problem):
-    """h∇Q of the isotropic source (nx, ny, nz, 3), for the linear scheme: the collided part
-    ζ'/σ_t'·Λ/4π by central differences between fog nodes (one-sided where a neighbour has no
-    fog, 0 where neither has), plus the uncollided sun's and sky's exact slopes along their
-    beams (``first_slope``: in a thick node the beam's power is spent near its entry, which
-    no difference between nodes resolves).  Linear in Λ (as the Krylov solve needs)."""
+    """h∇Q of the isotropic source (nx, ny, nz, 3) for the linear scheme: ζ'/σ_t'/4π times
+    ``_fluence_slope`` (with the uncollided sun, unless it has its own channel)."""
+    return pb.ssa * _fluence_slope(lam, pb, sun=pb.sun_phase is None) / FOUR_PI
+
+
+def _fluence_slope(lam, pb: _Problem, sun: bool):
+    """h∇ of the fluence that feeds the isotropic source, Λ + the uncollided sky [+ sun]
+    (nx, ny, nz, 3): Λ by central differences between fog nodes (one-sided where a neighbour
+    has no fog, 0 where neither has), the uncollided beams by their exact slopes along the
+    beams (``sun_slope``, ``sky_slope``: in a thick node a beam's power is spent near its
+    entry, which no difference between nodes resolves).  Linear in Λ (as the Krylov solve
+    needs)."""
     g = pb.geom
-    qc = pb.ssa * lam / FOUR_PI
     fog = pb.slope_nodes
     comps = []
     for axis in range(3):
         periodic = g.periodic_xy and axis < 2
-        nxt, f_nxt = _neighbour(qc, axis, 1, periodic), _neighbour(fog, axis, 1, periodic)
-        prv, f_prv = _neighbour(qc, axis, -1, periodic), _neighbour(fog, axis, -1, periodic)
+        nxt, f_nxt = _neighbour(lam, axis, 1, periodic), _neighbour(fog, axis, 1, periodic)
+        prv, f_prv = _neighbour(lam, axis, -1, periodic), _neighbour(fog, axis, -1, periodic)
         d = jnp.where(f_nxt & f_prv, 0.5 * (nxt - prv),
-                      jnp.where(f_nxt, nxt - qc, jnp.where(f_prv, qc - prv, 0.0)))
+                      jnp.where(f_nxt, nxt - lam, jnp.where(f_prv, lam - prv, 0.0)))
         comps.append(jnp.where(fog, d, 0.0))
     grad = jnp.stack(comps, axis=-1)
-    if pb.first_slope is not None:
+    first, mean = [], 0.0
+    if pb.sky_slope is not None:
+        first.append(pb.sky_slope)
+        mean = mean + pb.sky_fluence
+    if sun and pb.sun_slope is not None:
+        first.append(pb.sun_slope)
+        mean = mean + pb.sun_fluence
+    if first:
         # the first collision's slope, limited so that its source stays ≥ 0 at both ends of
         # every segment (|L·G| ≤ M·‖G‖₁ ≤ 2·mean): the linear fit of e^(−u) over a node T ≫ 1
         # mean free paths deep (same mean and first moment) runs from 4/T to −2/T.  Measured
         # on collimated slabs at τ = 64, N = 32: R +9.5 → +5.1%, T −17 → −7% (a = 0.9, 0.99).
         # A fixed source, not part of the linear operator: the limiter costs no linearity.
-        first = pb.ssa[..., None] * pb.first_slope / FOUR_PI
-        mean = pb.ssa * (pb.sky_fluence + (pb.sun_fluence if pb.sun_phase is None else 0.0))
-        mean = mean / FOUR_PI
+        first = sum(first)
         norm1 = g.M * jnp.sum(jnp.abs(first), axis=-1)
         scale = jnp.where(norm1 > 2.0 * mean, safe_div(2.0 * mean, norm1), 1.0)
         grad = grad + scale[..., None] * first
@@ -544,7 +556,7 @@ def _iterate(pb: _Problem):
 
 
 _SOURCE_FIELDS = ("sun_fluence", "sky_fluence", "emission", "direct", "sky", "sky_moments",
-                  "first_slope")
+                  "sun_slope", "sky_slope")
 
 
 def _with_sources(pb: _Problem, on) -> _Problem:
@@ -686,11 +698,13 @@ class SweepSolver(eqx.Module):
         segment, so energy is conserved as with "step"; deep in optically thick fog the
         radiance leaving a segment is then Q − ∂Q/∂τ, which gives the true diffusion
         coefficient 1/(3σ_t) where "step" gives h|L|/6 (light spreads through thick fog too
-        easily: slab transmittance ×5-80 at 2 mean free paths per node).  Measured on slabs
-        (docs/validation.md): "linear" equals "step" in thin fog (τ ≤ 4: R, T within 0.1%)
-        and is far closer at τ = 16-64; cloud-plane at N = 64 is unchanged (7.5% / 1.9%);
-        it costs ~15% more per sweep.  Not yet the default: on issue 14's cube at ζ ≥ 1000
-        and N = 12 (a step depth of ~170) its float32 GMRES stalls.
+        easily: slab transmittance ×5-80 at 2 mean free paths per node).  The cameras then
+        read each node's source slope too (``LatticeFields.j_slope``).  Measured
+        (docs/validation.md): equal to "step" in thin fog (τ = 1 slabs: 0.1%), far closer in
+        T at τ = 16-64, the thick cube at a step depth of 6 within 1.1% (step −2.6%), but
+        worse in R where a step spans tens of mean free paths (+14% against +3.7%), and its
+        float32 GMRES stalls (reported) past step depths of ~100; cloud-plane unchanged;
+        +19% per iteration.  Hence not the default.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -804,7 +818,7 @@ class SweepSolver(eqx.Module):
             sun_phase = _cell_phase(geom, params.g, dt)
         else:
             sigma_sun = sigma_t
-        first_slope = None
+        sun_slope = sky_slope = None
         if geom.sun_dir is not None:
             # the point value lights surfaces; the segment average feeds the fog's source
             # (and with the linear scheme its slope, where the sun is in the isotropic source)
@@ -815,7 +829,7 @@ class SweepSolver(eqx.Module):
             sun_point = params.sun_irradiance * t_sun
             sun_fluence = params.sun_irradiance * t_sun_avg
             if t_grad:
-                first_slope = params.sun_irradiance * t_grad[0]
+                sun_slope = _mask(geom.solid, params.sun_irradiance * t_grad[0])
         else:
             sun_point = sun_fluence = jnp.zeros(geom.shape, dt)
         n_mu, n_phi = self.sky_quadrature or ((0, 0) if geom.periodic_xy else (8, 16))
@@ -836,8 +850,7 @@ class SweepSolver(eqx.Module):
             if harm is not None:
                 sky_moments = _mask(geom.solid, params.sky_radiance * more[0])
             if geom.linear:
-                sky_slope = params.sky_radiance * more[-1]
-                first_slope = sky_slope if first_slope is None else first_slope + sky_slope
+                sky_slope = _mask(geom.solid, params.sky_radiance * more[-1])
             sky_direct = jnp.where(geom.surf, params.sky_radiance * irr, 0.0)
             lattice_sky = jnp.zeros_like(params.sky_radiance)
         else:
@@ -874,8 +887,9 @@ class SweepSolver(eqx.Module):
             sky_moments=sky_moments,
             sun_albedo=sun_albedo,
             sun_phase=sun_phase,
-            first_slope=None if first_slope is None else _mask(geom.solid, first_slope),
-            slope_nodes=(sum(tau_world) > 0) if geom.linear else None,
+            sun_slope=sun_slope,
+            sky_slope=sky_slope,
+            slope_nodes=((sigma_t > 0) & ~geom.solid) if geom.linear else None,
             max_iterations=self.max_iterations,
             tol=self.tol,
             progress=self.progress,
@@ -906,9 +920,10 @@ class SweepSolver(eqx.Module):
         q, b = _sources(root, pb)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
         lam = root[0] if pb.fog_mask is None else _mask(~pb.fog_mask, root[0])
-        moments = q_slope = None
+        moments = q_slope = f_slope = None
         if geom.linear:
             q_slope = q[..., -3:]
+            f_slope = _fluence_slope(lam[..., 0] if geom.channels else lam, pb, sun=False)
         if geom.channels:
             lam, moments = lam[..., 0], lam[..., 1:]
         if geom.channels or geom.linear:
@@ -920,6 +935,7 @@ class SweepSolver(eqx.Module):
             moments=moments,
             sky_moments=pb.sky_moments,
             source_slope=q_slope,
+            fluence_slope=f_slope,
             sun_fluence=pb.sun_fluence,
             sky_fluence=pb.sky_fluence,
             radiosity=b,
