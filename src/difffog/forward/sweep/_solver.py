@@ -596,8 +596,7 @@ def _iterate_gmres(pb: _Problem):
         # the transport-corrected diffusion coefficient: σ_t' − σ_s'·g'_1
         mu_bar = 0.0 if pb.geom.order == 0 else pb.phase_coef[0]
         dsa = DiffusionOperator(pb.sigma_t, pb.ssa, pb.geom.solid, pb.geom.h,
-                                pb.geom.periodic_xy, pb.geom.M, mu_bar=mu_bar,
-                                linear=pb.geom.linear)
+                                pb.geom.periodic_xy, pb.geom.M, mu_bar=mu_bar)
 
         def precondition(v):
             lam = _on_fluence(dsa.precondition, v[:n].reshape(lam_shape), pb.geom.channels)
@@ -702,9 +701,8 @@ class SweepSolver(eqx.Module):
         read each node's source slope too (``LatticeFields.j_slope``).  Measured
         (docs/validation.md): equal to "step" in thin fog (τ = 1 slabs: 0.1%), far closer in
         T at τ = 16-64, the thick cube at a step depth of 6 within 1.1% (step −2.6%), but
-        worse in R where a step spans tens of mean free paths (+14% against +3.7%), and its
-        float32 GMRES stalls (reported) past step depths of ~100; cloud-plane unchanged;
-        +19% per iteration.  Hence not the default.
+        worse in R where a step spans tens of mean free paths (+14% against +3.7%);
+        cloud-plane unchanged; +19% per iteration.  Hence not the default.
     """
 
     M: int = eqx.field(static=True, default=3)
