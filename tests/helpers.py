@@ -100,3 +100,37 @@ class ToyLight(df.AbstractLight):
 
     def report(self):
         return {"iterations": int(self.iterations)}
+
+
+def random_face_geometry(rng, shape, D: int):
+    """A face's FaceGeometry with random FREE/SURFACE nodes, normals and blocked-segment bits
+    (the kernels' comparison tests)."""
+    from difffog.forward.sweep._kernel import FaceGeometry
+
+    free = rng.random(shape) > 0.2
+    return FaceGeometry(
+        free=jnp.asarray(free), surf=jnp.asarray(~free & (rng.random(shape) > 0.5)),
+        normal=jnp.asarray(rng.standard_normal(shape + (3,)), jnp.float32),
+        blocked=jnp.asarray(rng.integers(0, 256, shape + ((D + 7) // 8,)), jnp.uint8))
+
+
+def kernels_agree(args, M: int, combos, surfaces: bool, tol: float):
+    """The loop and batched face sweeps on ``args`` = (Q, B, tau, bc, geo, consts) for every
+    periodic combination in ``combos`` (all in one compiled program), asserted equal to
+    ``tol``; returns the loop kernel's results per combination."""
+    from difffog.forward.sweep._kernel import _sweep_face_batched, _sweep_face_loop
+
+    @jax.jit
+    def both(*a):
+        out = []
+        for periodic in combos:
+            kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=surfaces)
+            out.append((_sweep_face_loop(*a, **kw), _sweep_face_batched(*a, **kw)))
+        return out
+
+    results = both(*args)
+    for periodic, (a, b) in zip(combos, results):
+        for x, y in zip(a, b):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=tol, atol=tol,
+                                       err_msg=str(periodic))
+    return [a for a, _ in results]

@@ -17,7 +17,7 @@ from difffog.geometry._directions import direction_set
 from difffog.geometry._lattice import voxelize
 from difffog.study import references
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import build_model, small_scene
+from helpers import build_model, kernels_agree, random_face_geometry, small_scene
 
 AD_ROWS = references.slab_table()
 
@@ -162,8 +162,7 @@ def test_kernels_agree_with_an_anisotropic_source(sun):
     channel), every combination of periodic sides."""
     import itertools
 
-    from difffog.forward.sweep._kernel import (FaceGeometry, _sweep_face_batched,
-                                               _sweep_face_loop, face_consts)
+    from difffog.forward.sweep._kernel import face_consts
 
     M, L, shape = 2, 2, (7, 6, 8)
     B = basis(L, M)
@@ -173,30 +172,14 @@ def test_kernels_agree_with_an_anisotropic_source(sun):
     J = B.K + (1 if sun else 0)
     Q = f32(np.concatenate([rng.random(shape + (1,)), rng.random(shape + (J,)) - 0.5], -1))
     Bv, tau, bc = f32(rng.random(shape)), f32(0.4 * rng.random(shape)), f32(rng.random(D))
-    free = rng.random(shape) > 0.2
-    geo = FaceGeometry(
-        free=jnp.asarray(free), surf=jnp.asarray(~free & (rng.random(shape) > 0.5)),
-        normal=f32(rng.standard_normal(shape + (3,))),
-        blocked=jnp.asarray(rng.integers(0, 256, shape + ((D + 7) // 8,)), jnp.uint8))
+    geo = random_face_geometry(rng, shape, D)
     consts = face_consts(direction_set(M), 0, B.faces)
     if sun:
         import dataclasses
         consts = dataclasses.replace(consts, sun_phase=f32(rng.random(D)))
     combos = list(itertools.product([False, True], repeat=3))
-
-    @jax.jit
-    def both(*args):
-        out = []
-        for periodic in combos:
-            kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=True)
-            out.append((_sweep_face_loop(*args, **kw), _sweep_face_batched(*args, **kw)))
-        return out
-
-    for periodic, (a, b) in zip(combos, both(Q, Bv, tau, bc, geo, consts)):
+    for a in kernels_agree((Q, Bv, tau, bc, geo, consts), M, combos, True, 5e-6):
         assert a[0].shape == shape + (1 + B.K,)
-        for x, y in zip(a, b):
-            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=5e-6, atol=5e-6,
-                                       err_msg=str(periodic))
 
 
 # ---------------------------------------------------------------- gradients

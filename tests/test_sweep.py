@@ -19,7 +19,7 @@ from difffog import Params, SweepSolver, get_param, load_scene, set_param, voxel
 from difffog.forward.sweep._uncollided import sun_transmittance
 from difffog.study import references
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import adding_doubling, host_devices_env
+from helpers import adding_doubling, host_devices_env, kernels_agree, random_face_geometry
 
 AD_ROWS = references.slab_table()
 
@@ -233,8 +233,7 @@ def test_loop_kernel_matches_batched_kernel(shape, surfaces):
     combination of periodic sides (all sixteen sweeps in one compiled program)."""
     import itertools
 
-    from difffog.forward.sweep._kernel import (FaceGeometry, _sweep_face_batched,
-                                               _sweep_face_loop, face_consts)
+    from difffog.forward.sweep._kernel import face_consts
     from difffog.geometry._directions import direction_set
 
     M = 2
@@ -243,26 +242,10 @@ def test_loop_kernel_matches_batched_kernel(shape, surfaces):
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     Q, B, tau = f32(rng.random(shape)), f32(rng.random(shape)), f32(0.4 * rng.random(shape))
     bc = f32(rng.random(D))
-    free = rng.random(shape) > 0.2
-    geo = FaceGeometry(
-        free=jnp.asarray(free), surf=jnp.asarray(~free & (rng.random(shape) > 0.5)),
-        normal=f32(rng.standard_normal(shape + (3,))),
-        blocked=jnp.asarray(rng.integers(0, 256, shape + ((D + 7) // 8,)), jnp.uint8))
-    consts = face_consts(direction_set(M), 0)
+    geo = random_face_geometry(rng, shape, D)
     combos = list(itertools.product([False, True], repeat=3))
-
-    @jax.jit
-    def both(*args):
-        out = []
-        for periodic in combos:
-            kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=surfaces)
-            out.append((_sweep_face_loop(*args, **kw), _sweep_face_batched(*args, **kw)))
-        return out
-
-    for periodic, (a, b) in zip(combos, both(Q, B, tau, bc, geo, consts)):
-        for x, y in zip(a, b):
-            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-6, atol=2e-6,
-                                       err_msg=str(periodic))
+    kernels_agree((Q, B, tau, bc, geo, face_consts(direction_set(M), 0)), M, combos, surfaces,
+                  2e-6)
 
 
 @pytest.mark.parametrize("name,derivatives", [

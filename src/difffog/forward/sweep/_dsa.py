@@ -58,6 +58,19 @@ CG_RTOL = 1e-2
 CG_MAX_STEPS = 400
 
 
+def neighbour(x, axis: int, s: int, periodic: bool):
+    """x at the node +s (±1) along ``axis``: wrapped on a periodic axis, else 0 (False)
+    beyond the lattice."""
+    if periodic:
+        return jnp.roll(x, -s, axis=axis)
+    n = x.shape[axis]
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (0, 1) if s > 0 else (1, 0)
+    xp = jnp.pad(x, pad)
+    return jax.lax.slice_in_dim(xp, 1, n + 1, axis=axis) if s > 0 else (
+        jax.lax.slice_in_dim(xp, 0, n, axis=axis))
+
+
 def _mean_length(M: int) -> float:
     """The weighted mean lattice segment length Σ w_L |L| / Σ w_L, in units of h."""
     ds = direction_set(M)
@@ -95,15 +108,7 @@ class DiffusionOperator:
         self.diag = jnp.where(self.fog, diag, 1.0)
 
     def _neighbour(self, x, axis: int, s: int):
-        """x at the node +s along ``axis`` (0 beyond an open side)."""
-        if self.periodic[axis]:
-            return jnp.roll(x, -s, axis=axis)
-        n = x.shape[axis]
-        pad = [(0, 0)] * x.ndim
-        pad[axis] = (0, 1) if s > 0 else (1, 0)
-        xp = jnp.pad(x, pad)
-        return jax.lax.slice_in_dim(xp, 1, n + 1, axis=axis) if s > 0 else (
-            jax.lax.slice_in_dim(xp, 0, n, axis=axis))
+        return neighbour(x, axis, s, self.periodic[axis])
 
     def apply(self, f):
         out = self.diag * f

@@ -32,7 +32,7 @@ from ..._numerics import FOUR_PI, safe_div
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
 from ._implicit import CheckedSolver, fixed_point
-from ._dsa import DiffusionOperator
+from ._dsa import DiffusionOperator, neighbour
 from ._harmonics import MAX_ORDER, basis, moment_coefficients
 from ._krylov import gmres
 from ._lightfield import LightField
@@ -364,8 +364,8 @@ def _fluence_slope(lam, pb: _Problem, sun: bool):
     comps = []
     for axis in range(3):
         periodic = g.periodic_xy and axis < 2
-        nxt, f_nxt = _neighbour(lam, axis, 1, periodic), _neighbour(fog, axis, 1, periodic)
-        prv, f_prv = _neighbour(lam, axis, -1, periodic), _neighbour(fog, axis, -1, periodic)
+        nxt, f_nxt = neighbour(lam, axis, 1, periodic), neighbour(fog, axis, 1, periodic)
+        prv, f_prv = neighbour(lam, axis, -1, periodic), neighbour(fog, axis, -1, periodic)
         d = jnp.where(f_nxt & f_prv, 0.5 * (nxt - prv),
                       jnp.where(f_nxt, nxt - lam, jnp.where(f_prv, lam - prv, 0.0)))
         comps.append(jnp.where(fog, d, 0.0))
@@ -388,18 +388,6 @@ def _fluence_slope(lam, pb: _Problem, sun: bool):
         scale = jnp.where(norm1 > 2.0 * mean, safe_div(2.0 * mean, norm1), 1.0)
         grad = grad + scale[..., None] * first
     return grad
-
-
-def _neighbour(x, axis: int, s: int, periodic: bool):
-    """x at the node +s along ``axis`` (wrapped on a periodic axis, else 0/False beyond)."""
-    if periodic:
-        return jnp.roll(x, -s, axis=axis)
-    n = x.shape[axis]
-    pad = [(0, 0)] * x.ndim
-    pad[axis] = (0, 1) if s > 0 else (1, 0)
-    xp = jnp.pad(x, pad)
-    return jax.lax.slice_in_dim(xp, 1, n + 1, axis=axis) if s > 0 else (
-        jax.lax.slice_in_dim(xp, 0, n, axis=axis))
 
 
 def _zero_state(pb: _Problem):
