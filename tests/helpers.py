@@ -134,3 +134,15 @@ def kernels_agree(args, M: int, combos, surfaces: bool, tol: float):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=tol, atol=tol,
                                        err_msg=str(periodic))
     return [a for a, _ in results]
+
+
+def slab_table_reference(albedo, tau, illumination="diffuse", zenith=None, g=0.0):
+    """(R_total, T_total) of the shipped adding-doubling slab table's row."""
+    from difffog.study import references
+
+    for r in references.slab_table():
+        if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == g
+                and r["illumination"] == illumination
+                and (zenith is None or r["zenith_deg"] == zenith)):
+            return r["R_total"], r["T_total"]
+    raise KeyError((albedo, tau, g, illumination, zenith))

@@ -15,11 +15,9 @@ from difffog.forward.sweep._harmonics import basis, delta_m, real_sh
 from difffog.forward.sweep._solver import SweepSolver, source_field
 from difffog.geometry._directions import direction_set
 from difffog.geometry._lattice import voxelize
-from difffog.study import references
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import build_model, kernels_agree, random_face_geometry, small_scene
-
-AD_ROWS = references.slab_table()
+from helpers import (build_model, kernels_agree, random_face_geometry, slab_table_reference,
+                     small_scene)
 
 
 # ---------------------------------------------------------------- the basis
@@ -98,15 +96,6 @@ def test_furnace_with_forward_scattering_fog(x64):
 
 
 # ---------------------------------------------------------------- slabs vs adding-doubling
-def _reference(albedo, tau, g, illumination, zenith=None):
-    for r in AD_ROWS:
-        if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == g
-                and r["illumination"] == illumination
-                and (zenith is None or r["zenith_deg"] == zenith)):
-            return r["R_total"], r["T_total"]
-    raise KeyError((albedo, tau, g, illumination, zenith))
-
-
 def slab_rt(tau, albedo, g, n_fog, M, L, sun=None):
     """(R, T) of an HG slab as a camera sees it: the lattice's scattered light (its moments) plus
     the sun's single scattering with the exact phase (``slab_reflectance``)."""
@@ -149,7 +138,7 @@ HG_BOUNDS = {
 def test_hg_slab_against_adding_doubling(albedo, tau, illumination, x64):
     sun = (1.0, 0.0) if illumination == "collimated" else None
     R, T = slab_rt(tau, albedo, 0.85, 32, 3, 3, sun=sun)
-    R_ref, T_ref = _reference(albedo, tau, 0.85, illumination, 0.0 if sun else None)
+    R_ref, T_ref = slab_table_reference(albedo, tau, illumination, 0.0 if sun else None, g=0.85)
     eR, eT = HG_BOUNDS[(albedo, tau, illumination)]
     assert abs(R / R_ref - 1) < eR, (R, R_ref)
     assert abs(T / T_ref - 1) < eT, (T, T_ref)

@@ -18,20 +18,8 @@ import difffog as df
 from difffog import Params, SweepSolver
 from difffog.forward.sweep._solver import _sources, _sweep_all
 from difffog.geometry._directions import FACE_AXES
-from difffog.study import references
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import kernels_agree, random_face_geometry
-
-AD_ROWS = references.slab_table()
-
-
-def _reference(albedo, tau, illumination="diffuse", zenith=None):
-    for r in AD_ROWS:
-        if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == 0
-                and r["illumination"] == illumination
-                and (zenith is None or r["zenith_deg"] == zenith)):
-            return r["R_total"], r["T_total"]
-    raise KeyError((albedo, tau, illumination, zenith))
+from helpers import kernels_agree, random_face_geometry, slab_table_reference
 
 
 @pytest.mark.parametrize("tau", [1e-4, 0.3, 0.7, 3.0, 40.0])
@@ -152,7 +140,8 @@ THICK_BOUNDS = {  # (albedo, tau, zenith or None = diffuse sky): (|R err|, |T er
 def test_thick_slab_against_adding_doubling(albedo, tau, zenith, x64):
     sun = None if zenith is None else (1.0, zenith)
     R, T = _slab(tau, albedo, "linear", sun=sun)
-    R_ref, T_ref = _reference(albedo, tau, "diffuse" if sun is None else "collimated", zenith)
+    R_ref, T_ref = slab_table_reference(albedo, tau, "diffuse" if sun is None else "collimated",
+                                        zenith)
     eR, eT = THICK_BOUNDS[(albedo, tau, zenith)]
     assert abs(R / R_ref - 1) < eR, (R, R_ref)
     assert abs(T / T_ref - 1) < eT, (T, T_ref)

@@ -17,11 +17,9 @@ import pytest
 import difffog as df
 from difffog import Params, SweepSolver, get_param, load_scene, set_param, voxelize
 from difffog.forward.sweep._uncollided import sun_transmittance
-from difffog.study import references
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import adding_doubling, host_devices_env, kernels_agree, random_face_geometry
-
-AD_ROWS = references.slab_table()
+from helpers import (adding_doubling, host_devices_env, kernels_agree, random_face_geometry,
+                     slab_table_reference)
 
 
 @eqx.filter_jit
@@ -99,15 +97,6 @@ def test_solid_casts_a_shadow_through_fog(x64):
 
 
 # ---------------------------------------------------------------- 2. slabs vs adding-doubling
-def _table_reference(albedo, tau, illumination="diffuse", zenith=None):
-    for r in AD_ROWS:
-        if (r["albedo"] == albedo and r["tau"] == tau and r["g"] == 0
-                and r["illumination"] == illumination
-                and (zenith is None or r["zenith_deg"] == zenith)):
-            return r["R_total"], r["T_total"]
-    raise KeyError((albedo, tau, illumination, zenith))
-
-
 # one configuration for every diffuse slab (R, T and the energy balance): the slabs differ only
 # in parameter values, so they share one compiled solve
 SLAB_SOLVER = SweepSolver(M=2, max_iterations=4000, tol=1e-9)
@@ -135,7 +124,7 @@ SLAB_BOUNDS = {  # (albedo, tau): (|R err|, |T err|)
 @pytest.mark.parametrize("albedo,tau", list(SLAB_BOUNDS))
 def test_slab_against_adding_doubling(albedo, tau, x64):
     R, T, *_ = _slab_rt(tau, albedo, 32, 2, solver=SLAB_SOLVER)
-    R_ref, T_ref = _table_reference(albedo, tau)
+    R_ref, T_ref = slab_table_reference(albedo, tau)
     eR, eT = SLAB_BOUNDS[(albedo, tau)]
     assert abs(R / R_ref - 1) < eR, (R, R_ref)
     assert abs(T / T_ref - 1) < eT, (T, T_ref)
@@ -145,7 +134,7 @@ def test_slab_against_adding_doubling(albedo, tau, x64):
 @pytest.mark.parametrize("albedo,tau", [(0.9, 1.0), (0.5, 4.0)])
 def test_collimated_slab_first_collision_sun(albedo, tau, zenith, x64):
     R, T, *_ = _slab_rt(tau, albedo, 32, 2, sun=(1.0, zenith))
-    R_ref, T_ref = _table_reference(albedo, tau, "collimated", zenith)
+    R_ref, T_ref = slab_table_reference(albedo, tau, "collimated", zenith)
     assert abs(R / R_ref - 1) < 0.03, (R, R_ref)
     assert abs(T / T_ref - 1) < 0.03, (T, T_ref)
 
@@ -154,7 +143,7 @@ def test_our_adding_doubling_call_matches_the_shipped_table():
     pytest.importorskip("iadpython")
     for albedo, tau in [(0.9, 1.0), (0.5, 4.0)]:
         R, T = adding_doubling(albedo, tau)
-        R_ref, T_ref = _table_reference(albedo, tau)
+        R_ref, T_ref = slab_table_reference(albedo, tau)
         assert R == pytest.approx(R_ref, abs=2e-5) and T == pytest.approx(T_ref, abs=2e-5)
 
 
