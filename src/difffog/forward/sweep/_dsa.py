@@ -34,8 +34,8 @@ second in thick ones (issue 14's cube at N = 40, τ = 100, albedo 0.9999: 23 GMR
 29 with 1/(3σ_t) alone).  The linear-source scheme (``SweepSolver.scheme``) has the true
 coefficient, yet the same D preconditions it better than 1/(3σ_t) alone (measured, issue 14's
 cube at N = 32, float32: ζ = 1000 47 GMRES steps against 90, ζ = 10000 63 against no
-convergence in 600, where the flexible GMRES's error estimate drifted upward).  σ_t is floored at one mean free path per lattice extent (a fog that
-thin needs no acceleration, and an unbounded D would make the inner solve ill-conditioned).
+convergence in 600, where the flexible GMRES's error estimate drifted upward).  σ_t is floored
+at one mean free path per lattice extent (a fog that thin needs no acceleration, and an unbounded D would make the inner solve ill-conditioned).
 The inner solve is Jacobi-preconditioned conjugate gradients to a relative residual of
 ``CG_RTOL`` (the operator is symmetric positive definite).
 """

@@ -221,7 +221,7 @@ class SweepConsts(eqx.Module):
 def _source_table(consts: SweepConsts, dt):
     """(D, J) per-direction coefficients of the source channels beyond the isotropic one: the
     K moments' basis, then the sun's phase when there is one; and K.  (The linear scheme's
-    three slope channels follow these J in Q; ``_slope_tables``.)"""
+    three slope channels follow these J in Q; their table is ``consts.slope``.)"""
     D = consts.weight.shape[0]
     harm = jnp.zeros((D, 0), dt) if consts.harm is None else consts.harm.astype(dt)
     if consts.sun_phase is None:

@@ -298,7 +298,6 @@ class _Problem(eqx.Module):
     # first-collision sky's fluence along their beams, (nx, ny, nz, 3)
     sun_slope: jax.Array | None = None
     sky_slope: jax.Array | None = None
-    slope_nodes: jax.Array | None = None  # linear scheme: nodes whose segments hold fog (τ > 0)
 
 
 def _report(meter: AbstractProgressMeter):
@@ -360,7 +359,7 @@ def _fluence_slope(lam, pb: _Problem, sun: bool):
     entry, which no difference between nodes resolves).  Linear in Λ (as the Krylov solve
     needs)."""
     g = pb.geom
-    fog = pb.slope_nodes
+    fog = (pb.sigma_t > 0) & ~g.solid  # fog of their own (not reached by the box filter only)
     comps = []
     for axis in range(3):
         periodic = g.periodic_xy and axis < 2
@@ -397,7 +396,7 @@ def _zero_state(pb: _Problem):
 
 def _on_fluence(fn, lam, channels: bool):
     """``fn`` applied to Λ, the fluence part of the state's ``lam`` (channel 0 with an
-    anisotropic phase or the linear scheme; the moments and slopes pass through)."""
+    anisotropic phase; the moments pass through)."""
     return fn(lam) if not channels else lam.at[..., 0].set(fn(lam[..., 0]))
 
 
@@ -808,10 +807,9 @@ class SweepSolver(eqx.Module):
         if geom.sun_dir is not None:
             # the point value lights surfaces; the segment average feeds the fog's source
             # (and with the linear scheme its slope, where the sun is in the isotropic source)
-            sun_slope = geom.linear and sun_phase is None
             t_sun, t_sun_avg, *t_grad = sun_transmittance(
                 sigma_sun, geom.solid, np.array(geom.sun_dir), geom.h, geom.periodic_xy,
-                average=True, slope=sun_slope)
+                average=True, slope=geom.linear and sun_phase is None)
             sun_point = params.sun_irradiance * t_sun
             sun_fluence = params.sun_irradiance * t_sun_avg
             if t_grad:
@@ -875,7 +873,6 @@ class SweepSolver(eqx.Module):
             sun_phase=sun_phase,
             sun_slope=sun_slope,
             sky_slope=sky_slope,
-            slope_nodes=((sigma_t > 0) & ~geom.solid) if geom.linear else None,
             max_iterations=self.max_iterations,
             tol=self.tol,
             progress=self.progress,

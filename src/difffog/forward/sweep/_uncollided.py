@@ -85,23 +85,24 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
     mean = one_minus_exp_over(2.0 * tau)  # mean of e^(−s) over the node's whole segment
     # first moment over the segment, as a change per lattice spacing along the beam (segment
     # length h/along)
-    first = (linear_source_terms(2.0 * tau)[2] * (_MOMENT_TO_CHANGE * along) if slope
-             else jnp.zeros_like(tau))
+    # (only with ``slope``: the default program carries no third output)
+    factors = (mean,) + ((linear_source_terms(2.0 * tau)[2] * (_MOMENT_TO_CHANGE * along),)
+                         if slope else ())
 
     def step(t_out_prev, sheet):
-        half_k, mean_k, first_k, opaque_k = sheet
+        opaque_k, half_k, *factor_k = sheet
         t_in = resample(t_out_prev)
         t_arr = t_in * half_k
         t_out = jnp.where(opaque_k, 0.0, t_arr * half_k)
-        return t_out, (t_arr, t_in * mean_k, t_in * first_k)
+        return t_out, (t_arr,) + tuple(t_in * f for f in factor_k)
 
     init = jnp.ones(s.shape[1:], s.dtype)
-    _, out = jax.lax.scan(step, init, (half, mean, first, o))
+    _, out = jax.lax.scan(step, init, (o, half) + factors)
     if sign < 0:
         out = jax.tree.map(lambda a: a[::-1], out)
-    t_arr, t_avg, t_first = (jnp.transpose(a, np.argsort(perm)) for a in out)
+    t_arr, t_avg, *t_first = (jnp.transpose(a, np.argsort(perm)) for a in out)
     if slope:  # along the light's propagation, −sun_dir
-        grad = t_first[..., None] * jnp.asarray(-sun_dir, t_first.dtype)
+        grad = t_first[0][..., None] * jnp.asarray(-sun_dir, t_first[0].dtype)
         return t_arr, t_avg, jnp.where(opaque[..., None], 0.0, grad)
     return (t_arr, t_avg) if average else t_arr
 
