@@ -4,7 +4,8 @@ optically thick fog.
 
 Independent truths: the exact solution of dR/dτ = Q(τ) − R with a linear Q (the node update),
 exact conservation (a purely scattering slab returns all it receives, whatever its depth),
-adding-doubling for slabs (the table shipped with difffog, ``difffog.study.references``), finite differences for gradients.
+adding-doubling for slabs (the table shipped with difffog, ``difffog.study.references``),
+finite differences for gradients.
 """
 
 import math
