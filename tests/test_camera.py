@@ -297,9 +297,12 @@ def test_gradients_match_finite_differences(x64):
         assert np.isfinite(getattr(gf, name)).all(), name
 
 
-def test_exact_hit_gradients_match_finite_differences(x64):
+@pytest.mark.parametrize("sun_apart", [False, True])
+def test_exact_hit_gradients_match_finite_differences(x64, sun_apart):
     """The march with exact hits (fog up to the hit, the hit's irradiance, albedo, emission and
-    its sun through the fog) against central differences, camera inside the fog."""
+    its sun through the fog) against central differences, camera inside the fog.
+    ``sun_apart``: the fog's single scattering of the sun attenuated along each step by the
+    optical depth towards the sun (``sun_depth``), the march clipped to a fog box."""
     import difffog as df
 
     rng = np.random.default_rng(1)
@@ -320,12 +323,16 @@ def test_exact_hit_gradients_match_finite_differences(x64):
         radiosity_ext=np.zeros(n), sdf=np.full(n, 10.0), origin=(0, 0, 0), h=h, g=0.5,
         sun_dir=tuple(scene.sun.direction), sky=1.5, surface_normal=nrm,
         irradiance=0.5 + rng.random(n), albedo=np.array([0.6, 0.3]),
-        emission=np.array([0.1, 0.0]), sun_irradiance=2.0, sun_extinction=1.0)
+        emission=np.array([0.1, 0.0]), sun_irradiance=2.0, sun_extinction=1.0,
+        **(dict(sun_depth=3.0 * rng.random(n), fog_box=((0.05, 0.0, 0.1), (0.95, 0.9, 0.7)))
+           if sun_apart else {}))
 
     def loss(a, e, alb, em):
         f = eqx_replace(base, sigma_t=a * base.sigma_t, irradiance=e * base.irradiance,
                         albedo=alb * base.albedo, emission=em * base.emission,
                         sun_extinction=a * base.sun_extinction)
+        if sun_apart:
+            f = eqx_replace(f, sun_depth=a * base.sun_depth)
         return render_camera(f, cam, supersample=2, hits=hits).sum()
 
     args = (1.0, 1.0, 1.0, 1.0)
@@ -366,11 +373,15 @@ def test_march_steps():
 
 
 # the periodic case is slow (the default suite keeps the open box; both passed when last run)
-@pytest.mark.parametrize("periodic,slopes", [(False, False), (False, True),
-                                             pytest.param(True, False, marks=pytest.mark.slow)])
-def test_custom_backward_matches_autodiff(x64, periodic, slopes):
+@pytest.mark.parametrize("periodic,slopes,sun", [
+    (False, False, False), (False, True, True),
+    pytest.param(True, False, False, marks=pytest.mark.slow)])
+def test_custom_backward_matches_autodiff(x64, periodic, slopes, sun):
     """The march's hand-scheduled backward equals JAX's autodiff of the plain forward scan
-    (``slopes``: with the linear scheme's three slope channels, sampled with offsets)."""
+    (``slopes``: with the linear scheme's three slope channels, sampled with offsets; ``sun``:
+    the sun's term apart, attenuated along each step by an optical-depth channel that grows
+    and falls along the rays, so that both signs of the step's exponent occur, and dips below 0
+    in places, where the exponent is held at 0)."""
     from difffog.forward.sweep import _march as cm
 
     rng = np.random.default_rng(1)
@@ -381,6 +392,7 @@ def test_custom_backward_matches_autodiff(x64, periodic, slopes):
     # source's basis value, which has either sign), sdf
     chans = [0.5 + 3 * rng.random(n), rng.random(n), rng.random(n), rng.random(n) - 0.5]
     chans += [0.3 * rng.standard_normal(n) for _ in range(3)] if slopes else []
+    chans += [5.0 * rng.random(n) - 1.0] if sun else []  # some < 0: the exponent held at 0
     chans += [sdf]
     table = cm._flat_table([jnp.asarray(c) for c in chans], jnp.float64)
     R = 40
@@ -394,7 +406,8 @@ def test_custom_backward_matches_autodiff(x64, periodic, slopes):
     valid = t1 > t0
     t0 = jnp.where(valid, t0, 0.0)
     t_end = jnp.where(valid, jnp.minimum(t1, t0 + 2.0), 0.0)
-    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), h, n, periodic), 2, 40, h / 2, slopes=slopes)
+    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), h, n, periodic), 2, 40, h / 2, slopes=slopes,
+                          sun_exp=sun)
     phase = jnp.asarray(rng.random((R, 2)))
     wT, wL, wH = (jnp.asarray(rng.random(R)) for _ in range(3))
 

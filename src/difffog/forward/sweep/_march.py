@@ -129,6 +129,17 @@ class LatticeFields(eqx.Module):
     # j_slope[..., a] per lattice spacing along axis a (x, y, z); the march blends the nodes'
     # own linear extrapolations j + j_slope·(x − x_node)/h with the trilinear weights
     j_slope: Float[Array, "nx ny nz 3"] | None = None
+    # optional, the sun's own profile along the march (with a sun): the optical depth towards
+    # the sun at each node, u = σ_sun·∫ density ds (solids ignored; their shadow is in j_sun).
+    # When given, j_sun is the *unattenuated* single-scattering coefficient (σ_s·F·visibility)
+    # and each step integrates j_sun·p_HG·e^(−u) with u linear along the step, exactly: a
+    # node's mean sun would be 1/τ of the light at its top in fog τ mean free paths per node.
+    sun_depth: Float[Array, "nx ny nz"] | None = None
+    # optional: the box (lo, hi) outside which there is no fog (z only when periodic_xy); the
+    # march is clipped to it, so the fog ends sharply at its face instead of fading over the
+    # last spacing (the fields must be extended to the nodes just outside it)
+    fog_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = eqx.field(
+        static=True, default=None)
 
     def __post_init__(self):
         if self.shape is None:
@@ -150,6 +161,9 @@ class LatticeFields(eqx.Module):
             raise ValueError("LatticeFields: g and sky must be scalars")
         if (self.j_aniso is None) != (self.harmonics is None):
             raise ValueError("LatticeFields: j_aniso and harmonics go together")
+        if self.sun_depth is not None and tuple(self.sun_depth.shape) != self.shape:
+            raise ValueError(f"LatticeFields: sun_depth has shape {tuple(self.sun_depth.shape)}, "
+                             f"expected {self.shape}")
         if self.j_aniso is not None:
             K = (self.harmonics[0] + 1) ** 2 - 1
             if tuple(self.j_aniso.shape) != self.shape + (K,):
@@ -363,25 +377,49 @@ class _MarchConfig(NamedTuple):
     step: float
     has_sdf: bool = True  # False: the hits are given (exact), the table has no sdf channel
     slopes: bool = False  # the linear scheme: 3 slope channels after the coefficients'
+    sun_exp: bool = False  # coefficient 0 is the sun's, attenuated along the step by e^(−u)
 
     @property
     def slope_at(self) -> int | None:
         return 2 + self.n_coef if self.slopes else None
 
+    @property
+    def u_at(self) -> int:
+        """The channel of the optical depth towards the sun (with ``sun_exp``)."""
+        return 2 + self.n_coef + (3 if self.slopes else 0)
+
 
 def _mix(c, coef, cfg: _MarchConfig):
-    """(σ_t, source, sdf) from table samples c (..., C) — channels σ_t, j_iso, then one per
-    per-ray coefficient, [then the three slope channels, already weighted by the point's
-    offsets (``_weights``),] then the sdf — and the per-ray coefficients (R, J): source =
-    j_iso + Σ_j coef_j·c_(2+j) [+ the slopes']; the sdf is 1 (never a crossing) when the
-    table has none."""
+    """(σ_t, source, sdf, sun, u) from table samples c (..., C) — channels σ_t, j_iso, then
+    one per per-ray coefficient, [then the three slope channels, already weighted by the
+    point's offsets (``_weights``),] [then u, the optical depth towards the sun,] then the sdf
+    — and the per-ray coefficients (R, J): source = j_iso + Σ_j coef_j·c_(2+j) [+ the
+    slopes']; the sdf is 1 (never a crossing) when the table has none.  With ``sun_exp`` the
+    sun's term coef_0·c_2 is not in the source but returned apart (``sun``), with ``u``; else
+    both are None."""
     src = c[..., 1]
-    for j in range(cfg.n_coef):
+    first = 1 if cfg.sun_exp else 0
+    for j in range(first, cfg.n_coef):
         src = src + coef[:, j] * c[..., 2 + j]
     if cfg.slopes:
         k = 2 + cfg.n_coef
         src = src + c[..., k] + c[..., k + 1] + c[..., k + 2]
-    return c[..., 0], src, (c[..., -1] if cfg.has_sdf else jnp.ones_like(c[..., 0]))
+    sdf = c[..., -1] if cfg.has_sdf else jnp.ones_like(c[..., 0])
+    if cfg.sun_exp:
+        return c[..., 0], src, sdf, coef[:, 0] * c[..., 2], c[..., cfg.u_at]
+    return c[..., 0], src, sdf, None, None
+
+
+def _sun_integral(u_a, y, ds):
+    """∫₀^ds e^(−u_a − y·t/ds) dt: the sun's attenuation e^(−u) over a step along which the
+    optical depth towards the sun *and* the one back to the step's start grow linearly by y
+    in all (y < 0: the ray runs towards the sun faster than the fog dims it), written so that
+    it neither overflows nor cancels: ds·e^(−u_a − min(y, 0))·(1 − e^(−|y|))/|y|.  The
+    exponent −max(u_a, u_b + σ_t·ds) is ≤ 0 for optical depths u ≥ 0; where the lattice's
+    linear continuation of u past the fog's box makes it positive (near a corner of the box)
+    it is held at 0, so that no sample sees more than the unattenuated sun."""
+    return ds * jnp.exp(jnp.minimum(-u_a - jnp.minimum(y, 0.0), 0.0)) * one_minus_exp_over(
+        jnp.abs(y))
 
 
 def _step_times(t0, t_end, k, step):
@@ -398,10 +436,12 @@ def _march_init(t0, t_end, sdf0):
 
 
 def _march_step(carry, ta, tb, a, b):
-    """One step from ta to tb (R,), with (σ_t, source, sdf) samples a, b at its two ends."""
+    """One step from ta to tb (R,), with (σ_t, source, sdf, sun, u) samples a, b at its two
+    ends (``_mix``).  The sun's term, when apart, is its mean over the step times the exact
+    integral of e^(−u) with u linear along the step (``_sun_integral``)."""
     T, L, alive, t_hit = carry
-    sig_a, src_a, sdf_a = a
-    sig_b, src_b, sdf_b = b
+    sig_a, src_a, sdf_a, sun_a, u_a = a
+    sig_b, src_b, sdf_b, sun_b, u_b = b
     ds = tb - ta
     live = alive & (ds > 0)
     cross = live & (sdf_b <= 0.0)
@@ -410,7 +450,11 @@ def _march_step(carry, ta, tb, a, b):
     dse = f * ds  # up to the surface, located by linear interpolation of the sdf
     s_t = sig_a + 0.5 * f * (sig_b - sig_a)  # mean over the (partial) step, linear profile
     s_j = src_a + 0.5 * f * (src_b - src_a)
-    L = L + jnp.where(live, T * s_j * _phi(s_t, dse), 0.0)
+    gain = s_j * _phi(s_t, dse)
+    if sun_a is not None:
+        s_S = sun_a + 0.5 * f * (sun_b - sun_a)
+        gain = gain + s_S * _sun_integral(u_a, s_t * dse + f * (u_b - u_a), dse)
+    L = L + jnp.where(live, T * gain, 0.0)
     T = jnp.where(live, T * jnp.exp(-s_t * dse), T)
     t_hit = jnp.where(cross, ta + dse, t_hit)
     return T, L, alive & ~cross, t_hit
@@ -419,9 +463,10 @@ def _march_step(carry, ta, tb, a, b):
 def _march_step_vjp(T, alive, ta, tb, a, b, lam_T, g_L, lam_hit):
     """Adjoint of ``_march_step`` (L enters linearly: its cotangent g_L is the same at every
     step).  Given the cotangents (lam_T, g_L, lam_hit) of (T, L, t_hit) after the step, returns
-    those of T and t_hit before it and of the samples a, b = (σ_t, source, sdf)."""
-    sig_a, src_a, sdf_a = a
-    sig_b, src_b, sdf_b = b
+    those of T and t_hit before it and of the samples a, b = (σ_t, source, sdf, sun, u) (the
+    last two None when the sun is in the source)."""
+    sig_a, src_a, sdf_a, sun_a, u_a = a
+    sig_b, src_b, sdf_b, sun_b, u_b = b
     ds = tb - ta
     live = alive & (ds > 0)
     cross = live & (sdf_b <= 0.0)
@@ -443,24 +488,61 @@ def _march_step_vjp(T, alive, ta, tb, a, b, lam_T, g_L, lam_hit):
     g_j = q * phi
     g_s = q * s_j * dse * dse * de1 - lte * dse
     g_dse = q * s_j * E - lte * s_t + jnp.where(cross, lam_hit, 0.0)
-    g_f = 0.5 * (g_s * (sig_b - sig_a) + g_j * (src_b - src_a)) + g_dse * ds
+    gain = s_j * phi
+    g_f_sun = 0.0
+    if sun_a is not None:
+        # I = ds'·A·e1(|y|), A = e^(−u_a − min(y, 0)), y = s_t·ds' + f·(u_b − u_a)
+        du = u_b - u_a
+        y = s_t * dse + f * du
+        ay = jnp.abs(y)
+        small_y = ay < 1e-3
+        ays = jnp.where(small_y, 1.0, ay)
+        ey = jnp.where(small_y, 1.0 - ay / 2.0 + ay * ay / 6.0 - ay * ay * ay / 24.0,
+                       -jnp.expm1(-ays) / ays)
+        dey = jnp.where(small_y, -0.5 + ay / 3.0 - ay * ay / 8.0, (jnp.exp(-ay) - ey) / ays)
+        expo = -u_a - jnp.minimum(y, 0.0)
+        free = expo <= 0.0  # the exponent is not held at 0 (``_sun_integral``)
+        A = jnp.exp(jnp.minimum(expo, 0.0))
+        I = dse * A * ey  # noqa: E741
+        I_y = dse * A * jnp.where(y >= 0.0, dey, -dey - jnp.where(free, ey, 0.0))  # ∂I/∂y
+        s_S = sun_a + 0.5 * f * (sun_b - sun_a)
+        g_S = q * I
+        g_I = q * s_S
+        g_s = g_s + g_I * I_y * dse
+        g_dse = g_dse + g_I * (A * ey + I_y * s_t)
+        g_f_sun = 0.5 * g_S * (sun_b - sun_a) + g_I * I_y * du
+        gain = gain + s_S * I
+    g_f = 0.5 * (g_s * (sig_b - sig_a) + g_j * (src_b - src_a)) + g_dse * ds + g_f_sun
     g_r = jnp.where(cross & (r > 0.0) & (r < 1.0), g_f, 0.0) / (den * den)
     zero = jnp.zeros_like(T)
     m = lambda v: jnp.where(live, v, zero)  # noqa: E731
     ga = (m(g_s * (1.0 - 0.5 * f)), m(g_j * (1.0 - 0.5 * f)), m(-g_r * sdf_b))
     gb = (m(0.5 * f * g_s), m(0.5 * f * g_j), m(g_r * sdf_a))
-    lam_T = jnp.where(live, lam_T * E + g_L * s_j * phi, lam_T)
+    if sun_a is not None:
+        g_ua = -g_I * (jnp.where(free, I, 0.0) + f * I_y)
+        g_ub = g_I * f * I_y
+        ga = ga + (m(g_S * (1.0 - 0.5 * f)), m(g_ua))
+        gb = gb + (m(0.5 * f * g_S), m(g_ub))
+    else:
+        ga, gb = ga + (None, None), gb + (None, None)
+    lam_T = jnp.where(live, lam_T * E + g_L * gain, lam_T)
     return lam_T, jnp.where(cross, 0.0, lam_hit), ga, gb
 
 
 def _unmix_ct(g, c, coef, cfg: _MarchConfig):
-    """Cotangents (σ_t, source, sdf) → raw table channels (R, C), and the coefficients' (R, J)."""
-    g_sig, g_src, g_sdf = g
+    """Cotangents (σ_t, source, sdf, sun, u) → raw table channels (R, C), and the
+    coefficients' (R, J)."""
+    g_sig, g_src, g_sdf, g_sun, g_u = g
     tail = [g_sdf] if cfg.has_sdf else []
     J = cfg.n_coef
     slopes = [g_src] * 3 if cfg.slopes else []
-    chans = [g_sig, g_src] + [coef[:, j] * g_src for j in range(J)] + slopes + tail
-    return jnp.stack(chans, -1), g_src[:, None] * c[:, 2 : 2 + J]
+    g_coef = [g_sun if (cfg.sun_exp and j == 0) else g_src for j in range(J)]
+    depth = [g_u] if cfg.sun_exp else []
+    chans = ([g_sig, g_src] + [coef[:, j] * g_coef[j] for j in range(J)] + slopes + depth
+             + tail)
+    g_phase = jnp.stack([g_coef[j] * c[:, 2 + j] for j in range(J)], -1) if J else (
+        jnp.zeros((c.shape[0], 0), c.dtype))
+    return jnp.stack(chans, -1), g_phase
 
 
 def _sample(table, p, geo, slope_at: int | None = None):
@@ -576,6 +658,9 @@ def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
     if fields.harmonics is not None:  # light going towards the camera: −d
         coef.append(basis(*fields.harmonics).evaluate(-d, jnp).astype(dtype))
     phase = jnp.concatenate(coef, axis=1) if coef else jnp.zeros((o.shape[0], 0), dtype)
+    if fields.fog_box is not None:  # no fog outside it: march only inside
+        lo = jnp.maximum(lo, jnp.asarray(fields.fog_box[0], dtype))
+        hi = jnp.minimum(hi, jnp.asarray(fields.fog_box[1], dtype))
     t0, t1 = _clip(lo, hi, o, d, fields.periodic_xy, jnp)
     seg_end = t1 if stop is None else jnp.minimum(t1, stop)
     valid = seg_end > t0
@@ -594,7 +679,7 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
     dtype = o.dtype
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, None, n_steps, step)
     cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step),
-                       slopes=fields.j_slope is not None)
+                       slopes=fields.j_slope is not None, sun_exp=_sun_exp(fields))
     T, L, t_hit = _march(table, phase, o, d, t0, t_end, cfg)
 
     hit = (t_end > t0) & jnp.isfinite(t_hit)  # t_end > t0: the ray meets the box
@@ -649,7 +734,7 @@ def _trace_chunk_exact(fields: LatticeFields, table, surf_table, o, d, hits, *, 
     dtype = o.dtype
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, t_hit, n_steps, step)
     cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step), has_sdf=False,
-                       slopes=fields.j_slope is not None)
+                       slopes=fields.j_slope is not None, sun_exp=_sun_exp(fields))
     T, L, _ = _march(table, phase, o, d, t0, t_end, cfg)
 
     hit = (shape >= 0) & reached
@@ -686,7 +771,8 @@ def _chunks(arrays, chunk: int):
 
 def _source_channels(fields: LatticeFields) -> list:
     """σ_t, j_iso, then one channel per per-ray coefficient of ``_segments``: j_sun (with a
-    sun), the K of j_aniso (with harmonics)."""
+    sun), the K of j_aniso (with harmonics); the three slopes (the linear scheme); the
+    optical depth towards the sun (``sun_depth``, with a sun)."""
     chans = [fields.sigma_t, fields.j_iso]
     if fields.sun_dir is not None:
         chans.append(fields.j_sun)
@@ -694,7 +780,14 @@ def _source_channels(fields: LatticeFields) -> list:
         chans += [fields.j_aniso[..., k] for k in range(fields.j_aniso.shape[-1])]
     if fields.j_slope is not None:
         chans += [fields.j_slope[..., a] for a in range(3)]
+    if _sun_exp(fields):
+        chans.append(fields.sun_depth)
     return chans
+
+
+def _sun_exp(fields: LatticeFields) -> bool:
+    """Whether the march attenuates the sun's single scattering itself (``sun_depth``)."""
+    return fields.sun_dir is not None and fields.sun_depth is not None
 
 
 @partial(jax.jit, static_argnames=("n_steps", "step", "chunk"))

@@ -25,7 +25,12 @@ from ._lightfield import LightField
 from ._harmonics import delta_m, moment_coefficients
 from ._march import LatticeFields, RayHits, camera_hits, render_camera
 from ._solver import SweepGeometry, SweepSolver, check_point_sun
+from ._uncollided import sun_path, sun_transmittance
 from ._terms import check_terms
+
+#: the sun's path where no face of the fog's box lies towards it (a sun on the horizon of a
+#: periodic domain): large, so that e^(−σ·path) is 0, and finite, so that differences are 0
+NO_SUN_PATH = 1e20
 
 #: step optical depth σ_t·h·M above which render and fit warn (ThickStepWarning): measured on
 #: slabs (docs/validation.md), a step depth of 1 keeps R within 1.5% at albedo ≥ 0.99 and 4.3%
@@ -39,6 +44,75 @@ def _nearest_index(mask: np.ndarray) -> np.ndarray:
         return np.zeros(mask.shape, np.int64)
     idx = ndimage.distance_transform_edt(~mask, return_distances=False, return_indices=True)
     return np.ravel_multi_index(tuple(idx), mask.shape)
+
+
+def _fog_support(scene: Scene, lattice):
+    """The box with all the fog ((lo, hi), the fog's region within the domain; x, y of the
+    lattice's box for a periodic-xy domain) and per axis the index range of the nodes inside
+    it, or None (no fog, or no node inside)."""
+    if scene.fog is None:
+        return None
+    dmin = np.asarray(scene.domain.min, float)
+    dmax = np.asarray(scene.domain.max, float)
+    lo, hi = dmin.copy(), dmax.copy()
+    if scene.fog.region is not None:
+        lo = np.maximum(lo, np.asarray(scene.fog.region[0], float))
+        hi = np.minimum(hi, np.asarray(scene.fog.region[1], float))
+    box_lo = np.asarray(lattice.origin, float)
+    box_hi = box_lo + lattice.h * np.asarray(lattice.shape, float)
+    ranges = []
+    for a in range(3):
+        if lattice.boundary == "periodic-xy" and a < 2:
+            lo[a], hi[a] = box_lo[a], box_hi[a]
+        x = box_lo[a] + (np.arange(lattice.shape[a]) + 0.5) * lattice.h
+        inside = np.flatnonzero((x >= lo[a]) & (x <= hi[a]))
+        if not len(inside):
+            return None
+        ranges.append((int(inside[0]), int(inside[-1])))
+    return (tuple(lo.tolist()), tuple(hi.tolist())), ranges
+
+
+def _clamped_index(shape, ranges) -> np.ndarray:
+    """For every node the flat index of the node with each index clamped into ``ranges``."""
+    idx = np.meshgrid(*[np.clip(np.arange(n), r[0], r[1]) for n, r in zip(shape, ranges)],
+                      indexing="ij")
+    return np.ravel_multi_index(tuple(idx), shape)
+
+
+def _sun_path(scene: Scene, lattice, fog_box, ranges) -> np.ndarray:
+    """∫ density ds from every node towards the sun, solids ignored, continued linearly outside
+    the fog's box from its last two nodes along each axis (so that a camera's trilinear lookup
+    between the last node inside and the first outside is the path from the point itself: 0 on
+    a face the sun enters by).  Inside, a uniform fog: exactly, the distance to the box's face
+    towards the sun; a density grid: :func:`sun_path` through the lattice's density
+    (trapezoids, resampled sheet by sheet)."""
+    s = np.asarray(scene.sun.direction, float)
+    if scene.fog.density is None:  # uniform (density 1 in the box): t of the box's exit
+        P = np.meshgrid(*[lattice.origin[a] + (np.clip(np.arange(n), *r) + 0.5) * lattice.h
+                          for a, (n, r) in enumerate(zip(lattice.shape, ranges))], indexing="ij")
+        path = np.full(lattice.shape, np.inf)
+        axes = (2,) if lattice.boundary == "periodic-xy" else (0, 1, 2)
+        for a in axes:
+            if s[a] != 0:
+                face = fog_box[1][a] if s[a] > 0 else fog_box[0][a]
+                path = np.minimum(path, np.maximum(face - P[a], 0.0) / s[a])
+        path = np.where(np.isfinite(path), path, NO_SUN_PATH)  # no face towards the sun
+    else:
+        path = np.asarray(sun_path(jnp.asarray(lattice.fog_density, jnp.float32), s, lattice.h,
+                                   lattice.boundary == "periodic-xy"), np.float64)
+    for a, (i0, i1) in enumerate(ranges):  # continue linearly past the box, axis by axis
+        n = path.shape[a]
+        i = np.arange(n)
+        take = lambda k: np.take(path, np.full(n, k), axis=a)  # noqa: E731
+        lo_slope = take(i0) - take(min(i0 + 1, i1))
+        hi_slope = take(i1) - take(max(i1 - 1, i0))
+        shape = [1, 1, 1]
+        shape[a] = n
+        below = np.clip(i0 - i, 0, None).reshape(shape)
+        above = np.clip(i - i1, 0, None).reshape(shape)
+        path = (np.take(path, np.clip(i, i0, i1), axis=a) + below * lo_slope
+                + above * hi_slope)
+    return path
 
 
 class CameraGeometry(eqx.Module):
@@ -55,6 +129,16 @@ class CameraGeometry(eqx.Module):
     periodic_xy: bool = eqx.field(static=True)
     has_surfaces: bool = eqx.field(static=True)
     M: int = eqx.field(static=True, default=0)  # the light solve's direction half-width
+    # exact hits with fog (``_fog_support``): the fog's box, and for every node the flat index
+    # of the nearest node inside it (the fields are extended so that the fog ends sharply at
+    # the box's face, where the march stops)
+    fog_box: tuple | None = eqx.field(static=True, default=None)
+    support_index: jax.Array | None = None
+    # exact hits with fog and a sun: ∫ density ds towards the sun from every node (solids
+    # ignored, continued linearly outside the fog's box) and the sun's visibility past the
+    # solids (the lattice's shadow buffer, extended into solids from the nearest fluid node)
+    sun_path: jax.Array | None = None
+    sun_vis: jax.Array | None = None
 
     @classmethod
     def build(cls, scene: Scene, lattice, exact_hits: bool = False,
@@ -62,8 +146,27 @@ class CameraGeometry(eqx.Module):
         nt = np.asarray(lattice.node_type)
         periodic = lattice.boundary == "periodic-xy"
         surf = nt == SURFACE
+        near_fluid = _nearest_index(nt != SOLID)
+        # with exact hits the march may stop at the fog's face as it stops at a surface's; then
+        # the sun's path is interpolated consistently with the fog's extinction there (with
+        # the lattice's hits the fog fades over the last spacing, and the node-mean sun stays)
+        support = (_fog_support(scene, lattice) if exact_hits and lattice.fog_density is not None
+                   else None)
+        fog_box = support_index = sun_path = sun_vis = None
+        if support is not None:
+            fog_box, ranges = support
+            sharp = _clamped_index(lattice.shape, ranges)
+            support_index = jnp.asarray(sharp)
+            if scene.sun is not None:
+                sun_path = jnp.asarray(_sun_path(scene, lattice, fog_box, ranges), jnp.float32)
+                vis = sun_transmittance(jnp.zeros(nt.shape, jnp.float32),
+                                        jnp.asarray(nt == SOLID), scene.sun.direction,
+                                        lattice.h, periodic)
+                vis = np.asarray(vis).reshape(-1)[near_fluid].reshape(-1)[sharp]
+                sun_vis = jnp.asarray(vis.reshape(nt.shape))
         return cls(
-            near_fluid=jnp.asarray(_nearest_index(nt != SOLID)),
+            fog_box=fog_box, support_index=support_index, sun_path=sun_path, sun_vis=sun_vis,
+            near_fluid=jnp.asarray(near_fluid),
             fog_density=(jnp.asarray(lattice.fog_density, jnp.float32) if exact_hits
                          and lattice.fog_density is not None else None),
             near_surface=jnp.asarray(_nearest_index(surf)),
@@ -103,7 +206,13 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     zeta_r = params.scattering * (1.0 - f)
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
-    j_sun = params.scattering * dens * ext(light.sun_fluence, cam.near_fluid)
+    sun_depth = None
+    if cam.sun_path is not None:  # the march attenuates the sun itself, along its own profile
+        kappa = (zeta_r if order == 0 else params.scattering) + params.absorption
+        j_sun = params.scattering * dens * params.sun_irradiance * cam.sun_vis.astype(dt)
+        sun_depth = kappa * cam.sun_path.astype(dt)
+    else:
+        j_sun = params.scattering * dens * ext(light.sun_fluence, cam.near_fluid)
     j_slope = None
     if light.fluence_slope is not None:  # the linear scheme: each node's source changes within it
         j_slope = (zeta_r * dens / FOUR_PI)[..., None] * jax.vmap(
@@ -113,6 +222,12 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         mom = light.moments if light.sky_moments is None else light.moments + light.sky_moments
         mom = jax.vmap(lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(mom)
         j_aniso = (zeta_r * dens)[..., None] * coef * mom
+    if cam.support_index is not None:  # the fog ends sharply at its box: extend it there
+        sup = lambda a: a.reshape(-1)[cam.support_index].reshape(a.shape)  # noqa: E731
+        sup_k = jax.vmap(sup, in_axes=-1, out_axes=-1)
+        sigma_t, j_iso, j_sun = sup(sigma_t), sup(j_iso), sup(j_sun)
+        j_slope = None if j_slope is None else sup_k(j_slope)
+        j_aniso = None if j_aniso is None else sup_k(j_aniso)
     if cam.has_surfaces:
         rad = ext(light.radiosity, cam.near_surface)
         irr = ext(light.irradiance, cam.near_surface)
@@ -139,6 +254,8 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         j_aniso=j_aniso,
         harmonics=None if order == 0 else (order, cam.M),
         j_slope=j_slope,
+        sun_depth=sun_depth,
+        fog_box=cam.fog_box,
     )
 
 
@@ -251,7 +368,8 @@ class SweepModel(AbstractForwardModel):
                                "tol": s.tol, "sky_quadrature": s.sky_quadrature,
                                "terms": s.terms, "devices": s.devices,
                                "precondition": s.resolved_precondition(self.geometry),
-                               "phase_order": self.geometry.order, "scheme": s.scheme,
+                               "phase_order": self.geometry.order,
+                               "scheme": "linear" if self.geometry.linear else "step",
                                "kernel": s.resolved_kernel()},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides

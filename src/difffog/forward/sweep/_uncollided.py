@@ -33,6 +33,67 @@ def sun_sweep_axis(sun_dir: np.ndarray, periodic_xy: bool) -> tuple[int, int]:
 _MOMENT_TO_CHANGE = 12.0
 
 
+def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool):
+    """The sheet order of a beam towards ``sun_dir``: (perm, sign, along, resample), or None
+    for a sun on the horizon of a periodic domain.  ``perm`` puts the sweep axis first, the
+    sheets run in the light's direction (reversed when ``sign`` < 0), ``along`` = |sun_dir| on
+    the axis, and ``resample(t, fill)`` moves a sheet's buffer by the beam's lateral offset per
+    sheet (bilinear; ``fill`` enters from outside an open domain, periodic sides wrap)."""
+    axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
+    along = float(abs(sun_dir[axis]))  # Python floats below: weak-typed, keep σ's dtype
+    if along < 1e-9:
+        return None
+    u, v = face_plane_axes(axis)
+    # Light moves by -sun_dir; per sheet the lateral displacement is d = -sun_dir[u,v]/along.
+    # The light at (u, v) came from (u - du, v - dv) in the previous sheet.
+    src = [float(sun_dir[u]) / along, float(sun_dir[v]) / along]  # offsets to sample, in voxels
+    ipart = [math.floor(x) for x in src]
+    frac = [x - i for x, i in zip(src, ipart)]
+    lateral_periodic = (periodic_xy and u in (0, 1), periodic_xy and v in (0, 1))
+
+    def resample(t, fill):
+        for ax, (i0, f, per) in enumerate(zip(ipart, frac, lateral_periodic)):
+            n = t.shape[ax]
+            pad_lo, pad_hi = max(0, -i0), max(0, i0 + 1)
+            widths = [(0, 0), (0, 0)]
+            widths[ax] = (pad_lo, pad_hi)
+            if per:
+                tp = jnp.pad(t, widths, mode="wrap")
+            else:
+                tp = jnp.pad(t, widths, constant_values=fill)
+            a0 = jax.lax.slice_in_dim(tp, pad_lo + i0, pad_lo + i0 + n, axis=ax)
+            a1 = jax.lax.slice_in_dim(tp, pad_lo + i0 + 1, pad_lo + i0 + 1 + n, axis=ax)
+            t = a0 if f == 0.0 else (1.0 - f) * a0 + f * a1
+        return t
+
+    return (axis, u, v), sign, along, resample
+
+
+def sun_path(density, sun_dir, h, periodic_xy):
+    """∫ density ds from every node towards the sun, solids ignored (nx, ny, nz): the additive
+    twin of :func:`sun_transmittance`'s point value (half of each node's segment, resampled
+    sheet by sheet the same way; nothing enters from outside an open domain), so that
+    e^(−σ·path) is that transmittance for a uniform extinction σ per unit density.  Linear in
+    the density; exact for a uniform one (the cameras interpolate the path, not e^(−σ·path))."""
+    sun_dir = np.asarray(sun_dir, dtype=np.float64)
+    frame = _beam_frame(sun_dir, periodic_xy)
+    if frame is None:
+        return jnp.full_like(density, 1e20)  # no direct sun: e^(−σ·path) = 0, finite
+    perm, sign, along, resample = frame
+    half = jnp.transpose(density, perm) * (h / (2.0 * along))
+    if sign < 0:
+        half = half[::-1]
+
+    def step(p_out_prev, half_k):
+        p_arr = resample(p_out_prev, 0.0) + half_k
+        return p_arr + half_k, p_arr
+
+    _, out = jax.lax.scan(step, jnp.zeros(half.shape[1:], half.dtype), half)
+    if sign < 0:
+        out = out[::-1]
+    return jnp.transpose(out, np.argsort(perm))
+
+
 def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, slope=False):
     """Transmittance of the direct sun beam arriving at every node.
 
@@ -49,36 +110,14 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
     scheme's first-collision slope: in a thick node the beam's power is spent near its entry).
     """
     sun_dir = np.asarray(sun_dir, dtype=np.float64)
-    axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
-    along = float(abs(sun_dir[axis]))  # Python floats below: weak-typed, keep σ's dtype
-    if along < 1e-9:  # sun exactly on the horizon of a periodic domain: no direct light
+    frame = _beam_frame(sun_dir, periodic_xy)
+    if frame is None:  # sun exactly on the horizon of a periodic domain: no direct light
         return jnp.zeros_like(sigma_t)
-    u, v = face_plane_axes(axis)
-    perm = (axis, u, v)
+    perm, sign, along, resample = frame
     s = jnp.transpose(sigma_t, perm)
     o = jnp.transpose(opaque, perm)
     if sign < 0:
         s, o = s[::-1], o[::-1]
-    # Light moves by -sun_dir; per sheet the lateral displacement is d = -sun_dir[u,v]/along.
-    # The light at (u, v) came from (u - du, v - dv) in the previous sheet.
-    src = [float(sun_dir[u]) / along, float(sun_dir[v]) / along]  # offsets to sample, in voxels
-    ipart = [math.floor(x) for x in src]
-    frac = [x - i for x, i in zip(src, ipart)]
-    lateral_periodic = (periodic_xy and u in (0, 1), periodic_xy and v in (0, 1))
-    def resample(t):
-        for ax, (i0, f, per) in enumerate(zip(ipart, frac, lateral_periodic)):
-            n = t.shape[ax]
-            pad_lo, pad_hi = max(0, -i0), max(0, i0 + 1)
-            widths = [(0, 0), (0, 0)]
-            widths[ax] = (pad_lo, pad_hi)
-            if per:
-                tp = jnp.pad(t, widths, mode="wrap")
-            else:
-                tp = jnp.pad(t, widths, constant_values=1.0)  # no fog outside an open domain
-            a0 = jax.lax.slice_in_dim(tp, pad_lo + i0, pad_lo + i0 + n, axis=ax)
-            a1 = jax.lax.slice_in_dim(tp, pad_lo + i0 + 1, pad_lo + i0 + 1 + n, axis=ax)
-            t = a0 if f == 0.0 else (1.0 - f) * a0 + f * a1
-        return t
 
     tau = s * (h / (2.0 * along))  # half-segment optical depth per node
     half = jnp.exp(-tau)
@@ -91,7 +130,7 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
 
     def step(t_out_prev, sheet):
         opaque_k, half_k, *factor_k = sheet
-        t_in = resample(t_out_prev)
+        t_in = resample(t_out_prev, 1.0)  # no fog outside an open domain
         t_arr = t_in * half_k
         t_out = jnp.where(opaque_k, 0.0, t_arr * half_k)
         return t_out, (t_arr,) + tuple(t_in * f for f in factor_k)
