@@ -46,7 +46,7 @@ def _args(argv=None):
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver(phase_order=...) values (anisotropic scattering; \"auto\": "
                          "the scene's)")
-    ap.add_argument("--scheme", default="step", choices=["step", "linear"],
+    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear"],
                     help="SweepSolver(scheme=...): the transport along a segment")
     ap.add_argument("--grad-size", type=int, default=None, help="N of the forward/gradient case")
     ap.add_argument("--no-grad", action="store_true")
@@ -87,7 +87,7 @@ def _hlo_ops(text: str) -> int:
 
 
 def iteration_case(scene, N, M, repeat, devices=1, k_iter=4, kernel="auto", phase_order="auto",
-                   scheme="step"):
+                   scheme="auto"):
     """Seconds per Jacobi iteration as the solver runs it: the forward iteration (``_iterate``,
     a while loop over ``_jacobi``, tol = 0) timed at 1 and ``k_iter`` iterations; the
     difference per extra iteration is the marginal cost of an iteration (one-time work hoisted

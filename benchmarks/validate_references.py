@@ -58,7 +58,7 @@ QUICK_SETTINGS = [(16, 2)]
 
 
 def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int,
-                phase_order="auto", scheme="step"):
+                phase_order="auto", scheme="auto"):
     """Images and timings of one (N, M) setting.
 
     ``difffog.render`` compiles the light solve and the images ahead of time
@@ -164,7 +164,7 @@ def main(argv=None):
                     help="folder of the Mitsuba references (default: the shipped ones)")
     ap.add_argument("--out", type=Path, default=C.RESULTS)
     ap.add_argument("--no-png", action="store_true")
-    ap.add_argument("--scheme", default="step", choices=("step", "linear"),
+    ap.add_argument("--scheme", default="auto", choices=("auto", "step", "linear"),
                     help="SweepSolver.scheme")
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver.phase_order values to run (\"auto\" or integers)")

@@ -114,3 +114,21 @@ def test_a_non_finite_result_names_the_inputs_that_led_there():
     p = eqx.tree_at(lambda q: q.sun_irradiance, p, jnp.asarray(3e37, jnp.float32))
     text = largest_inputs(p)
     assert text.startswith("sun.irradiance = 3e+37, fog.scattering = 2")
+
+
+def test_estimate_follows_the_scheme_the_solver_will_run():
+    """scheme="auto" runs the linear-source scheme where a lattice step is optically thick: the
+    estimate charges its measured cost there (time ×LINEAR_COST, three slope channels) and
+    nothing in thin fog."""
+    from difffog._cost import LINEAR_COST
+    from difffog.study._semi_infinite import thick_cube
+
+    thick = thick_cube(1000.0)
+    auto = df.estimate(thick, "sweep", resolution=32, M=2)
+    step = df.estimate(thick, "sweep", resolution=32, M=2, scheme="step")
+    assert auto.seconds_per_iteration == pytest.approx(step.seconds_per_iteration * LINEAR_COST,
+                                                       rel=1e-9)
+    assert auto.peak_bytes > step.peak_bytes
+    thin = thick_cube(0.5)  # a step of 0.03 mean free paths
+    assert (df.estimate(thin, "sweep", resolution=32, M=2).seconds_per_iteration
+            == df.estimate(thin, "sweep", resolution=32, M=2, scheme="step").seconds_per_iteration)

@@ -184,7 +184,7 @@ def test_gradients_match_finite_differences(x64):
 
 
 def test_scheme_is_checked_and_reaches_the_command_line():
-    with pytest.raises(df.SceneError, match="scheme must be one of step, linear"):
+    with pytest.raises(df.SceneError, match="scheme must be one of auto, step, linear"):
         SweepSolver(scheme="cubic")
     from difffog.cli._main import build_parser, model_settings
 
@@ -192,3 +192,29 @@ def test_scheme_is_checked_and_reaches_the_command_line():
     assert model_settings(args, "sweep", accuracy="draft")["scheme"] == "linear"
     with pytest.raises(df.DifffogError, match="--scheme does not apply to --solver splat"):
         model_settings(args, "splat", accuracy=None)
+
+
+def test_auto_scheme_takes_linear_where_a_step_is_thick():
+    """scheme="auto" (the default): "linear" exactly where one lattice step spans more than
+    ``LINEAR_STEP_DEPTH`` mean free paths at the scene's values (δ-M scaled), else "step";
+    the model's settings name the scheme it runs."""
+    from difffog.forward.sweep._solver import LINEAR_STEP_DEPTH
+    from difffog.geometry._lattice import voxelize
+
+    scene = df.load_scene("fog-balls")
+    solver = SweepSolver(M=2)
+    assert solver.scheme == "auto"
+    lat = voxelize(scene, 24, 2, margin=3)
+    depth_per_unit = lat.max_segment_optical_depth(1.0, 0.0)  # per unit σ_t
+    for ext, want in ((0.9, "step"), (1.1, "linear")):
+        zeta = ext * LINEAR_STEP_DEPTH / depth_per_unit
+        thick = scene.replace(fog=df.Fog(scattering=zeta, absorption=0.0))
+        assert solver.resolved_scheme(thick, lat) == want
+        # a forward-scattering fog is judged after δ-scaling: ζ(1 − g) with g = 0.5
+        hg = thick.replace(fog=df.Fog(scattering=2 * zeta, absorption=0.0,
+                                      phase="henyey-greenstein", g=0.5))
+        assert SweepSolver(M=2, phase_order=0).resolved_scheme(hg, lat) == want
+    assert SweepSolver(M=2, scheme="step").resolved_scheme(thick, lat) == "step"
+    m = df.forward_model(scene, "sweep", accuracy="draft")
+    assert m.settings()["solver_options"]["scheme"] == "step"
+    assert not m.geometry.linear

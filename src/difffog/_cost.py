@@ -63,6 +63,12 @@ CPU_UPDATES_PER_S = 0.42e9
 #: (bench_sweep.py --phase-order 0 1 2 3): 0.162 / 0.241 / 0.468 / 0.700 s per iteration at
 #: L = 0 / 1 / 2 / 3, i.e. 0.16 / 0.24 / 0.22 per moment
 CPU_COST_PER_MOMENT = 0.22
+#: the linear-source scheme (``SweepSolver.scheme``; "auto" takes it where a lattice step is
+#: optically thick): fog-balls N = 64, M = 3, this 2-core CPU (bench_sweep.py --scheme step /
+#: linear, same run): 0.256 against 0.216 s per iteration, XLA temporaries 171 against 144 MiB
+#: on a 72³ lattice (its three slope channels)
+LINEAR_COST = 0.256 / 0.216
+LINEAR_BYTES_PER_NODE = (171 - 144) * 2**20 / 72**3
 CPU_SECONDS_PER_NODE = 6.5e-7
 #: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
 #: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
@@ -208,12 +214,13 @@ def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras
 def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int = 2,
                    cameras=None, restart: int = 30, backend: str | None = None,
                    kernel: str = "auto", gradient: bool = False, phase_order="auto",
-                   **_ignored) -> CostEstimate:
+                   scheme: str = "auto", **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
     gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian);
-    phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``)."""
+    phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``);
+    scheme: the transport scheme ("auto": the solver's rule, judged from the scene)."""
     backend = backend or _backend()
     if kernel == "auto":
         from .forward.sweep._kernel import kernel_for
@@ -263,10 +270,36 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
             per_iter *= CPU_BATCHED_SLOWDOWN
     # (the GPU's programs are assumed to grow alike: not measured there)
     per_iter *= 1.0 + CPU_COST_PER_MOMENT * K
+    if _linear(scene, resolution, M, phase_order, scheme):
+        per_iter *= LINEAR_COST
+        mem["light solve"] += n * LINEAR_BYTES_PER_NODE
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
                  + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0))
     return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
+
+
+def _density_max(fog) -> float:
+    if getattr(fog, "density", None) is None:
+        return 1.0
+    import numpy as np
+
+    return float(np.max(fog.density))
+
+
+def _linear(scene, resolution: int, M: int, phase_order, scheme: str) -> bool:
+    """Whether the sweep will run the linear-source scheme (``SweepSolver.resolved_scheme``,
+    judged from the scene's density grid and domain instead of the lattice)."""
+    from types import SimpleNamespace
+
+    from .forward.sweep._solver import SweepSolver
+
+    extent = max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
+    fog = scene.fog
+    lat = SimpleNamespace(density=[_density_max(fog) if fog is not None else 0.0],
+                          h=extent / int(resolution))
+    solver = SweepSolver(M=int(M), phase_order=phase_order, scheme=scheme)
+    return solver.resolved_scheme(scene, lat) == "linear"
 
 
 def _diffusive(scene) -> bool:
@@ -277,11 +310,7 @@ def _diffusive(scene) -> bool:
     fog = scene.fog
     if fog is None:
         return False
-    dmax = 1.0
-    if getattr(fog, "density", None) is not None:
-        import numpy as np
-
-        dmax = float(np.max(fog.density))
+    dmax = _density_max(fog)
     extent = max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
     return diffusive_size(fog, dmax, extent) >= DIFFUSION_OPTICAL_SIZE
 

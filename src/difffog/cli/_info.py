@@ -97,6 +97,14 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
             warn = "  (> 0.3: accuracy suffers, raise --resolution)" if seg > 0.3 else ""
             lines.append(f"segment    max optical depth of one lattice step σ_t·h·M = "
                          f"{seg:.3g}{warn}")
+            from .._cost import _linear
+            from ..forward.sweep._solver import LINEAR_STEP_DEPTH
+
+            lin = _linear(scene, resolution, M, phase_order, "auto")
+            lines.append(
+                "transport  " + ("linear source along each lattice segment (a step is thicker "
+                                 if lin else "constant source per node (no step is thicker ")
+                + f"than {LINEAR_STEP_DEPTH:g} mean free path; --scheme overrides)")
     else:
         lines.append("fog        none")
     if scene.sun is not None:

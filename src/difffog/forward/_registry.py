@@ -73,7 +73,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  mesh=None, adjoint_rtol: float = 1e-6, terms: str = "auto",
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
-                 phase_order="auto", scheme: str = "step"):
+                 phase_order="auto", scheme: str = "auto"):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 

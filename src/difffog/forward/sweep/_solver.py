@@ -33,7 +33,7 @@ from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
 from ._implicit import CheckedSolver, fixed_point
 from ._dsa import DiffusionOperator, neighbour
-from ._harmonics import MAX_ORDER, basis, moment_coefficients
+from ._harmonics import MAX_ORDER, basis, delta_m, moment_coefficients
 from ._krylov import gmres
 from ._lightfield import LightField
 from ...scene._params import Params
@@ -66,7 +66,15 @@ PRECONDITIONERS = ("auto", "none", "diffusion")
 DIFFUSION_OPTICAL_SIZE = 5.0
 
 #: the light solve's transport schemes (``SweepSolver.scheme``)
-SCHEMES = ("step", "linear")
+SCHEMES = ("auto", "step", "linear")
+#: scheme="auto" takes the linear-source scheme where one lattice step is optically thicker
+#: than this (σ_t·h·M, the scene's values at ``prepare``: where ``ThickStepWarning`` starts).
+#: Measured (docs/validation.md): below it the two schemes agree (τ = 1 slabs within 0.1%,
+#: cloud-plane 7.4 / 1.9% against 7.3 / 1.9%); from a step depth of 1 on the step scheme's
+#: lattice diffusion h|L|/6 exceeds the true 1/(3σ_t) (τ = 16 slabs at N = 32, M = 2, a step
+#: depth of 1: T +13…+53% against +0.5…+3.2%), and issue 14's thick cube at step depths of
+#: 6 / 62 / 625 is +1.8 / +12.6 / +13.3% (step) against −1.2 / +2.7 / +1.3% (linear)
+LINEAR_STEP_DEPTH = 1.0
 
 
 class SweepGeometry(eqx.Module):
@@ -676,8 +684,8 @@ class SweepSolver(eqx.Module):
         ``prepare``), else ``DEFAULT_PHASE_ORDER``.  The cameras' single scattering of the sun
         always uses the exact phase.  Cost: about K = (L+1)² − 1 more multiply-adds per node
         and direction, and K more numbers per node in the solve's vectors.
-    scheme: the transport along a lattice segment.  "step" (default): each node's source is
-        constant over its segment.  "linear": the isotropic source varies linearly along the
+    scheme: the transport along a lattice segment.  "step": each node's source is constant
+        over its segment.  "linear": the isotropic source varies linearly along the
         segment, with the slope h∇Q from central differences of the collided source between
         fog nodes and the uncollided sun's and sky's exact slopes along their beams
         (``_source_slope``, ``_kernel._linear_node``).  The slope integrates to zero over a
@@ -685,11 +693,12 @@ class SweepSolver(eqx.Module):
         radiance leaving a segment is then Q − ∂Q/∂τ, which gives the true diffusion
         coefficient 1/(3σ_t) where "step" gives h|L|/6 (light spreads through thick fog too
         easily: slab transmittance ×5-80 at 2 mean free paths per node).  The cameras then
-        read each node's source slope too (``LatticeFields.j_slope``).  Measured
+        read each node's source slope too (``LatticeFields.j_slope``).  "auto" (default):
+        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH`` (the
+        scene's values at ``prepare``), else "step" (``resolved_scheme``).  Measured
         (docs/validation.md): equal to "step" in thin fog (τ = 1 slabs: 0.1%), far closer in
-        T at τ = 16-64, the thick cube at a step depth of 6 within 1.1% (step −2.6%), but
-        worse in R where a step spans tens of mean free paths (+14% against +3.7%);
-        cloud-plane unchanged; +19% per iteration.  Hence not the default.
+        T at τ = 16-64, issue 14's thick cube within 2.7% at step depths of 6 to 625 (step:
+        +1.8 to +13.3%); cloud-plane unchanged; +19% per iteration.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -708,7 +717,7 @@ class SweepSolver(eqx.Module):
     precondition: str = eqx.field(static=True, default="auto")
     kernel: str = eqx.field(static=True, default="auto")
     phase_order: int | str = eqx.field(static=True, default="auto")
-    scheme: str = eqx.field(static=True, default="step")
+    scheme: str = eqx.field(static=True, default="auto")
 
     def layout(self) -> tuple[int, int, int]:
         """The (faces, u, v) device mesh the sweeps run on."""
@@ -778,10 +787,25 @@ class SweepSolver(eqx.Module):
         g = 0.0 if scene is None or scene.fog is None else float(scene.fog.g or 0.0)
         return 0 if g == 0.0 else DEFAULT_PHASE_ORDER
 
+    def resolved_scheme(self, scene=None, lattice=None) -> str:
+        """The transport scheme ``scheme`` stands for in ``scene`` on ``lattice`` ("auto":
+        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH`` at the
+        scene's values, else "step")."""
+        if self.scheme != "auto":
+            return self.scheme
+        if scene is None or lattice is None or scene.fog is None:
+            return "step"
+        f = float(delta_m(float(scene.fog.g or 0.0), self.resolved_phase_order(scene))[0])
+        ext = scene.fog.scattering * (1.0 - f) + scene.fog.absorption
+        dens = np.asarray(lattice.density)
+        depth = ext * float(dens.max(initial=0.0)) * lattice.h * self.M  # σ_t·h·M, as the warning
+        thick = depth > LINEAR_STEP_DEPTH
+        return "linear" if thick else "step"
+
     def prepare(self, scene, lattice) -> SweepGeometry:
         """The static structure of ``scene`` on ``lattice`` (host, once)."""
         return prepare_sweep(scene, lattice, self.M, self.terms, self.resolved_phase_order(scene),
-                             linear=self.scheme == "linear")
+                             linear=self.resolved_scheme(scene, lattice) == "linear")
 
     def problem(self, geom: SweepGeometry, params: Params) -> _Problem:
         dt = params.scattering.dtype
