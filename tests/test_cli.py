@@ -78,6 +78,8 @@ def test_render_writes_images_and_report(tmp_path, capsys):
     assert rep["settings"]["solver_options"]["kernel"] in ("loop", "batched")
 
 
+@pytest.mark.slow  # 20-27 s of two subprocess renders (the suite's 12-minute budget); the
+# cache's switch is checked by test_import_turns_the_cache_on_unless_told_not_to
 def test_a_second_render_loads_its_programs_from_the_cache(tmp_path):
     """The command line keeps compiled programs in DIFFFOG_CACHE_DIR: a second identical render
     in a new process compiles nothing new (every program a cache hit)."""

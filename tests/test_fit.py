@@ -152,6 +152,8 @@ def test_fit_jacobian_matches_finite_differences_for_every_unknown_kind(x64):
 
 
 # ------------------------------------------------------------------ sweep fits
+@pytest.mark.slow  # 75-88 s (the suite's 12-minute budget): the default suite recovers the
+# same unknowns from noisy images (test_noisy_fit_standard_errors_cover_the_truth)
 def test_fit_recovers_parameters_of_its_own_images(small_forward, small_targets):
     """The inverse crime (targets from the very same model): a check of the machinery, exact
     up to float32 and the light solve's tolerance."""
@@ -173,7 +175,7 @@ def test_fit_recovers_parameters_of_its_own_images(small_forward, small_targets)
 
 
 # slow, both (the suite's 12-minute budget; both passed when last run): the default suite's
-# fits start 2-3x from the truth in test_fit_recovers_parameters_of_its_own_images
+# fit starts 2-3x from the truth in test_noisy_fit_standard_errors_cover_the_truth
 @pytest.mark.parametrize("factor", [pytest.param(0.2, marks=pytest.mark.slow),
                                     pytest.param(5.0, marks=pytest.mark.slow)])
 def test_fit_converges_from_far_starts_or_says_it_did_not(small_forward, small_targets, factor):
@@ -189,11 +191,14 @@ def test_fit_converges_from_far_starts_or_says_it_did_not(small_forward, small_t
 
 
 def test_noisy_fit_standard_errors_cover_the_truth(small_forward, small_targets):
-    """5% Gaussian noise on the model's own images: the truth lies within 3 stated standard
-    errors of every estimate, and the standard errors are not vacuous."""
+    """5% Gaussian noise on the model's own images, a start 2-3× from the truth: the truth lies
+    within 3 stated standard errors of every estimate, and the standard errors are not
+    vacuous."""
     rng = np.random.default_rng(7)
     noisy = {k: v + rng.normal(0, 0.05 * v.mean(), v.shape) for k, v in small_targets.items()}
-    res = df.fit(_small_scene(), noisy, dict(TRUTH), forward=small_forward)
+    res = df.fit(_small_scene(), noisy,
+                 {"fog.scattering": 1.0, "fog.absorption": 1.0, "shape.walls.albedo": 0.5},
+                 forward=small_forward)
     assert res.converged
     for p, v in TRUTH.items():
         se = res.stderr[p]
