@@ -64,24 +64,26 @@ def test_sun_single_scattering_towards_the_sun(x64):
     assert out == pytest.approx(expected, rel=1e-9)
 
 
-def _box_scene(density=None):
+def _box_scene(density=None, azimuth=30.0):
     return df.Scene(title="box", domain=df.Domain((0, 0, 0), (1.0, 0.8, 0.6)),
                     fog=df.Fog(scattering=1.0, absorption=0.0, density=density),
-                    sun=df.Sun(1.0, 40.0, 30.0))
+                    sun=df.Sun(1.0, 40.0, azimuth))
 
 
-def test_sun_path_uniform_fog_is_the_distance_to_the_box():
+@pytest.mark.parametrize("azimuth", [30.0, 200.0])  # towards +x +y, and −x −y
+def test_sun_path_uniform_fog_is_the_distance_to_the_box(azimuth):
     """Uniform fog: the path towards the sun from every node is its distance to the fog box's
     face along the sun (exact, also continued outside the box: 0 where the sun enters)."""
-    scene = _box_scene()
+    scene = _box_scene(azimuth=azimuth)
     lat = voxelize(scene, 20, 2, margin=3)
     (lo, hi), ranges = _fog_support(scene, lat)
     np.testing.assert_allclose(lo, (0, 0, 0))
     np.testing.assert_allclose(hi, (1.0, 0.8, 0.6))
     path = _sun_path(scene, lat, (lo, hi), ranges)
     s = np.asarray(scene.sun.direction)
-    # a point on the box's top face, and one on its far side (x = 1)
-    for p in ([0.5, 0.4, 0.6], [1.0, 0.4, 0.3]):
+    assert np.sign(s[0]) == (1 if azimuth < 90 else -1)
+    # a point on the box's top face, and one on its side towards the sun
+    for p in ([0.5, 0.4, 0.6], [1.0 if s[0] > 0 else 0.0, 0.4, 0.3]):
         u = (np.asarray(p) - lat.origin) / lat.h - 0.5
         i0 = np.floor(u).astype(int)
         f = u - i0

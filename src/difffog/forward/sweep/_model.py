@@ -95,7 +95,7 @@ def _sun_path(scene: Scene, lattice, fog_box, ranges) -> np.ndarray:
         for a in axes:
             if s[a] != 0:
                 face = fog_box[1][a] if s[a] > 0 else fog_box[0][a]
-                path = np.minimum(path, np.maximum(face - P[a], 0.0) / s[a])
+                path = np.minimum(path, np.maximum((face - P[a]) / s[a], 0.0))
         path = np.where(np.isfinite(path), path, NO_SUN_PATH)  # no face towards the sun
     else:
         path = np.asarray(sun_path(jnp.asarray(lattice.fog_density, jnp.float32), s, lattice.h,
