@@ -25,10 +25,14 @@ def pytest_configure(config):
 
 
 def pytest_collection_finish(session):
-    # the notebooks' small-size runs start now, in the background (notebook_runs.py)
+    # the notebooks' small-size runs start now, in the background (notebook_runs.py), to use
+    # the core the other tests leave idle — unless the suite runs on several pytest-xdist
+    # workers (its default, pyproject.toml), which use both cores already: then the worker
+    # that gets test_notebooks.py runs them when it gets there (notebook_runs.results)
     # (a kernel whose pytest dies exits too: ipykernel polls its parent)
     names = notebook_runs.small_run_names(session.items)
-    if names and not session.config.option.collectonly:
+    worker = hasattr(session.config, "workerinput")
+    if names and not session.config.option.collectonly and not worker:
         notebook_runs.start(names)
 
 
