@@ -30,7 +30,8 @@ from difffog.study._semi_infinite import semi_infinite_value, thick_cube
 
 
 def run(N: int, scheme: str, zeta: float) -> dict:
-    m = df.forward_model(thick_cube(zeta), "sweep", accuracy=None, resolution=N, M=2,
+    scene = thick_cube(zeta)
+    m = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=2,
                          tol=1e-4, max_iterations=2000, supersample=1, scheme=scheme)
     t = time.perf_counter()
     with warnings.catch_warnings():
@@ -38,7 +39,7 @@ def run(N: int, scheme: str, zeta: float) -> dict:
         out = df.render(m, throw=False)
     wall = time.perf_counter() - t
     v = float(out.images["top"].mean())
-    depth = m.lattice.max_segment_optical_depth(zeta, 0.001)
+    depth = m.lattice.max_segment_optical_depth(scene.fog.scattering, scene.fog.absorption)
     return {"N": N, "scheme": scheme, "ran": out.settings["solver_options"]["scheme"],
             "zeta": zeta, "step_depth": round(depth, 1), "mean": round(v, 4),
             "error_pct": round(100 * (v / semi_infinite_value() - 1), 1),

@@ -460,6 +460,17 @@ def _march_step(carry, ta, tb, a, b):
     return T, L, alive & ~cross, t_hit
 
 
+def _e1_and_slope(x):
+    """(e^(−x), e1 = (1 − e^(−x))/x, de1/dx), each with a series below |x| = 1e-3 (the values
+    ``one_minus_exp_over`` gives, and the slope the adjoint needs)."""
+    small = jnp.abs(x) < 1e-3
+    xs = jnp.where(small, 1.0, x)
+    E = jnp.exp(-x)
+    e1 = jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0 - x * x * x / 24.0, -jnp.expm1(-xs) / xs)
+    de1 = jnp.where(small, -0.5 + x / 3.0 - x * x / 8.0, (E - e1) / xs)
+    return E, e1, de1
+
+
 def _march_step_vjp(T, alive, ta, tb, a, b, lam_T, g_L, lam_hit):
     """Adjoint of ``_march_step`` (L enters linearly: its cotangent g_L is the same at every
     step).  Given the cotangents (lam_T, g_L, lam_hit) of (T, L, t_hit) after the step, returns
@@ -476,12 +487,7 @@ def _march_step_vjp(T, alive, ta, tb, a, b, lam_T, g_L, lam_hit):
     dse = f * ds
     s_t = sig_a + 0.5 * f * (sig_b - sig_a)
     s_j = src_a + 0.5 * f * (src_b - src_a)
-    x = s_t * dse
-    small = jnp.abs(x) < 1e-3
-    xs = jnp.where(small, 1.0, x)
-    E = jnp.exp(-x)
-    e1 = jnp.where(small, 1.0 - x / 2.0 + x * x / 6.0 - x * x * x / 24.0, -jnp.expm1(-xs) / xs)
-    de1 = jnp.where(small, -0.5 + x / 3.0 - x * x / 8.0, (E - e1) / xs)  # d e1 / dx
+    E, e1, de1 = _e1_and_slope(s_t * dse)
     phi = dse * e1
     q = g_L * T
     lte = lam_T * T * E
@@ -494,12 +500,7 @@ def _march_step_vjp(T, alive, ta, tb, a, b, lam_T, g_L, lam_hit):
         # I = ds'·A·e1(|y|), A = e^(−u_a − min(y, 0)), y = s_t·ds' + f·(u_b − u_a)
         du = u_b - u_a
         y = s_t * dse + f * du
-        ay = jnp.abs(y)
-        small_y = ay < 1e-3
-        ays = jnp.where(small_y, 1.0, ay)
-        ey = jnp.where(small_y, 1.0 - ay / 2.0 + ay * ay / 6.0 - ay * ay * ay / 24.0,
-                       -jnp.expm1(-ays) / ays)
-        dey = jnp.where(small_y, -0.5 + ay / 3.0 - ay * ay / 8.0, (jnp.exp(-ay) - ey) / ays)
+        _, ey, dey = _e1_and_slope(jnp.abs(y))
         expo = -u_a - jnp.minimum(y, 0.0)
         free = expo <= 0.0  # the exponent is not held at 0 (``_sun_integral``)
         A = jnp.exp(jnp.minimum(expo, 0.0))

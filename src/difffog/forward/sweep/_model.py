@@ -22,15 +22,11 @@ from ...scene._description import Camera, Scene
 from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
-from ._harmonics import delta_m, moment_coefficients
+from ._harmonics import moment_coefficients
 from ._march import LatticeFields, RayHits, camera_hits, render_camera
-from ._solver import SweepGeometry, SweepSolver, check_point_sun
-from ._uncollided import sun_path, sun_transmittance
+from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
+from ._uncollided import NO_SUN_PATH, sun_path, sun_transmittance
 from ._terms import check_terms
-
-#: the sun's path where no face of the fog's box lies towards it (a sun on the horizon of a
-#: periodic domain): large, so that e^(−σ·path) is 0, and finite, so that differences are 0
-NO_SUN_PATH = 1e20
 
 #: step optical depth σ_t·h·M above which render and fit warn (ThickStepWarning): measured on
 #: slabs (docs/validation.md), a step depth of 1 keeps R within 1.5% at albedo ≥ 0.99 and 4.3%
@@ -88,8 +84,8 @@ def _sun_path(scene: Scene, lattice, fog_box, ranges) -> np.ndarray:
     (trapezoids, resampled sheet by sheet)."""
     s = np.asarray(scene.sun.direction, float)
     if scene.fog.density is None:  # uniform (density 1 in the box): t of the box's exit
-        P = np.meshgrid(*[lattice.origin[a] + (np.clip(np.arange(n), *r) + 0.5) * lattice.h
-                          for a, (n, r) in enumerate(zip(lattice.shape, ranges))], indexing="ij")
+        inside = [np.clip(np.arange(n), *r) for n, r in zip(lattice.shape, ranges)]
+        P = np.moveaxis(lattice.node_positions()[np.ix_(*inside)], -1, 0)  # at clamped nodes
         path = np.full(lattice.shape, np.inf)
         axes = (2,) if lattice.boundary == "periodic-xy" else (0, 1, 2)
         for a in axes:
@@ -206,11 +202,13 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     zeta_r = params.scattering * (1.0 - f)
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
+    # the sun's beam loses what scatters out of it: δ-scaled as the light solve's first
+    # collision is (order 0), else the true extinction
+    sun_extinction = (zeta_r if order == 0 else params.scattering) + params.absorption
     sun_depth = None
     if cam.sun_path is not None:  # the march attenuates the sun itself, along its own profile
-        kappa = (zeta_r if order == 0 else params.scattering) + params.absorption
         j_sun = params.scattering * dens * params.sun_irradiance * cam.sun_vis.astype(dt)
-        sun_depth = kappa * cam.sun_path.astype(dt)
+        sun_depth = sun_extinction * cam.sun_path.astype(dt)
     else:
         j_sun = params.scattering * dens * ext(light.sun_fluence, cam.near_fluid)
     j_slope = None
@@ -250,7 +248,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         albedo=params.albedo,
         emission=params.emission,
         sun_irradiance=params.sun_irradiance,
-        sun_extinction=(zeta_r if order == 0 else params.scattering) + params.absorption,
+        sun_extinction=sun_extinction,
         j_aniso=j_aniso,
         harmonics=None if order == 0 else (order, cam.M),
         j_slope=j_slope,
@@ -333,13 +331,12 @@ class SweepModel(AbstractForwardModel):
 
     def step_warning(self, params: Params) -> str | None:
         """Warn above a step optical depth σ_t·h·M of 1 (``THICK_STEP``)."""
+        lat = self.lattice
         try:
-            f = delta_m(float(params.g), self.geometry.order)[0]
-            ext = float(params.scattering) * (1.0 - f) + float(params.absorption)
+            depth = step_depth(params.scattering, params.absorption, params.g,
+                               self.geometry.order, lat.density, lat.h, lat.M)
         except (TypeError, jax.errors.ConcretizationTypeError):  # traced or batched: no check
             return None
-        lat = self.lattice
-        depth = lat.max_segment_optical_depth(ext, 0.0)
         if depth <= THICK_STEP:
             return None
         need = math.ceil(self.resolution * depth / THICK_STEP)

@@ -262,6 +262,15 @@ def _optical_size(scene, lattice, solid) -> float:
     return diffusive_size(scene.fog, dmax, max(lattice.shape) * lattice.h)
 
 
+def step_depth(scattering, absorption, g, order: int, density, h: float, M: int) -> float:
+    """σ_t·h·M of one lattice step through the densest node of ``density``, σ_t = ζ(1 − f) + γ
+    δ-scaled at ``order`` (f = g for order 0): what ``ThickStepWarning`` and scheme="auto"
+    judge.  The values must be concrete (``float`` raises on traced ones)."""
+    f = float(delta_m(float(g), order)[0])
+    ext = float(scattering) * (1.0 - f) + float(absorption)
+    return ext * float(np.asarray(density).max(initial=0.0)) * h * M
+
+
 def diffusive_size(fog, density_max: float, extent: float) -> float:
     """How many mean free paths light diffuses through in ``fog`` (its values as given): the
     lesser of σ_t (at ``density_max``) × ``extent`` and the diffusion length 1/√(3(1 − a)) in
@@ -795,12 +804,10 @@ class SweepSolver(eqx.Module):
             return self.scheme
         if scene is None or lattice is None or scene.fog is None:
             return "step"
-        f = float(delta_m(float(scene.fog.g or 0.0), self.resolved_phase_order(scene))[0])
-        ext = scene.fog.scattering * (1.0 - f) + scene.fog.absorption
-        dens = np.asarray(lattice.density)
-        depth = ext * float(dens.max(initial=0.0)) * lattice.h * self.M  # σ_t·h·M, as the warning
-        thick = depth > LINEAR_STEP_DEPTH
-        return "linear" if thick else "step"
+        fog = scene.fog
+        depth = step_depth(fog.scattering, fog.absorption, fog.g or 0.0,
+                           self.resolved_phase_order(scene), lattice.density, lattice.h, self.M)
+        return "linear" if depth > LINEAR_STEP_DEPTH else "step"
 
     def prepare(self, scene, lattice) -> SweepGeometry:
         """The static structure of ``scene`` on ``lattice`` (host, once)."""

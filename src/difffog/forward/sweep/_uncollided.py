@@ -29,6 +29,11 @@ def sun_sweep_axis(sun_dir: np.ndarray, periodic_xy: bool) -> tuple[int, int]:
     return a, (-1 if sun_dir[a] > 0 else 1)
 
 
+#: the sun's path (``sun_path``) where no beam reaches (a sun on the horizon of a periodic
+#: domain, no face of the fog's box towards the sun): large, so that e^(−σ·path) is 0, and
+#: finite, so that differences between nodes are 0 and σ = 0 gives no 0·∞
+NO_SUN_PATH = 1e20
+
 #: a quantity changing linearly by Δ across a segment has first moment Δ/12 over it
 _MOMENT_TO_CHANGE = 12.0
 
@@ -78,7 +83,7 @@ def sun_path(density, sun_dir, h, periodic_xy):
     sun_dir = np.asarray(sun_dir, dtype=np.float64)
     frame = _beam_frame(sun_dir, periodic_xy)
     if frame is None:
-        return jnp.full_like(density, 1e20)  # no direct sun: e^(−σ·path) = 0, finite
+        return jnp.full_like(density, NO_SUN_PATH)  # no direct sun
     perm, sign, along, resample = frame
     half = jnp.transpose(density, perm) * (h / (2.0 * along))
     if sign < 0:
