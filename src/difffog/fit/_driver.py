@@ -211,7 +211,7 @@ class _Tracker:
         """After a step: append its history entry and decide whether the fit is over."""
         self.k += 1
         aux = getattr(state, "aux", None)
-        loss, light = (aux if isinstance(aux, tuple) else (np.nan, RESULTS.successful))
+        loss, light = (aux[:2] if isinstance(aux, tuple) else (np.nan, RESULTS.successful))
         entry = {"step": self.k, "values": self.setup.values(u), "loss": float(loss),
                  "accepted_steps": (int(state.num_accepted_steps)
                                     if hasattr(state, "num_accepted_steps") else None),

@@ -119,7 +119,8 @@ def _model_cj(problem: FitProblem, model, u, base: Params):
 
 
 def residual(problem: FitProblem, u, args):
-    """(weighted, normalised, robustly rescaled residuals (P,), light result code).
+    """(weighted, normalised, robustly rescaled residuals (P,), light result code, the model's
+    images (P,) behind them).
 
     args = (model, (target, sqrt_w, scale, loss_scale, base)): the images flattened over the
     cameras, the weights' square roots, the target's RMS, the robust loss's threshold and the
@@ -129,7 +130,7 @@ def residual(problem: FitProblem, u, args):
     r = sw * (y - target) / scale
     if problem.loss != "linear":
         r = r * robust_factor((r / c) ** 2, problem.loss)
-    return r, code
+    return r, code, y
 
 
 def residual_and_jacobian(problem: FitProblem, u, args):

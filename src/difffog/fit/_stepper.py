@@ -32,8 +32,9 @@ def make_optimizer(optimizer, rtol: float, atol: float):
 class Stepper:
     """init / step / terminate of ``optimizer`` on ``problem``, each compiled once.
 
-    The residual function returns aux = (loss, light result code) so that the driver sees,
-    at every accepted point, whether the light solve behind it converged.  ``args`` is
+    The residual function returns aux = (loss, light result code, images) so that the driver
+    sees, at every accepted point, whether the light solve behind it converged, and has the
+    images there without another (separately compiled) light solve.  ``args`` is
     (model, data): the forward model and the per-fit data (:func:`residual`).
     """
 
@@ -44,9 +45,9 @@ class Stepper:
         self.options = {} if self.minimise else {"jac": "fwd"}
 
         def fn(u, args):
-            r, code = residual(problem, u, args)
+            r, code, y = residual(problem, u, args)
             loss = 0.5 * jnp.sum(r * r)
-            return (loss, (loss, code)) if self.minimise else (r, (loss, code))
+            return (loss, (loss, code, y)) if self.minimise else (r, (loss, code, y))
 
         self.fn = fn
         self._static = None
@@ -87,12 +88,15 @@ class Stepper:
 
     def final(self, u, state, args):
         """Residual, Jacobian, images and light result code at the final u.  A least-squares
-        solver's state holds the residual and the (linearised) Jacobian at u already: reuse
-        them, so only the images' forward pass is computed again (BFGS: everything)."""
+        solver's state holds the residual, the (linearised) Jacobian and (in its aux) the
+        images and the result code at u already: reuse them, so nothing is solved or
+        compiled again (BFGS: everything)."""
         info = getattr(state, "f_info", None)
-        if isinstance(info, optx.FunctionInfo.ResidualJac):
+        aux = getattr(state, "aux", None)
+        if isinstance(info, optx.FunctionInfo.ResidualJac) and isinstance(aux, tuple) \
+                and len(aux) == 3:
             r, J = self._from_state(info)
-            y, code = self.images(u, args)
+            _, code, y = aux
             return r, J, y, code
         return self._rj(u, args)
 
