@@ -313,6 +313,8 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
      "--model-error finer: use refine, none or a finer resolution"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",
       "fog.scattering=3,9"], "outside"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--edge-weight", "2"],
+     "edge_weight must be a number in [0, 1]"),
     # FIT_SMALL gives -M, a setting the splat does not take
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--solver", "splat"],
      "--directions does not apply to --solver splat"),
@@ -337,8 +339,8 @@ def test_fit_parser_takes_the_solver_and_the_optimizer():
 
     args = build_parser().parse_args(["fit", *FIT_SMALL, "--solver", "sweep",
                                       "--optimizer", "gauss-newton"])
-    assert (args.solver, args.optimizer, args.accuracy, args.devices) == (
-        "sweep", "gauss-newton", None, None)
+    assert (args.solver, args.optimizer, args.accuracy, args.devices, args.edge_weight) == (
+        "sweep", "gauss-newton", None, None, 1.0)
     assert model_settings(args, args.solver, accuracy=args.accuracy) == {"resolution": 12,
                                                                         "M": 2}
     args = build_parser().parse_args(["fit", "--solver", "splat", "--optimizer", "bfgs", "-N",

@@ -305,6 +305,36 @@ def test_weights_mask_out_bad_pixels():
         assert res.estimates[p] == pytest.approx(v, rel=1e-4)
 
 
+def test_edge_weight_leaves_out_the_pixels_that_straddle_an_edge(small_forward, small_targets):
+    """edge_weight=0: pixels the model's exact geometry says straddle an edge (a silhouette, a
+    rim, a shadow's edge) do not count, so corrupting exactly those pixels leaves the estimate
+    at the truth; fit.json's settings say which share of each view was down-weighted."""
+    edges = small_forward.edge_pixels()
+    assert set(edges) == set(small_targets)
+    for n, e in edges.items():
+        assert e.shape == small_targets[n].shape and 0.02 < e.mean() < 0.6, (n, e.mean())
+    bad = {n: np.where(edges[n], 1.5 * t + 0.1, t) for n, t in small_targets.items()}
+    start = {p: 1.1 * v for p, v in TRUTH.items()}
+    res = df.fit(_small_scene(), bad, start, forward=small_forward, edge_weight=0.0)
+    assert res.converged, res.message
+    for p, v in TRUTH.items():
+        assert res.estimates[p] == pytest.approx(v, rel=2e-3), p
+    assert res.settings["edge_weight"] == 0.0
+    assert res.settings["edge_pixels"] == {n: pytest.approx(float(e.mean()), abs=1e-4)
+                                           for n, e in edges.items()}
+
+
+def test_edge_weight_without_known_edges_warns_and_changes_nothing():
+    toy = Toy(shape=(16, 16))
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3}
+    tgt = _toy_target(toy, **truth)
+    start = {"fog.scattering": 1.0, "fog.absorption": 0.5}
+    plain = df.fit(toy.scene, tgt, start, forward=toy)
+    with pytest.warns(UserWarning, match="does not know which pixels straddle an edge"):
+        res = df.fit(toy.scene, tgt, start, forward=toy, edge_weight=0.5)
+    assert res.estimates == plain.estimates and res.settings["edge_pixels"] is None
+
+
 def test_unidentifiable_unknowns_warn_and_report_the_correlation():
     """ζ and the sun's irradiance enter the toy image only as their product."""
     toy = Toy()
@@ -412,6 +442,8 @@ def test_resume_without_a_checkpoint_is_an_error(tmp_path):
     ({"top": np.ones((8, 10))}, ["fog.scattering"], {"loss": "l1"}, "loss 'l1'"),
     ({"top": np.ones((8, 10))}, ["fog.scattering"], {"weights": {"top": np.zeros((8, 10))}},
      "zero weight"),
+    ({"top": np.ones((8, 10))}, ["fog.scattering"], {"edge_weight": 1.5}, r"edge_weight.*\[0, 1\]"),
+    ({"top": np.ones((8, 10))}, ["fog.scattering"], {"edge_weight": "half"}, "edge_weight"),
 ])
 def test_bad_input_gets_one_line_errors(targets, unknowns, kw, match):
     toy = Toy()

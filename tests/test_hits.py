@@ -90,26 +90,29 @@ def _top_camera(x0, x1, width):
                      resolution=(width, 1), extent=(span, span / width))
 
 
-def test_an_edge_pixel_mixes_its_two_surfaces_by_their_coverage():
-    # an emitting quad (radiance 1) whose edge x = 0.5 + 0.3·(pixel width) lies inside a pixel,
-    # over black: the pixel's value is the quad's share of its footprint
+def _quad_edge_scene():
+    """An emitting quad (radiance 1) whose edge x = 0.5 + 0.3·(pixel width) lies inside the
+    third of four pixels, over black."""
     px = 0.05
     edge = 0.5 + 0.3 * px
     quad = df.Quad("q", corners=((edge, 0.0, 0.3), (1.0, 0.0, 0.3), (1.0, 1.0, 0.3),
                                  (edge, 1.0, 0.3)), albedo=0.0, emission=1.0)
-    scene = _scene([quad], cameras=(_top_camera(0.5 - 2 * px, 0.5 + 2 * px, 4),))
+    return _scene([quad], cameras=(_top_camera(0.5 - 2 * px, 0.5 + 2 * px, 4),))
+
+
+def test_an_edge_pixel_mixes_its_two_surfaces_by_their_coverage():
+    # the quad's edge pixel's value is the quad's share of its footprint
+    scene = _quad_edge_scene()
     img = df.render(df.forward_model(scene, "sweep", resolution=16, M=2)).images["top"][0]
     np.testing.assert_allclose(img, [0.0, 0.0, 0.7, 1.0], atol=1.0 / 32)
     # with 2×2 samples per pixel and nothing else, this pixel would read 0.5
     assert abs(img[2] - 0.7) < 0.05
 
 
-def test_a_shadow_edge_and_the_sun_through_absorbing_fog_are_exact():
-    # a black box above purely absorbing fog (γ = 2, 0.4 deep) over a grey floor, no sky, the
-    # sun in the xz-plane: the lit floor's radiance is exactly albedo/π·F·cos θ·e^(-γ·0.4/cos θ)
-    # seen through e^(-γ·0.4) (Beer–Lambert on both paths, nothing else lights it), the box's
-    # shadow is black, and the pixel the shadow's edge crosses at 0.6 of its width reads 0.6
-    zen, gamma, a, F = 30.0, 2.0, 0.5, 2.0
+def _shadow_edge_scene(zen=30.0, gamma=2.0, a=0.5, F=2.0):
+    """A black box above purely absorbing fog (γ, 0.4 deep) over a grey floor, no sky, the sun
+    in the xz-plane; five pixels in a row, the third crossed by the box's shadow edge at 0.6
+    of its width."""
     floor = df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05), (1, 1, 0.05), (0, 1, 0.05)),
                     albedo=a)
     box = df.Box("box", min=(0.55, 0.2, 0.7), max=(0.9, 0.8, 0.8), albedo=0.0)
@@ -117,8 +120,16 @@ def test_a_shadow_edge_and_the_sun_through_absorbing_fog_are_exact():
     px = 0.02
     x0 = x_edge - 2.6 * px
     fog = df.Fog(scattering=0.0, absorption=gamma, region=((0, 0, 0.1), (1, 1, 0.5)))
-    scene = _scene([floor, box], sun=df.Sun(F, zen, 0.0), fog=fog,
-                   cameras=(_top_camera(x0, x0 + 5 * px, 5),))
+    return _scene([floor, box], sun=df.Sun(F, zen, 0.0), fog=fog,
+                  cameras=(_top_camera(x0, x0 + 5 * px, 5),))
+
+
+def test_a_shadow_edge_and_the_sun_through_absorbing_fog_are_exact():
+    # the lit floor's radiance is exactly albedo/π·F·cos θ·e^(-γ·0.4/cos θ) seen through
+    # e^(-γ·0.4) (Beer–Lambert on both paths, nothing else lights it), the box's shadow is
+    # black, and the pixel the shadow's edge crosses at 0.6 of its width reads 0.6
+    zen, gamma, a, F = 30.0, 2.0, 0.5, 2.0
+    scene = _shadow_edge_scene(zen, gamma, a, F)
     img = df.render(df.forward_model(scene, "sweep", resolution=20, M=2)).images["top"][0]
     mu = math.cos(math.radians(zen))
     lit = a / math.pi * F * mu * math.exp(-gamma * 0.4 / mu) * math.exp(-gamma * 0.4)
@@ -126,6 +137,33 @@ def test_a_shadow_edge_and_the_sun_through_absorbing_fog_are_exact():
     # density (towards the sun and along the camera's march): a few 1e-3 here
     np.testing.assert_allclose(img[:2], lit, rtol=5e-3)
     np.testing.assert_allclose(img / lit, [1.0, 1.0, 0.6, 0.0, 0.0], atol=1.0 / 32)
+
+
+def test_edge_pixels_are_the_pixels_a_silhouette_or_a_shadow_edge_crosses():
+    # (host only: the model's exact hits, no light solve) the quad's edge and the box's shadow
+    # edge each cross one pixel of their row
+    for scene, want in ((_quad_edge_scene(), [0, 0, 1, 0]),
+                        (_shadow_edge_scene(), [0, 0, 1, 0, 0])):
+        edges = df.forward_model(scene, "sweep", resolution=16, M=2).edge_pixels()
+        assert set(edges) == {"top"}
+        np.testing.assert_array_equal(edges["top"][0], np.array(want, bool))
+
+
+def test_a_curved_surface_is_no_edge_only_its_silhouette_is():
+    # a ball seen from above on a 24×24 view, no sun: a pixel is an edge pixel only where the
+    # ball's outline crosses its footprint (not where its normal turns within the pixel), and
+    # every pixel the ball covers 10-90% of is one (a sliver can escape the pixel's samples)
+    r, n, k = 0.3, 24, 32
+    cam = df.Camera("top", "orthographic", position=(0.5, 0.5, 1.5), look_at=(0.5, 0.5, 0.0),
+                    up=(0.0, 1.0, 0.0), resolution=(n, n), extent=(1.0, 1.0))
+    scene = _scene([df.Sphere("s", center=(0.5, 0.5, 0.5), radius=r)], cameras=(cam,))
+    edges = df.forward_model(scene, "sweep", resolution=12, M=1).edge_pixels()["top"]
+    c = (np.arange(n * k) + 0.5) / (n * k)  # k×k points per pixel (symmetric: rows' order
+    inside = np.hypot(*np.meshgrid(c - 0.5, c - 0.5)) < r  # does not matter)
+    cover = inside.reshape(n, k, n, k).mean(axis=(1, 3))
+    crossed = (cover > 0) & (cover < 1)
+    assert edges.sum() > 20 and not (edges & ~crossed).any()
+    assert edges[(cover > 0.1) & (cover < 0.9)].all()
 
 
 @pytest.mark.slow  # compiles the float64 light solve and its adjoint (~40 s); the march with

@@ -62,6 +62,10 @@ def add_parser(sub) -> None:
     p.add_argument("--mask", action="append", metavar="CAMERA=FILE",
                    help="a target's mask: .npy weights >= 0, or an image file used where its "
                         "alpha (else any channel) is nonzero, e.g. the photo itself")
+    p.add_argument("--edge-weight", type=float, default=1.0, metavar="W",
+                   help="weight (0 to 1) of the pixels that straddle a geometric or a shadow "
+                        "edge, known from the exact geometry (default 1: as any pixel; 0: left "
+                        "out); fit.json records the share of each view it applies to")
     p.add_argument("--solver", default="sweep", choices=list(SOLVERS),
                    help="forward model (default sweep); " + solver_help())
     p.add_argument("--optimizer", default="lm", choices=list(OPTIMIZERS),
@@ -230,6 +234,7 @@ def run(args) -> int:
                      weights=weights or None, loss=args.loss, max_steps=args.max_steps,
                      channel=args.channel, transfer=args.transfer, checkpoint=ckpt,
                      resume=args.resume, progress=progress, ladder=_ladder(args.ladder),
+                     edge_weight=args.edge_weight,
                      model_error=(None if args.ladder != "none"
                                   else _model_error(args.model_error)))
     for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)

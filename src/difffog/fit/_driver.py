@@ -132,7 +132,7 @@ def _exposure_starts(stepper, args, coords, inits, names, tgt, wts, dtype) -> li
 
 def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, downsample,
            model_settings, weights, loss, loss_scale, rtol, atol, max_steps, stall_steps,
-           dtype, channel, transfer) -> _Setup:
+           dtype, channel, transfer, edge_weight=1.0) -> _Setup:
     unknowns = as_unknowns(unknowns)
     if loss not in LOSSES:
         raise DifffogError(f"loss '{loss}': choose one of {', '.join(LOSSES)}")
@@ -145,6 +145,10 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
         raise DifffogError(f"stall_steps must be an integer >= 0, got {stall_steps!r}")
     if not loss_scale > 0:
         raise DifffogError(f"loss_scale must be positive, got {loss_scale}")
+    if isinstance(edge_weight, bool) or not isinstance(edge_weight, (int, float, np.number)) \
+            or not 0.0 <= edge_weight <= 1.0:
+        raise DifffogError(f"edge_weight must be a number in [0, 1] (1: edge pixels count as "
+                           f"any other, 0: left out), got {edge_weight!r}")
     opt = make_optimizer(optimizer, rtol, atol)
     if not isinstance(targets, Mapping) or not targets:
         raise DifffogError("targets: give a dict {camera name: (H, W) image}, at least one")
@@ -156,6 +160,7 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
     model = make_model(scene, forward, cameras=names, downsample=downsample,
                        resolution=resolution, model_settings=model_settings)
     tgt, wts = prepare_targets(scene, model, targets, weights, downsample, files=target_files)
+    edge_share = _weigh_edges(model, names, wts, float(edge_weight))
     dtype = dtype or jnp.result_type(float)
     base = model.params(dtype)
     coords, given = coordinates(model.scene, base, unknowns)
@@ -174,7 +179,8 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
         "optimizer": optimizer if isinstance(optimizer, str) else type(optimizer).__name__,
         "model": {k: v for k, v in model.settings().items()
                   if k in ("solver", "solver_options", "resolution", "supersample")},
-        "downsample": downsample, "loss": loss, "loss_scale": loss_scale, "rtol": rtol,
+        "downsample": downsample, "edge_weight": float(edge_weight),
+        "edge_pixels": edge_share, "loss": loss, "loss_scale": loss_scale, "rtol": rtol,
         "atol": atol, "max_steps": max_steps, "stall_steps": stall_steps,
         "dtype": str(np.dtype(dtype)), "cameras": names,
         "image_shapes": {n: list(tgt[n].shape) for n in names},
@@ -193,6 +199,26 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
         init=given, t=_checkpoint.digest(flat_t), w=_checkpoint.digest(flat_w))
     return _Setup(model, names, tgt, flat_t, m, data, u0, coords, inits, stepper, settings, fp,
                   target_files, mask_files)
+
+
+def _weigh_edges(model, names, wts, edge_weight: float) -> dict[str, float] | None:
+    """Multiply the weight of each pixel that straddles a geometric or a shadow edge (the
+    model's ``edge_pixels``, from the exact geometry) by ``edge_weight``, in place; the share
+    of each camera's pixels that do ({camera: fraction}), or None where the model does not know
+    its edges (then nothing changes, and edge_weight < 1 says so in a warning)."""
+    edges = model.edge_pixels()
+    if edges is None:
+        if edge_weight < 1.0:
+            warnings.warn(f"edge_weight={edge_weight:g}: this forward model "
+                          f"({type(model).__name__}) does not know which pixels straddle an "
+                          f"edge; every pixel keeps its weight", UserWarning, stacklevel=4)
+        return None
+    for n in names:
+        wts[n] = np.where(edges[n], edge_weight * wts[n], wts[n])
+    if sum(float(w.sum()) for w in wts.values()) == 0:
+        raise DifffogError("edge_weight=0 leaves no pixel with a weight: every weighted pixel "
+                           "straddles an edge; use a larger edge_weight")
+    return {n: round(float(edges[n].mean()), 4) for n in names}
 
 
 class _Tracker:
@@ -335,7 +361,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
         checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
         callback: Callable[[dict], None] | None = None,
-        ladder=None, model_error=None) -> FitResult:
+        ladder=None, model_error=None, edge_weight: float = 1.0) -> FitResult:
     """Fit the unknowns of ``scene`` to target images.
 
     targets: {camera name: (H, W) image or image file}, one or several views, at the scene
@@ -362,6 +388,11 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     weights: {camera: (H, W)} per-pixel weights ≥ 0 (a boolean mask works), or a mask file
         (a .npy of weights; an image: used where its alpha, else any channel, is nonzero); the
         residual is √w·(model − target) / RMS(target).
+    edge_weight: the weight of a pixel whose footprint straddles a geometric or a shadow edge
+        (a silhouette, a wall's rim, a shadow's edge; ``model.edge_pixels()``, from the exact
+        geometry, not from the residuals) relative to the others, multiplying ``weights``: 1
+        (default) counts them as any pixel, 0 leaves them out.  The model reproduces such a
+        pixel less well (its value depends on how much of the footprint each side covers).
     loss: "linear" (least squares) or a robust "huber", "soft_l1", "cauchy" with threshold
         ``loss_scale`` in units of the target's RMS.
     rtol, atol: optimistix' termination on the unconstrained unknowns and the residuals; the
@@ -402,7 +433,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     kw = dict(forward=forward, downsample=downsample, model_settings=model_settings,
               optimizer=optimizer, weights=weights, loss=loss, loss_scale=loss_scale, rtol=rtol,
               atol=atol, max_steps=max_steps, stall_steps=stall_steps, dtype=dtype,
-              channel=channel, transfer=transfer, progress=progress)
+              channel=channel, transfer=transfer, progress=progress, edge_weight=edge_weight)
     if len(levels) < 2:
         res = _fit_level(scene, targets, unknowns, resolution=resolution, checkpoint=checkpoint,
                          resume=resume, callback=callback, **kw)
@@ -680,4 +711,4 @@ import inspect as _inspect  # noqa: E402
 _SETUP_DEFAULTS = {k: _inspect.signature(fit).parameters[k].default
                    for k in ("optimizer", "forward", "resolution", "downsample",
                              "model_settings", "weights", "loss", "loss_scale", "dtype",
-                             "channel", "transfer")}
+                             "channel", "transfer", "edge_weight")}

@@ -101,6 +101,13 @@ class AbstractForwardModel(eqx.Module):
         optically coarse (``ThickStepWarning``), else None.  Default: none."""
         return None
 
+    def edge_pixels(self) -> dict[str, np.ndarray] | None:
+        """{camera: (H, W) bool} the pixels whose footprint straddles a geometric or a shadow
+        edge, known from the exact geometry (host, no light solve), or None where this model
+        does not know them.  A fit down-weights them (``fit(edge_weight=...)``).  Default:
+        None."""
+        return None
+
     # -- the same for every model ---------------------------------------------------------
     def params(self, dtype=None) -> Params:
         """The scene's parameters as a pytree (float32 unless x64 is on or ``dtype`` given)."""

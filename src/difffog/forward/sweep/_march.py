@@ -947,6 +947,27 @@ class _Cast:
         self.lit = self.cos_vis > 0
 
 
+def edge_pixels(hits: RayHits, height: int, width: int) -> np.ndarray:
+    """(height, width) bool: the pixels whose footprint straddles a geometric or a shadow edge,
+    from a camera's exact hits (host).  A pixel straddles one when its sample rays (the
+    supersample² stratified ones, or the 16 Hammersley points of a pixel that
+    :func:`camera_hits` re-sampled) do not all see the same shape in the same light: another
+    shape or none (a silhouette, a wall's rim against the floor behind it), or sunlit and
+    shadowed points (a shadow edge).  Such a pixel's value depends on how much of its footprint
+    each side covers, and the model reproduces it less well than a pixel on one surface (the
+    coverage of its samples, the diffuse light reconstructed on each side from the lattice).
+    A smoothly curved surface in one light is not an edge (its normal varies within a pixel,
+    which the model follows), so this is narrower than the re-sampling test."""
+    pix = np.asarray(hits.pixel)
+    key = np.asarray(hits.shape).astype(np.int64) * 2 + (np.asarray(hits.sun_cos) > 0)
+    n = int(height) * int(width)
+    lo = np.full(n, np.iinfo(np.int64).max)
+    hi = np.full(n, np.iinfo(np.int64).min)
+    np.minimum.at(lo, pix, key)
+    np.maximum.at(hi, pix, key)
+    return (lo != hi).reshape(int(height), int(width))
+
+
 def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: float,
                 shape, periodic_xy: bool = False, edge_samples: int = EDGE_SAMPLES) -> RayHits:
     """A camera's sample rays, their exact hits and the sun there (host, once).

@@ -23,7 +23,7 @@ from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
-from ._march import LatticeFields, RayHits, camera_hits, render_camera
+from ._march import LatticeFields, RayHits, camera_hits, edge_pixels, render_camera
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
 from ._uncollided import NO_SUN_PATH, sun_path, sun_transmittance
 from ._terms import check_terms
@@ -328,6 +328,14 @@ class SweepModel(AbstractForwardModel):
     def check(self, params: Params) -> None:
         if self.geometry.terms is not None:
             check_terms(self.geometry.terms, params)
+
+    def edge_pixels(self) -> dict[str, np.ndarray] | None:
+        """{camera: (H, W) bool}: pixels that straddle a geometric or a shadow edge, from the
+        cameras' exact hits (``_march.edge_pixels``); None where the cameras find their hits
+        on the lattice (a periodic-xy domain with shapes)."""
+        if self.hits is None:
+            return None
+        return {c.name: edge_pixels(h, c.height, c.width) for c, h in zip(self.cameras, self.hits)}
 
     def step_warning(self, params: Params) -> str | None:
         """Warn above a step optical depth σ_t·h·M of 1 (``THICK_STEP``)."""
