@@ -52,7 +52,13 @@ SURFACE = {"fog-balls": "walls", "translucent-cube": "ground", "cloud-plane": "g
 CAMERAS = ["top", "oblique"]
 FIELDS = ["scene", "case", "set", "N", "M", "unknown", "truth", "estimate", "rel_error_pct",
           "rel_stderr_pct", "covered_2se", "iterations", "result", "time_s", "misfit_truth_pct",
-          "residual_rms_pct", "load", "rel_model_error_pct", "rel_uncertainty_pct", "covered_3u"]
+          "residual_rms_pct", "load", "rel_model_error_pct", "rel_uncertainty_pct", "covered_3u",
+          "edge_weight"]
+
+
+def _ew(r) -> float:
+    """A row's edge weight (rows written before it was a setting: 1)."""
+    return float(r.get("edge_weight") or 1.0)
 
 
 def start_of(truth: dict) -> dict:
@@ -87,12 +93,13 @@ def misfit(fwd, scene, truth, targets, downsample) -> float:
 
 
 def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, max_steps,
-             model_error=None):
+             model_error=None, edge_weight=1.0):
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.IdentifiabilityWarning)
         res = df.fit(scene, targets, start_of(truth), forward=fwd, downsample=downsample,
-                     max_steps=max_steps, model_error=model_error, callback=lambda e: print(
+                     max_steps=max_steps, model_error=model_error, edge_weight=edge_weight,
+                     callback=lambda e: print(
                          f"    step {e['step']}: loss {e['loss']:.4g} at {e['time_s']:.0f} s",
                          flush=True))
     wall = time.perf_counter() - t
@@ -109,6 +116,7 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, 
             "truth": v, "estimate": est, "rel_error_pct": 100 * (est - v) / v,
             "rel_stderr_pct": 100 * se / v, "covered_2se": bool(abs(est - v) <= 2 * se),
             "iterations": res.iterations, "result": res.result, "time_s": round(wall, 1),
+            "edge_weight": edge_weight,
             "misfit_truth_pct": round(mis, 3),
             "residual_rms_pct": round(float(100 * res.residual_rms / mean), 3), "load": load,
         })
@@ -120,7 +128,7 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, 
 
 
 def study(scene_name, N, M, downsample, cases, rows, all_sets=True, max_steps=40,
-          refdir=None, model_error=None):
+          refdir=None, model_error=None, edge_weight=1.0):
     truth_all = json.loads((DATA / "truth.json").read_text())[scene_name]
     scene = df.load_scene(scene_name)
     fwd = C.fit_model(scene, CAMERAS, N, M, downsample)
@@ -144,7 +152,7 @@ def study(scene_name, N, M, downsample, cases, rows, all_sets=True, max_steps=40
                 targets = {c: np.load(DATA / scene_name / f"set{k}" / f"{c}{suffix}.npy")
                            for c in CAMERAS}
             run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load,
-                     max_steps, model_error)
+                     max_steps, model_error, edge_weight)
 
 
 def write(rows, out: Path, info: dict):
@@ -154,7 +162,8 @@ def write(rows, out: Path, info: dict):
     if path.exists():
         with path.open() as f:
             old = list(csv.DictReader(f))
-    key = lambda r: (r["scene"], r["case"], str(r["set"]), str(r["N"]), r["unknown"])  # noqa: E731
+    key = lambda r: (r["scene"], r["case"], str(r["set"]), str(r["N"]), _ew(r),  # noqa: E731
+                     r["unknown"])
     new_keys = {key(r) for r in rows}
     merged = [r for r in old if key(r) not in new_keys] + rows
     with path.open("w", newline="") as f:
@@ -174,10 +183,11 @@ def write(rows, out: Path, info: dict):
              "|---|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     groups = {}
     for r in merged:
-        groups.setdefault((r["scene"], r["case"], str(r["set"]), str(r["N"])), []).append(r)
+        case = r["case"] + (f" (edge weight {_ew(r):g})" if _ew(r) != 1.0 else "")
+        groups.setdefault((r["scene"], case, str(r["set"]), str(r["N"])), []).append(r)
     order = {"crime": 0, "hires": 1, "noise01": 2, "noise05": 3, "mc": 4}
     for (sc, case, k, N), rs in sorted(groups.items(), key=lambda kv: (
-            kv[0][0], int(kv[0][3]), order.get(kv[0][1], 9), kv[0][2])):
+            kv[0][0], int(kv[0][3]), order.get(kv[0][1].split()[0], 9), kv[0][1], kv[0][2])):
         cells = []
         for prefix in ("fog.scattering", "fog.absorption", "albedo"):
             r = next(x for x in rs if x["unknown"].startswith(prefix) or
@@ -224,6 +234,9 @@ def main(argv=None):
     ap.add_argument("--model-error", default=None,
                     help="fit(model_error=...): \"refine\" (or a finer resolution) adds the "
                          "model's own error to each estimate's uncertainty")
+    ap.add_argument("--edge-weight", type=float, default=1.0,
+                    help="fit(edge_weight=...): the weight of pixels that straddle a geometric "
+                         "or a shadow edge (default 1: as any pixel)")
     args = C.parse(ap, argv)
     scenes = args.scenes or (["fog-balls"] if args.quick else
                              ["fog-balls", "translucent-cube", "cloud-plane"])
@@ -237,7 +250,7 @@ def main(argv=None):
             rows = []
             me = args.model_error
             study(name, N, args.M, args.downsample, cases, rows, not args.set0_only, max_steps,
-                  args.references, int(me) if me and me.isdigit() else me)
+                  args.references, int(me) if me and me.isdigit() else me, args.edge_weight)
             write(rows, args.out, info)  # after every scene, so a killed run keeps its rows
 
 
