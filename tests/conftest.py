@@ -24,6 +24,21 @@ def pytest_configure(config):
     enable_compilation_cache(cache)
 
 
+# The test files that take longest, longest first (measured with --durations; the notebooks'
+# small runs alone take 3-4 minutes of one worker).  pytest-xdist hands each worker a whole
+# file at a time in collection order (addopts: --dist loadfile --no-loadscope-reorder); with the
+# long files first the short ones fill the gaps at the end, where alphabetical order, or
+# xdist's own by-test-count order, left one worker running the notebooks alone for minutes.
+LONGEST_FIRST = ["test_notebooks.py", "test_sweep.py", "test_interface.py", "test_fit.py",
+                 "test_extremes.py", "test_cli.py", "test_splat.py", "test_camera.py",
+                 "test_thick.py", "test_linear_scheme.py", "test_anisotropic.py"]
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable within a file
+
+
 def pytest_collection_finish(session):
     # the notebooks' small-size runs start now, in the background (notebook_runs.py), to use
     # the core the other tests leave idle — unless the suite runs on several pytest-xdist
