@@ -77,9 +77,11 @@ def test_light_at_points_is_the_light_in_the_fog(model):
 
 
 @pytest.mark.parametrize("solver", [
-    "splat",
-    # the sweep's light (test_sweep.py) and camera (test_camera.py) gradients are checked apart
-    # by default; this end-to-end check of its images compiles for ~35 s
+    # both in -m slow (the suite's 12-minute budget): the splat's image gradients are checked
+    # against finite differences by default in test_splat.py (every parameter kind), the
+    # sweep's light (test_sweep.py) and camera (test_camera.py) gradients apart; this
+    # end-to-end check compiles for ~35 s each
+    pytest.param("splat", marks=pytest.mark.slow),
     pytest.param("sweep", marks=pytest.mark.slow)])
 def test_gradient_matches_finite_differences(solver, x64):
     scene = small_scene(size=(6, 5))
