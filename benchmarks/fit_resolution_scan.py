@@ -9,8 +9,8 @@ the relative error of each estimate per N says whether it does.
 
 Measured 2026-11-27 (2-core CPU), fog-balls: ζ −1.44 / −2.40 / +4.87 / +3.47%, γ −0.88 / −1.44
 / +1.52 / +0.96%, the walls' albedo −0.25 / −0.46 / −0.34 / −0.45% at N = 24 / 28 / 32 / 36
-(N = 28 and 36 by this script; N = 24 and 32 from the recovery study's far start, the latter
-stopped on a stalled loss).
+(N = 28, 32 and 36 by this script, N = 24 from the recovery study's far start; at N = 32 the
+far start, which stopped on a stalled loss, found the same optimum: +4.87 / +1.52 / −0.34%).
 """
 
 from __future__ import annotations
