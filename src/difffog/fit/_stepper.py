@@ -92,11 +92,9 @@ class Stepper:
         images and the result code at u already: reuse them, so nothing is solved or
         compiled again (BFGS: everything)."""
         info = getattr(state, "f_info", None)
-        aux = getattr(state, "aux", None)
-        if isinstance(info, optx.FunctionInfo.ResidualJac) and isinstance(aux, tuple) \
-                and len(aux) == 3:
+        if isinstance(info, optx.FunctionInfo.ResidualJac):
             r, J = self._from_state(info)
-            _, code, y = aux
+            _, code, y = state.aux  # what self.fn returned at u
             return r, J, y, code
         return self._rj(u, args)
 
