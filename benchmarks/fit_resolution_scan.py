@@ -16,6 +16,10 @@ by seven points.  The fog the lattice carries (Σ density·h³ over its nodes) a
 0.7478 (the walls' inside less the balls): 0.784 / 0.810 / 0.696 / 0.724 / 0.748, i.e. +4.8 /
 +8.3 / −6.9 / −3.1 / 0.0%: where the nodes fall against the walls' faces decides how much fog
 there is, and the fit makes up for it in ζ (more fog, smaller ζ).
+
+(Those figures are from before the lattice carried the scene's fog volume at every N: it now
+prints 0.749-0.750 at N = 24-40, and the targets of ``data_synthetic/`` still carry the old
+lattice's +4.8% at N = 48; docs/fitting.md.)
 """
 
 from __future__ import annotations

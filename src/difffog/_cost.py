@@ -296,7 +296,7 @@ def _linear(scene, resolution: int, M: int, phase_order, scheme: str) -> bool:
 
     extent = max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
     fog = scene.fog
-    lat = SimpleNamespace(density=[_density_max(fog) if fog is not None else 0.0],
+    lat = SimpleNamespace(peak_density=_density_max(fog) if fog is not None else 0.0,
                           h=extent / int(resolution))
     solver = SweepSolver(M=int(M), phase_order=phase_order, scheme=scheme)
     return solver.resolved_scheme(scene, lat) == "linear"

@@ -36,6 +36,10 @@ class ColumnLattice:
     def shape(self):
         return self.node_type.shape
 
+    @property
+    def peak_density(self) -> float:  # no solids in a slab: the densest node (Lattice's rule)
+        return float(np.max(self.density, initial=0.0))
+
 
 def slab_problem(tau: float, albedo: float, n_fog: int, M: int, *, sky: float = 1.0,
                  sun: tuple[float, float] | None = None, g: float = 0.0):

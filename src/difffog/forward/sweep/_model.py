@@ -301,7 +301,11 @@ class SweepModel(AbstractForwardModel):
         periodic = lattice.boundary == "periodic-xy"
         exact = not (periodic and scene.shapes)
         self.camera_geometry = CameraGeometry.build(scene, lattice, exact, M)
-        self.density = jnp.asarray(lattice.density, jnp.float32)
+        # what the cameras sample: the fog's own density (0 in solids), not the cells' volume
+        # bookkeeping of ``lattice.density`` (larger beside surfaces)
+        own = lattice.density if lattice.fog_density is None else np.where(
+            lattice.node_type == SOLID, 0.0, lattice.fog_density)
+        self.density = jnp.asarray(own, jnp.float32)
         prepare_s = time.perf_counter() - t
         t = time.perf_counter()
         if exact:
@@ -342,7 +346,7 @@ class SweepModel(AbstractForwardModel):
         lat = self.lattice
         try:
             depth = step_depth(params.scattering, params.absorption, params.g,
-                               self.geometry.order, lat.density, lat.h, lat.M)
+                               self.geometry.order, lat.peak_density, lat.h, lat.M)
         except (TypeError, jax.errors.ConcretizationTypeError):  # traced or batched: no check
             return None
         if depth <= THICK_STEP:

@@ -257,9 +257,7 @@ def _optical_size(scene, lattice, solid) -> float:
     lattice's largest extent): the ``precondition="auto"`` rule."""
     if scene.fog is None:
         return 0.0
-    dens = np.where(solid, 0.0, np.asarray(lattice.density, np.float64))
-    dmax = float(dens.max()) if dens.size else 0.0
-    return diffusive_size(scene.fog, dmax, max(lattice.shape) * lattice.h)
+    return diffusive_size(scene.fog, lattice.peak_density, max(lattice.shape) * lattice.h)
 
 
 def step_depth(scattering, absorption, g, order: int, density, h: float, M: int) -> float:
@@ -806,7 +804,8 @@ class SweepSolver(eqx.Module):
             return "step"
         fog = scene.fog
         depth = step_depth(fog.scattering, fog.absorption, fog.g or 0.0,
-                           self.resolved_phase_order(scene), lattice.density, lattice.h, self.M)
+                           self.resolved_phase_order(scene), lattice.peak_density, lattice.h,
+                           self.M)
         return "linear" if depth > LINEAR_STEP_DEPTH else "step"
 
     def prepare(self, scene, lattice) -> SweepGeometry:
