@@ -14,9 +14,10 @@ one, so all three should agree where the fog is thick.
 
     python benchmarks/thick_top.py --zeta 100 1000 --resolutions 12 24
 
-Measured 2026-11-27 (2-core CPU): ζ = 100, N = 24: 0.773 / 0.773 / 0.826; ζ = 1000, N = 12:
-0.782 / 0.782 / 0.912; ζ = 1000, N = 24: 0.799 / 0.799 / 0.932; ζ = 10, N = 24 (step scheme):
-0.481 / 0.481 / 0.481 (docs/validation.md).
+Measured 2026-11-27 (2-core CPU), fills / region / grid: ζ = 10: 0.505 / 0.505 / 0.507 (N = 12),
+0.495 / 0.495 / 0.494 (N = 24, step scheme); ζ = 100: 0.784 / 0.784 / 0.866 (N = 12), 0.784 /
+0.784 / 0.834 (N = 24); ζ = 1000: 0.800 / 0.800 / 0.925 (N = 12), 0.798 / 0.798 / 0.932
+(N = 24) (docs/validation.md).
 """
 
 from __future__ import annotations
