@@ -338,7 +338,11 @@ def test_open_scene_monotone_in_absorption_and_albedo(solver):
     imgs = [image(zeta=1.0, gamma=g, albedo=0.5) for g in gammas]
     for g0, g1, a, b in zip(gammas, gammas[1:], imgs, imgs[1:]):
         assert np.all(b <= a + slack * a.max()), (g0, g1, float(np.max(b - a)))
-    assert imgs[-1].max() < 0.5 * imgs[0].max()  # and the trend is real, not flat
+    # and the trend is real, not flat: a third of the pixels (measured 35%) lose more than
+    # half their light; not all: the 0.15-thick walls' tops, half of the top view, stand at
+    # the fog's top face, where the sun reaches them through no fog (exactly so since the
+    # sun's depth at a hit ends at the fog's box)
+    assert np.mean(imgs[-1] < 0.5 * imgs[0]) > 0.25
     albedos = [0.0, 0.3, 0.7, 1.0]
     imgs = [image(zeta=1.0, gamma=0.1, albedo=a) for a in albedos]
     for a0, a1, a, b in zip(albedos, albedos[1:], imgs, imgs[1:]):

@@ -279,7 +279,7 @@ def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits
 
 
 def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
-              *, step: float = 0.5):
+              *, step: float = 0.5, box=None):
     """What the sun needs at surface points: ``cos_vis`` (R,) = max(0, n·s) where no shape
     blocks the shadow ray towards the sun (0 where one does), and ``depth`` (R,) the
     density-weighted path length ∫ density ds from each point towards the sun to the lattice
@@ -287,6 +287,12 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
     unit density).  ``density`` is the lattice's node field (node (i, j, k) at
     origin + (idx + 0.5)·h, trilinear between nodes, 0 outside), integrated by the midpoint rule
     in steps of ``step``·h (:func:`_midpoint_depth`).  Points: (R, 3); normals: (R, 3) unit.
+    ``box``: (lo, hi), the fog's box (its region within the domain), or None: the path is
+    integrated only where it lies in the box, exactly clipped, so that the fog ends at the
+    box's face and not over the spacing to the next node (``density`` then holds the fog's
+    values continued outwards from the box's outer nodes, as the cameras' march sees them:
+    translucent-cube's 0.6-wide box at N = 32, whose outer nodes lie 0.003 inside its faces,
+    had 0.0125 of extra path per face crossed, a 22% error of the sun's transmittance).
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
     n = np.asarray(normals, np.float64).reshape(-1, 3)
@@ -314,6 +320,17 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
         ta = np.where(s != 0, (lo - q) / s, np.inf)
         tb = np.where(s != 0, (hi - q) / s, np.inf)
     t_end = np.maximum(np.min(np.maximum(ta, tb), axis=-1), 0.0)
+    if box is not None:  # only the part of the path inside the fog's box
+        blo, bhi = (np.asarray(b, float) for b in box)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = np.where(s != 0, (blo - q) / s, -np.inf)
+            tb = np.where(s != 0, (bhi - q) / s, np.inf)
+            inside = (s != 0) | ((q >= blo) & (q <= bhi))
+        t_in = np.maximum(np.max(np.where(inside, np.minimum(ta, tb), np.inf), axis=-1), 0.0)
+        t_out = np.minimum(np.min(np.where(inside, np.maximum(ta, tb), -np.inf), axis=-1),
+                           t_end)
+        q = q + np.minimum(t_in, t_end)[:, None] * s
+        t_end = np.maximum(t_out - t_in, 0.0)
     depth[lit] = _midpoint_depth(np.asarray(density), q, s, lo, h, t_end, step * h)
     return cos_vis, depth
 

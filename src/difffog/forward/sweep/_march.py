@@ -932,7 +932,7 @@ class _Cast:
     """Host hits of rays (R,): ``t``, ``normal``, ``shape``, ``hit``, ``cos_vis``, ``depth``,
     ``lit`` (the sun reaches the hit)."""
 
-    def __init__(self, scene, o, d, density, origin, h):
+    def __init__(self, scene, o, d, density, origin, h, sun_box=None):
         from ...geometry._hits import first_hits, sun_depth
 
         hits = first_hits(scene, o, d)
@@ -943,7 +943,8 @@ class _Cast:
             m = hits.hit
             p = o[m] + hits.t[m, None] * d[m]
             self.cos_vis[m], self.depth[m] = sun_depth(scene, p, hits.normal[m],
-                                                       scene.sun.direction, density, origin, h)
+                                                       scene.sun.direction, density, origin, h,
+                                                       box=sun_box)
         self.lit = self.cos_vis > 0
 
 
@@ -969,7 +970,8 @@ def edge_pixels(hits: RayHits, height: int, width: int) -> np.ndarray:
 
 
 def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: float,
-                shape, periodic_xy: bool = False, edge_samples: int = EDGE_SAMPLES) -> RayHits:
+                shape, periodic_xy: bool = False, edge_samples: int = EDGE_SAMPLES,
+                sun_fog=None) -> RayHits:
     """A camera's sample rays, their exact hits and the sun there (host, once).
 
     Every pixel starts with the supersample² stratified rays of :func:`camera_rays`.  A pixel
@@ -980,7 +982,9 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
     pixel gets the right mix of the surfaces in it (with 2×2 samples an edge pixel's coverage
     is off by up to 1/4, with 16 Hammersley points by ~1/16).
     ``density``, ``origin``, ``h``, ``shape``: the lattice's (the sun's depth integrates its
-    density field; the longest fog segment is clipped to its box).
+    density field; the longest fog segment is clipped to its box).  ``sun_fog``: (the fog's
+    box, its density continued outwards from the box's outer nodes), or None: the sun's depth
+    then runs through that density only inside the box (``geometry._hits.sun_depth``).
     """
     from .._camera import hammersley_ndc, rays_at
 
@@ -990,7 +994,10 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     dens = np.asarray(density)
     size = h * float(np.linalg.norm(np.asarray(shape, float)))
-    base = _Cast(scene, o, d, dens, origin, h)
+    sun_dens, sun_box = dens, None
+    if sun_fog is not None:
+        sun_box, sun_dens = sun_fog[0], np.asarray(sun_fog[1])
+    base = _Cast(scene, o, d, sun_dens, origin, h, sun_box)
     keys = _sample_keys(base, o, d, size)
     tol = keys[-1]
     k = tuple(np.asarray(x).reshape((H, W, S) + np.shape(x)[1:]) for x in keys[:-1])
@@ -1021,7 +1028,7 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
         x, y = hammersley_ndc(camera, np.stack([rows, cols], -1), E)
         oe, de = rays_at(camera, x, y)
         oe, de = oe.reshape(-1, 3), de.reshape(-1, 3)
-        cast = _Cast(scene, oe, de, dens, origin, h)
+        cast = _Cast(scene, oe, de, sun_dens, origin, h, sun_box)
         parts.append((oe, de, np.repeat(rows * W + cols, E), np.full(len(oe), 1.0 / E), cast,
                       slice(None)))
     cat = lambda f: np.concatenate([f(p) for p in parts])  # noqa: E731
