@@ -1310,8 +1310,7 @@ def _density(scene: Scene, grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
         lo, hi = np.maximum(x - grid.h / 2, r0[a]), np.minimum(x + grid.h / 2, r1[a])
         # a face on a cell boundary must give exactly 0 and 1, not 1e-15 of fog in the vacuum
         # margin (a node with any fog is a fog node to the solver)
-        frac = np.clip((hi - lo) / grid.h, 0.0, 1.0)
-        share.append(np.where(frac < 1e-9, 0.0, np.where(frac > 1 - 1e-9, 1.0, frac)))
+        share.append(_exact_ends(np.clip((hi - lo) / grid.h, 0.0, 1.0)))
     mask = ins[0][:, None, None] & ins[1][None, :, None] & ins[2][None, None, :]
     cell = share[0][:, None, None] * share[1][None, :, None] * share[2][None, None, :]
     if fog.density is None:
@@ -1375,6 +1374,11 @@ def _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def _exact_ends(share):
+    """A cell's share in [0, 1] with rounding's 1e-16 off either end snapped to 0 or 1."""
+    return np.where(share < 1e-9, 0.0, np.where(share > 1 - 1e-9, 1.0, share))
+
+
 def _wrap_or_clip(i, a, grid):
     n = grid.shape[a]
     return i % n if (grid.periodic and a < 2) else np.clip(i, 0, n - 1)
@@ -1403,7 +1407,7 @@ def _plane_shares(sdf, idx, grid):
     off = m[:, 0, None] * u.ravel() + m[:, 1, None] * v.ravel()  # (N, columns²)
     share = np.clip(0.5 + (d[:, None] + off) / big[:, None], 0.0, 1.0).mean(axis=1)
     # a face on a cell boundary gives exactly 0 or 1 (no 1e-16 of fog moved out of a solid)
-    share = np.where(share < 1e-9, 0.0, np.where(share > 1 - 1e-9, 1.0, share))
+    share = _exact_ends(share)
     return share, n
 
 

@@ -971,7 +971,7 @@ def edge_pixels(hits: RayHits, height: int, width: int) -> np.ndarray:
 
 def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: float,
                 shape, periodic_xy: bool = False, edge_samples: int = EDGE_SAMPLES,
-                sun_fog=None) -> RayHits:
+                sun_box=None) -> RayHits:
     """A camera's sample rays, their exact hits and the sun there (host, once).
 
     Every pixel starts with the supersample² stratified rays of :func:`camera_rays`.  A pixel
@@ -982,9 +982,9 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
     pixel gets the right mix of the surfaces in it (with 2×2 samples an edge pixel's coverage
     is off by up to 1/4, with 16 Hammersley points by ~1/16).
     ``density``, ``origin``, ``h``, ``shape``: the lattice's (the sun's depth integrates its
-    density field; the longest fog segment is clipped to its box).  ``sun_fog``: (the fog's
-    box, its density continued outwards from the box's outer nodes), or None: the sun's depth
-    then runs through that density only inside the box (``geometry._hits.sun_depth``).
+    density field; the longest fog segment is clipped to its box).  ``sun_box``: the fog's box
+    (lo, hi), or None: the sun's depth then runs through ``density`` only inside the box,
+    which the density continues outwards from its outer nodes (``geometry._hits.sun_depth``).
     """
     from .._camera import hammersley_ndc, rays_at
 
@@ -994,10 +994,7 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     dens = np.asarray(density)
     size = h * float(np.linalg.norm(np.asarray(shape, float)))
-    sun_dens, sun_box = dens, None
-    if sun_fog is not None:
-        sun_box, sun_dens = sun_fog[0], np.asarray(sun_fog[1])
-    base = _Cast(scene, o, d, sun_dens, origin, h, sun_box)
+    base = _Cast(scene, o, d, dens, origin, h, sun_box)
     keys = _sample_keys(base, o, d, size)
     tol = keys[-1]
     k = tuple(np.asarray(x).reshape((H, W, S) + np.shape(x)[1:]) for x in keys[:-1])
@@ -1028,7 +1025,7 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
         x, y = hammersley_ndc(camera, np.stack([rows, cols], -1), E)
         oe, de = rays_at(camera, x, y)
         oe, de = oe.reshape(-1, 3), de.reshape(-1, 3)
-        cast = _Cast(scene, oe, de, sun_dens, origin, h, sun_box)
+        cast = _Cast(scene, oe, de, dens, origin, h, sun_box)
         parts.append((oe, de, np.repeat(rows * W + cols, E), np.full(len(oe), 1.0 / E), cast,
                       slice(None)))
     cat = lambda f: np.concatenate([f(p) for p in parts])  # noqa: E731

@@ -311,15 +311,14 @@ class SweepModel(AbstractForwardModel):
         if exact:
             fog = lattice.fog_density if lattice.fog_density is not None else lattice.density
             # the sun's depth at the hits: through the fog's box exactly, the fog continued to
-            # its faces from the outer nodes (as the cameras' march sees it)
-            support = _fog_support(scene, lattice) if lattice.fog_density is not None else None
-            sun_fog = None
-            if support is not None:
-                sharp = _clamped_index(lattice.shape, support[1])
-                sun_fog = (support[0], np.asarray(fog).reshape(-1)[sharp].reshape(fog.shape))
+            # its faces from the outer nodes (the camera geometry's support, as its march sees it)
+            cg, sun_box = self.camera_geometry, None
+            if cg.support_index is not None:
+                sharp = np.asarray(cg.support_index)
+                fog, sun_box = np.asarray(fog).reshape(-1)[sharp].reshape(sharp.shape), cg.fog_box
             self.hits = tuple(
                 camera_hits(scene, c, self.supersample, fog, lattice.origin, lattice.h,
-                            lattice.shape, periodic, sun_fog=sun_fog) for c in self.cameras)
+                            lattice.shape, periodic, sun_box=sun_box) for c in self.cameras)
         else:
             self.hits = None
         self.host = HostInfo(lattice=lattice, setup_s={
