@@ -222,3 +222,43 @@ def test_the_suns_depth_at_hits_ends_at_the_fogs_box(resolution):
         np.testing.assert_allclose(np.asarray(h.sun_depth)[lit], chord, rtol=0, atol=1e-6)  # float32
         checked += int((chord > 0.05).sum())
     assert checked > 100  # many of the lit hits see the sun through the fog
+
+
+def _slab_shadow_volume(k: float) -> float:
+    """The volume of [0, 1]³ outside the slab [0.2, 0.8] × [0.3, 0.7] × [0.6, 0.7] from which
+    the sun (towards +x, tan of its zenith angle k) meets the slab: at height z the shadow
+    spans x ∈ [0.2 − (0.7 − z)·k, 0.8 − (0.6 − z)⁺·k] in the slab's y-range (the slab itself
+    left out), integrated by a fine midpoint rule in z."""
+    z = (np.arange(70000) + 0.5) / 100000  # 0 … 0.7
+    lo = np.clip(0.2 - (0.7 - z) * k, 0, 1)
+    hi = np.clip(0.8 - np.clip(0.6 - z, 0, None) * k, 0, 1)
+    width = np.clip(hi - lo, 0, None) - np.where(z > 0.6, 0.6, 0.0)
+    return float(width.sum() * 1e-5 * 0.4)
+
+
+@pytest.mark.parametrize("resolution", [20, 40])
+def test_the_suns_visibility_is_the_lit_share_of_each_cell(resolution):
+    """The sun's visibility at the nodes (exact shadow rays, box-filtered over each cell's
+    fluid) carries the exact lit volume: Σ V·h³ over the fluid cells of a slab's scene equals
+    the domain's fluid volume less the slab's shadow (analytic), at zenith 25° (its shadow
+    edges cross the cells obliquely).  The lattice's shadow buffer (the SOLID nodes marched
+    towards the sun) puts 4.6% / 2.4% of the shadow's volume in the light at N = 20 / 40;
+    this is within 0.03% (measured)."""
+    from difffog.forward.sweep._uncollided import sun_transmittance
+    from difffog.geometry._hits import sun_visibility
+    from difffog.geometry._lattice import SOLID, voxelize
+
+    sc = _scene((df.Box("slab", min=(0.2, 0.3, 0.6), max=(0.8, 0.7, 0.7)),),
+                sun=df.Sun(irradiance=1.0, zenith_deg=25.0, azimuth_deg=0.0))
+    lat = voxelize(sc, resolution, 1)  # the slab's faces lie on cell faces: cells are all
+    fluid = np.asarray(lat.node_type) != SOLID  # fluid or all solid
+    s = np.asarray(sc.sun.direction)
+    V = sun_visibility(sc, fluid.shape, lat.origin, lat.h, s)
+    assert V.min() >= 0 and V.max() <= 1 and np.all(V[~fluid] == 0)
+    shadow = _slab_shadow_volume(math.tan(math.radians(25.0)))
+    lit = 1.0 - 0.6 * 0.4 * 0.1 - shadow
+    got = float(V[fluid].sum() * lat.h**3)
+    assert abs(got - lit) < 0.005 * shadow, (got, lit)
+    old = np.asarray(sun_transmittance(np.zeros(V.shape, np.float32), fluid == 0, s, lat.h,
+                                       False))
+    assert abs(float(old[fluid].sum() * lat.h**3) - lit) > 0.02 * shadow  # what it fixes

@@ -24,21 +24,23 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..scene._description import Box, OpenBox, Scene, Sphere, Torus
+from ..scene._description import Box, OpenBox, Quad, Scene, Sphere, Torus
 from ._lattice import _TorusS
 from ._rays import _shape_meshes, cast_rays, scene_triangles
 
-__all__ = ["Hits", "first_hits", "sun_depth"]
+__all__ = ["Hits", "first_hits", "sun_depth", "sun_visibility"]
 
 @dataclass(frozen=True, eq=False)
 class Hits:
     """First hits of R rays: ``t`` (R,) distance along the unit direction (inf: none),
     ``normal`` (R, 3) unit, facing the ray's origin (0 where none), ``shape`` (R,) index into
-    ``scene.shapes`` (-1: none)."""
+    ``scene.shapes`` (-1: none), ``inside`` (R,) whether the ray's origin lies inside a shape
+    (it leaves that shape through its own first hit with it; never a two-sided quad)."""
 
     t: np.ndarray
     normal: np.ndarray
     shape: np.ndarray
+    inside: np.ndarray | None = None
 
     @property
     def hit(self) -> np.ndarray:
@@ -245,7 +247,10 @@ def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits
     normal = np.zeros((R, 3))
     owner = np.full(R, -1, np.int64)
 
+    inside = np.zeros(R, bool)
+
     def take(t, n, index):
+        inside[np.isfinite(t) & (np.einsum("ij,ij->i", n, d) > 0)] = True  # n: outward
         closer = t < best
         best[closer] = t[closer]
         normal[closer] = n[closer]
@@ -267,6 +272,9 @@ def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits
         t, face, _, _ = cast_rays(tris, o, d, t_min=t_min)
         hit = face >= 0
         n = np.where(hit[:, None], tris.face_normals[np.where(hit, face, 0)], 0.0)
+        closed = ~np.array([isinstance(s, Quad) for s in scene.shapes] + [False])
+        inside |= hit & closed[np.where(hit, tris.shape[face], -1)] & (
+            np.einsum("ij,ij->i", n, d) > 0)
         closer = t < best
         best[closer] = t[closer]
         normal[closer] = n[closer]
@@ -275,7 +283,7 @@ def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits
     flip = np.einsum("ij,ij->i", normal, d) > 0
     normal[flip] *= -1.0
     normal[owner < 0] = 0.0
-    return Hits(best, normal, owner)
+    return Hits(best, normal, owner, inside=inside)
 
 
 def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
@@ -333,6 +341,55 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
         t_end = np.maximum(t_out - t_in, 0.0)
     depth[lit] = _midpoint_depth(np.asarray(density), q, s, lo, h, t_end, step * h)
     return cos_vis, depth
+
+
+def sun_visibility(scene: Scene, shape, origin, h: float, sun_dir, *, sub: int = 3) -> np.ndarray:
+    """The sun's visibility at every lattice node, box-filtered over its cell's fluid: the share
+    of the cell's points outside the shapes (of ``sub``³ stratified points) from which a ray
+    towards the sun meets no shape — one exact ray each (:func:`first_hits`: no hit, lit; its
+    origin inside a shape, not fluid).  ``shape``: the lattice's (nx, ny, nz), node (i, j, k) at
+    origin + (idx + 0.5)·h.  Returns (nx, ny, nz) in [0, 1]; 0 at a node whose centre lies in a
+    shape.
+
+    The lattice's shadow buffer instead marches the SOLID node mask towards the sun: a shape is
+    as thick and as high as its nodes, and the edge is smeared over several spacings (fog-balls'
+    0.05-thick walls at N = 24: the fog in their shadow 6% too bright beside them).  Only the
+    cells near an edge need the sub-points: those whose centre's visibility differs from one
+    of its 26 neighbours' (a SOLID node's centre counts as shadowed, so a cell a surface crosses
+    is one unless all around it is in shadow); elsewhere the centre tells.  Also testing every
+    cell within half a diagonal of a surface changed no value at N = 24 and 64 (fog-balls,
+    ring-box, translucent-cube), at 1.4× the time.
+    """
+    shape = tuple(int(n) for n in shape)
+    s = np.asarray(sun_dir, np.float64)
+    s = s / np.linalg.norm(s)
+    lo = np.asarray(origin, np.float64)
+    size = h * max(shape)
+    idx = np.indices(shape).reshape(3, -1).T
+    centre = lo + (idx + 0.5) * h
+    hit = first_hits(scene, centre, np.broadcast_to(s, centre.shape), t_min=1e-9 * size)
+    vis = np.isinf(hit.t).reshape(shape)
+    wet = ~hit.inside.reshape(shape)  # the centre is outside the shapes
+    # a 26-neighbour with another value (3×3×3 max and min filters); only cells whose centre
+    # is fluid: a SOLID node's value is never read (the light solve masks it, the cameras take
+    # their nearest fluid node's)
+    v8 = vis.astype(np.uint8)
+    mixed = (ndimage.maximum_filter(v8, size=3, mode="nearest")
+             != ndimage.minimum_filter(v8, size=3, mode="nearest"))
+    near = np.flatnonzero((wet & mixed).reshape(-1))
+    out = (vis & wet).astype(np.float64)
+    if len(near):
+        g = (np.arange(sub) + 0.5) / sub - 0.5
+        offs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) * h
+        lit = np.zeros(len(near))
+        fluid = np.zeros(len(near))
+        for o in offs:
+            p = centre[near] + o
+            hit = first_hits(scene, p, np.broadcast_to(s, p.shape), t_min=1e-9 * size)
+            fluid += ~hit.inside
+            lit += np.isinf(hit.t)
+        out.reshape(-1)[near] = lit / np.maximum(fluid, 1.0)  # the centre itself is fluid
+    return out
 
 
 def _node_span(u0, g, A, B):

@@ -132,13 +132,14 @@ class CameraGeometry(eqx.Module):
     support_index: jax.Array | None = None
     # exact hits with fog and a sun: ∫ density ds towards the sun from every node (solids
     # ignored, continued linearly outside the fog's box) and the sun's visibility past the
-    # solids (the lattice's shadow buffer, extended into solids from the nearest fluid node)
+    # solids (the light solve's, exact shadow rays box-filtered over each node's fluid, or
+    # the lattice's shadow buffer; extended into solids from the nearest fluid node)
     sun_path: jax.Array | None = None
     sun_vis: jax.Array | None = None
 
     @classmethod
     def build(cls, scene: Scene, lattice, exact_hits: bool = False,
-              M: int = 0) -> "CameraGeometry":
+              M: int = 0, visibility=None) -> "CameraGeometry":
         nt = np.asarray(lattice.node_type)
         periodic = lattice.boundary == "periodic-xy"
         surf = nt == SURFACE
@@ -155,9 +156,11 @@ class CameraGeometry(eqx.Module):
             support_index = jnp.asarray(sharp)
             if scene.sun is not None:
                 sun_path = jnp.asarray(_sun_path(scene, lattice, fog_box, ranges), jnp.float32)
-                vis = sun_transmittance(jnp.zeros(nt.shape, jnp.float32),
-                                        jnp.asarray(nt == SOLID), scene.sun.direction,
-                                        lattice.h, periodic)
+                vis = visibility  # the light solve's, or the lattice's shadow buffer
+                if vis is None:
+                    vis = sun_transmittance(jnp.zeros(nt.shape, jnp.float32),
+                                            jnp.asarray(nt == SOLID), scene.sun.direction,
+                                            lattice.h, periodic)
                 vis = np.asarray(vis).reshape(-1)[near_fluid].reshape(-1)[sharp]
                 sun_vis = jnp.asarray(vis.reshape(nt.shape))
         return cls(
@@ -300,7 +303,8 @@ class SweepModel(AbstractForwardModel):
         self.geometry = self.solver.prepare(scene, lattice)
         periodic = lattice.boundary == "periodic-xy"
         exact = not (periodic and scene.shapes)
-        self.camera_geometry = CameraGeometry.build(scene, lattice, exact, M)
+        self.camera_geometry = CameraGeometry.build(scene, lattice, exact, M,
+                                                    visibility=self.geometry.sun_vis)
         # what the cameras sample: the fog's own density (0 in solids), not the cells' volume
         # bookkeeping of ``lattice.density`` (larger beside surfaces)
         own = lattice.density if lattice.fog_density is None else np.where(

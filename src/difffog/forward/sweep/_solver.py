@@ -24,6 +24,7 @@ import lineax as lx
 import numpy as np
 
 from ...geometry._blocking import segment_blocking
+from ...geometry._hits import sun_visibility
 from ...geometry._directions import (FACE_AXES, cosine_normalization, direction_set,
                                      face_plane_axes, sky_quadrature)
 from ...geometry._lattice import FREE, SOLID, SURFACE
@@ -105,6 +106,9 @@ class SweepGeometry(eqx.Module):
     # order > 0 with a sun: cos Θ to the sun's light at n² points over each face direction's
     # cell and their weights, (6, D, n²) each (the cell-averaged phase of the first-collision sun)
     sun_cells: tuple[jax.Array, jax.Array] | None = None
+    # the sun's visibility past the shapes, box-filtered over each node's fluid from exact
+    # shadow rays (``geometry._hits.sun_visibility``), or None: the SOLID nodes block the beam
+    sun_vis: jax.Array | None = None
 
     @property
     def n_moments(self) -> int:
@@ -179,6 +183,11 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     sun_cos = np.where(surf, sun_cos, 0.0)
     periodic_xy = lattice.boundary == "periodic-xy"
     normal32 = normal.astype(np.float32)
+    # the sun past the shapes from exact shadow rays, unless the domain repeats them (the host
+    # caster does not), or nothing casts a shadow
+    vis = None
+    if sun_dir is not None and scene.shapes and not periodic_xy:
+        vis = sun_visibility(scene, nt.shape, lattice.origin, lattice.h, sun_dir)
 
     def cosines():
         c = np.zeros(nt.shape)
@@ -233,6 +242,7 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         order=int(order),
         linear=bool(linear),
         sun_cells=None if harm is None or sun_dir is None else _sun_cells(dirs, sun_dir),
+        sun_vis=None if vis is None else f32(vis),
     )
 
 
@@ -837,9 +847,16 @@ class SweepSolver(eqx.Module):
         if geom.sun_dir is not None:
             # the point value lights surfaces; the segment average feeds the fog's source
             # (and with the linear scheme its slope, where the sun is in the isotropic source)
+            # the shapes' shadow: exact (``sun_vis``, the fog's beam through no solid), or the
+            # SOLID nodes
+            opaque = geom.solid if geom.sun_vis is None else jnp.zeros_like(geom.solid)
             t_sun, t_sun_avg, *t_grad = sun_transmittance(
-                sigma_sun, geom.solid, np.array(geom.sun_dir), geom.h, geom.periodic_xy,
+                sigma_sun, opaque, np.array(geom.sun_dir), geom.h, geom.periodic_xy,
                 average=True, slope=geom.linear and sun_phase is None)
+            if geom.sun_vis is not None:
+                vis = geom.sun_vis.astype(dt)
+                t_sun, t_sun_avg = vis * t_sun, vis * t_sun_avg
+                t_grad = [vis[..., None] * g for g in t_grad]
             sun_point = params.sun_irradiance * t_sun
             sun_fluence = params.sun_irradiance * t_sun_avg
             if t_grad:
