@@ -501,8 +501,8 @@ def _recover(scene_name, case, N=24):
 
 # The exact-geometry issue's aim: ζ, γ and the walls' albedo within 2% from targets rendered
 # at N = 48, M = 4 (data_synthetic/, set 0), fit at N = 24, M = 3.  Measured by
-# benchmarks/recovery_study.py (benchmarks/results/recovery.md): −1.4%, −0.8%, −0.1% (the
-# sweep's remaining bias at N = 24; its image misfit at the truth is 1.7%).
+# benchmarks/recovery_study.py (benchmarks/results/recovery.md, 2026-11-27): −1.1%, −0.2%,
+# −0.9% (the sweep's remaining bias at N = 24; its image misfit at the truth is 2.0%).
 RECOVERY_BOUNDS = {
     ("fog-balls", "hires"): {"fog.scattering": 2.0, "fog.absorption": 2.0,
                              "shape.walls.albedo": 2.0},
