@@ -89,6 +89,11 @@ SETUP_S_PER_NODE = 8.9e-7
 SETUP_S_PER_NODE_DIRECTION_STEP = 3.1e-10
 SETUP_S_PER_SEGMENT_SAMPLE = 6.6e-6
 SETUP_S_PER_RAY = 1.7e-6
+#: the sun's visibility from exact shadow rays (open domains with shapes and a sun): a ray per
+#: node and 8-27 more per cell near a shadow's edge; 2.1-3.6 µs per node measured for
+#: fog-balls, ring-box and translucent-cube at N = 32, 64, 128 on this 2-core CPU (the larger
+#: per node at N = 32), added after the constants above were fitted
+SETUP_S_PER_NODE_SHADOW = 2.5e-6
 #: the splat's set-up: a fixed part (its footprint and kernel programs) and a part per voxel
 #: (bench_cost.py: 3.1 / 3.9 / 4.9 s at N = 32 / 64 / 96)
 SPLAT_SETUP_S = 2.6
@@ -273,9 +278,11 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if _linear(scene, resolution, M, phase_order, scheme):
         per_iter *= LINEAR_COST
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
+    shadows = surfaces and scene.sun is not None and scene.domain.boundary != "periodic-xy"
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
-                 + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0))
+                 + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0)
+             + (SETUP_S_PER_NODE_SHADOW * n if shadows else 0))
     return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
 
 
