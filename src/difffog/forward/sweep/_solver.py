@@ -183,11 +183,6 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     sun_cos = np.where(surf, sun_cos, 0.0)
     periodic_xy = lattice.boundary == "periodic-xy"
     normal32 = normal.astype(np.float32)
-    # the sun past the shapes from exact shadow rays, unless the domain repeats them (the host
-    # caster does not), or nothing casts a shadow
-    vis = None
-    if sun_dir is not None and scene.shapes and not periodic_xy:
-        vis = sun_visibility(scene, nt.shape, lattice.origin, lattice.h, sun_dir)
 
     def cosines():
         c = np.zeros(nt.shape)
@@ -209,10 +204,16 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     # NumPy releases the GIL in its array loops: the faces and the cosine normalization on all
     # cores (fog-balls N = 128, M = 5, 2 cores: 2.7 s → 1.5 s)
     with concurrent.futures.ThreadPoolExecutor(min(7, os.cpu_count() or 1)) as pool:
+        # the sun past the shapes from exact shadow rays, unless the domain repeats them (the
+        # host caster does not), or nothing casts a shadow
+        vis_job = (pool.submit(sun_visibility, scene, nt.shape, lattice.origin, lattice.h,
+                               sun_dir)
+                   if sun_dir is not None and scene.shapes and not periodic_xy else None)
         cnorm_job = pool.submit(cosines)
         faces = [FaceGeometry(**{k: jnp.asarray(a) for k, a in arrays.items()})
                  for arrays in pool.map(face_arrays, range(6))]
         cnorm = cnorm_job.result()
+        vis = None if vis_job is None else vis_job.result()
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     material = np.where(np.asarray(lattice.material) >= 0, lattice.material, 0)
     # Warm-up for periodic sweep axes: every non-horizontal ray must have entered through z.
