@@ -278,7 +278,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if _linear(scene, resolution, M, phase_order, scheme):
         per_iter *= LINEAR_COST
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
-    shadows = surfaces and scene.sun is not None and scene.domain.boundary != "periodic-xy"
+    from .geometry._hits import casts_exactly
+
+    shadows = surfaces and scene.sun is not None and casts_exactly(scene)
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
                  + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0)

@@ -982,9 +982,9 @@ def camera_hits(scene, camera: Camera, supersample: int, density, origin, h: flo
     pixel gets the right mix of the surfaces in it (with 2×2 samples an edge pixel's coverage
     is off by up to 1/4, with 16 Hammersley points by ~1/16).
     ``density``, ``origin``, ``h``, ``shape``: the lattice's (the sun's depth integrates its
-    density field; the longest fog segment is clipped to its box).  ``sun_box``: the fog's box
-    (lo, hi), or None: the sun's depth then runs through ``density`` only inside the box,
-    which the density continues outwards from its outer nodes (``geometry._hits.sun_depth``).
+    density field; the longest fog segment is clipped to its box).  ``sun_box``: None, or the fog's
+    box (lo, hi): the sun's depth then runs through ``density`` only inside that box, which
+    the density continues outwards from its outer nodes (``geometry._hits.sun_depth``).
     """
     from .._camera import hammersley_ndc, rays_at
 

@@ -17,6 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..._numerics import FOUR_PI
+from ...geometry._hits import casts_exactly
 from ...geometry._lattice import SOLID, SURFACE, Lattice, voxelize
 from ...scene._description import Camera, Scene
 from ...scene._params import Params
@@ -25,7 +26,7 @@ from ._lightfield import LightField
 from ._harmonics import moment_coefficients
 from ._march import LatticeFields, RayHits, camera_hits, edge_pixels, render_camera
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
-from ._uncollided import NO_SUN_PATH, sun_path, sun_transmittance
+from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
 
 #: step optical depth σ_t·h·M above which render and fit warn (ThickStepWarning): measured on
@@ -132,8 +133,8 @@ class CameraGeometry(eqx.Module):
     support_index: jax.Array | None = None
     # exact hits with fog and a sun: ∫ density ds towards the sun from every node (solids
     # ignored, continued linearly outside the fog's box) and the sun's visibility past the
-    # solids (the light solve's, exact shadow rays box-filtered over each node's fluid, or
-    # the lattice's shadow buffer; extended into solids from the nearest fluid node)
+    # solids (the light solve's: exact shadow rays box-filtered over each node's fluid, 1
+    # without shapes; extended into solids from the nearest fluid node)
     sun_path: jax.Array | None = None
     sun_vis: jax.Array | None = None
 
@@ -156,12 +157,10 @@ class CameraGeometry(eqx.Module):
             support_index = jnp.asarray(sharp)
             if scene.sun is not None:
                 sun_path = jnp.asarray(_sun_path(scene, lattice, fog_box, ranges), jnp.float32)
-                vis = visibility  # the light solve's, or the lattice's shadow buffer
-                if vis is None:
-                    vis = sun_transmittance(jnp.zeros(nt.shape, jnp.float32),
-                                            jnp.asarray(nt == SOLID), scene.sun.direction,
-                                            lattice.h, periodic)
-                vis = np.asarray(vis).reshape(-1)[near_fluid].reshape(-1)[sharp]
+                # the light solve's (``SweepGeometry.sun_vis``); None only without shapes (exact
+                # hits exist only where the host casts exactly), where nothing shadows
+                vis = np.ones(nt.shape) if visibility is None else np.asarray(visibility)
+                vis = vis.reshape(-1)[near_fluid].reshape(-1)[sharp]
                 sun_vis = jnp.asarray(vis.reshape(nt.shape))
         return cls(
             fog_box=fog_box, support_index=support_index, sun_path=sun_path, sun_vis=sun_vis,
@@ -302,7 +301,7 @@ class SweepModel(AbstractForwardModel):
         t = time.perf_counter()
         self.geometry = self.solver.prepare(scene, lattice)
         periodic = lattice.boundary == "periodic-xy"
-        exact = not (periodic and scene.shapes)
+        exact = casts_exactly(scene)
         self.camera_geometry = CameraGeometry.build(scene, lattice, exact, M,
                                                     visibility=self.geometry.sun_vis)
         # what the cameras sample: the fog's own density (0 in solids), not the cells' volume

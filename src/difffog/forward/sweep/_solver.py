@@ -24,7 +24,7 @@ import lineax as lx
 import numpy as np
 
 from ...geometry._blocking import segment_blocking
-from ...geometry._hits import sun_visibility
+from ...geometry._hits import casts_exactly, sun_visibility
 from ...geometry._directions import (FACE_AXES, cosine_normalization, direction_set,
                                      face_plane_axes, sky_quadrature)
 from ...geometry._lattice import FREE, SOLID, SURFACE
@@ -204,11 +204,11 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     # NumPy releases the GIL in its array loops: the faces and the cosine normalization on all
     # cores (fog-balls N = 128, M = 5, 2 cores: 2.7 s → 1.5 s)
     with concurrent.futures.ThreadPoolExecutor(min(7, os.cpu_count() or 1)) as pool:
-        # the sun past the shapes from exact shadow rays, unless the domain repeats them (the
-        # host caster does not), or nothing casts a shadow
+        # the sun past the shapes from exact shadow rays, where there are shapes and the host
+        # casts exactly (not across a periodic domain's sides)
         vis_job = (pool.submit(sun_visibility, scene, nt.shape, lattice.origin, lattice.h,
                                sun_dir)
-                   if sun_dir is not None and scene.shapes and not periodic_xy else None)
+                   if sun_dir is not None and scene.shapes and casts_exactly(scene) else None)
         cnorm_job = pool.submit(cosines)
         faces = [FaceGeometry(**{k: jnp.asarray(a) for k, a in arrays.items()})
                  for arrays in pool.map(face_arrays, range(6))]
