@@ -219,11 +219,12 @@ fig
 # may or may not lie within ±2 of them (the `error/se` column).
 #
 # The recovery study (`benchmarks/results/recovery.md`, N = 24, M = 3, both views at 1/4
-# size, the full size of this notebook) measured it: at 1% noise ζ −1.4% (± 0.3%), γ −0.8%
-# (± 0.3%), the walls' albedo −0.1% (± 0.04%); with 5% noise −1.3%, −0.8%, −0.1% (the same);
-# against the Mitsuba 3 reference instead of synthetic targets −6.3%, −1.1%, +0.7%. The
-# model's misfit at the truth was 1.8% of the target mean (8.4% before the cameras met the
-# exact geometry). The truth lies outside ±2 standard errors for ζ and γ in every case. At the
+# size, the full size of this notebook; re-measured 2026-11-27) measured it: at 1% noise ζ −1.1%
+# (± 0.3%), γ −0.2% (± 0.3%), the walls' albedo −0.9% (± 0.05%); with 5% noise −1.0%, −0.3%,
+# −0.9% (the same); against the Mitsuba 3 reference instead of synthetic targets −3.3%, +0.5%,
+# −0.8%. The model's misfit at the truth was 2.1% of the target mean (8.4% before the cameras
+# met the exact geometry). The truth lies outside ±2 standard errors for ζ and the albedo in
+# every case. At the
 # small size (N = 21, M = 2, 1/8 of the pixels) the bias is larger.
 
 # %%
@@ -320,9 +321,9 @@ plot.error_map(both1.images["oblique"], both1.targets["oblique"], relative=False
 # * The fit converges in a handful of steps from a start 20–60% off, and reports standard errors
 #   and correlations with the estimates.
 # * At a coarse lattice its error against the truth is the forward model's bias, not the noise:
-#   the recovery study at N = 24 (`benchmarks/results/recovery.md`) found ζ 1.4% low, γ 0.8% low
-#   and the albedo within 0.1% whatever the noise (1% or 5%), and 6.3%, 1.1% and 0.7% off
-#   against the Mitsuba 3 image; the standard errors (0.04–0.4%) do not cover that. Read them as the noise's
+#   the recovery study at N = 24 (`benchmarks/results/recovery.md`) found ζ 1.1% low, γ within
+#   0.3% and the albedo 0.9% low whatever the noise (1% or 5%), and 3.3%, 0.5% and 0.8% off
+#   against the Mitsuba 3 image; the standard errors (0.05–0.3%) do not cover that. Read them as the noise's
 #   share of the uncertainty only, and check the bias as above: render at the estimates with a
 #   finer model (larger N and M), or fit at two resolutions and see how far the estimates move.
 # * A second view shrinks ζ's and γ's standard errors but leaves them strongly correlated: what
