@@ -14,10 +14,11 @@ one, so all three should agree where the fog is thick.
 
     python benchmarks/thick_top.py --zeta 100 1000 --resolutions 12 24
 
-Measured 2026-11-27 (2-core CPU), fills / region / grid: ζ = 10: 0.505 / 0.505 / 0.507 (N = 12),
-0.495 / 0.495 / 0.494 (N = 24, step scheme); ζ = 100: 0.784 / 0.784 / 0.866 (N = 12), 0.784 /
-0.784 / 0.834 (N = 24); ζ = 1000: 0.800 / 0.800 / 0.925 (N = 12), 0.798 / 0.798 / 0.932
-(N = 24) (docs/validation.md).
+Measured 2026-11-27 (2-core CPU), fills / region / grid, since the cameras' slopes stop where
+the fog does (``_model.side_slopes``): ζ = 10: 0.505 / 0.505 / 0.503 (N = 12), 0.495 / 0.495 /
+0.494 (N = 24, step scheme); ζ = 100: 0.784 / 0.784 / 0.760 (N = 12), 0.784 / 0.784 / 0.765
+(N = 24); ζ = 1000: 0.800 / 0.800 / 0.774 (N = 12), 0.798 / 0.798 / 0.773 (N = 24); before, the
+grid was 0.866 / 0.834 / 0.925 / 0.932 at ζ = 100 and 1000 (docs/validation.md).
 """
 
 from __future__ import annotations

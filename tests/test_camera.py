@@ -378,7 +378,7 @@ def test_march_steps():
     pytest.param(True, False, False, marks=pytest.mark.slow)])
 def test_custom_backward_matches_autodiff(x64, periodic, slopes, sun):
     """The march's hand-scheduled backward equals JAX's autodiff of the plain forward scan
-    (``slopes``: with the linear scheme's three slope channels, sampled with offsets; ``sun``:
+    (``slopes``: with the linear scheme's six side slope channels, sampled with offsets; ``sun``:
     the sun's term apart, attenuated along each step by an optical-depth channel that grows
     and falls along the rays, so that both signs of the step's exponent occur, and dips below 0
     in places, where the exponent is held at 0)."""
@@ -391,7 +391,8 @@ def test_custom_backward_matches_autodiff(x64, periodic, slopes, sun):
     # σ_t, j_iso, two channels with per-ray coefficients (the sun's phase, an anisotropic
     # source's basis value, which has either sign), sdf
     chans = [0.5 + 3 * rng.random(n), rng.random(n), rng.random(n), rng.random(n) - 0.5]
-    chans += [0.3 * rng.standard_normal(n) for _ in range(3)] if slopes else []
+    chans += ([0.3 * rng.standard_normal(n) for _ in range(cm.SLOPE_CHANNELS)] if slopes
+              else [])
     chans += [5.0 * rng.random(n) - 1.0] if sun else []  # some < 0: the exponent held at 0
     chans += [sdf]
     table = cm._flat_table([jnp.asarray(c) for c in chans], jnp.float64)

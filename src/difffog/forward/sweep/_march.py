@@ -51,6 +51,9 @@ __all__ = [
 
 #: how far (in units of h) the surface lookup point is moved back along -d from the hit
 HIT_BACKOFF = 1e-2
+# the linear scheme's slope channels: x, y, z towards a node's upper neighbours, then towards
+# its lower ones (``LatticeFields.j_slope``)
+SLOPE_CHANNELS = 6
 #: longest march in a periodic-xy domain, in domain diagonals, unless ``max_length`` is given
 PERIODIC_MAX_DIAGONALS = 8.0
 
@@ -126,9 +129,11 @@ class LatticeFields(eqx.Module):
     j_aniso: Float[Array, "nx ny nz K"] | None = None
     harmonics: tuple[int, int] | None = eqx.field(static=True, default=None)
     # optional, the linear scheme (``SweepSolver.scheme``): each node's source changes by
-    # j_slope[..., a] per lattice spacing along axis a (x, y, z); the march blends the nodes'
-    # own linear extrapolations j + j_slope·(x − x_node)/h with the trilinear weights
-    j_slope: Float[Array, "nx ny nz 3"] | None = None
+    # the linear scheme: each node's source change per lattice spacing along x, y, z, towards
+    # the node's upper neighbours (channels 0-2) and towards its lower ones (3-5); the march
+    # blends the nodes' own linear extrapolations j + j_slope·(x − x_node)/h with the
+    # trilinear weights, each offset reading its side's channel (``SLOPE_CHANNELS``)
+    j_slope: Float[Array, "nx ny nz 6"] | None = None
     # optional, the sun's own profile along the march (with a sun): the optical depth towards
     # the sun at each node, u = σ_sun·∫ density ds (solids ignored; their shadow is in j_sun).
     # When given, j_sun is the *unattenuated* single-scattering coefficient (σ_s·F·visibility)
@@ -337,15 +342,18 @@ def _stencil(p, lo, h: float, shape, periodic_xy: bool, offsets: bool = False):
 def _weights(p, geo, slope_at: int | None, n_chan: int):
     """The stencil of ``_interp`` as (flat index (R,), weight (R, C)) pairs: the trilinear
     weight for every channel, times the point's offset from the corner node along x, y, z for
-    the three slope channels from ``slope_at`` on (each node's own linear extrapolation of the
-    source, blended trilinearly)."""
+    the ``SLOPE_CHANNELS`` slope channels from ``slope_at`` on (each node's own linear
+    extrapolation of the source, blended trilinearly): a positive offset (the point lies on
+    the corner node's upper side) reads channels 0-2, a negative one channels 3-5."""
     if slope_at is None:
         return [(i, w[:, None]) for i, w in _stencil(p, *geo)]
     out = []
     for i, w, off in _stencil(p, *geo, offsets=True):
         one = jnp.ones((p.shape[0], 1), p.dtype)
-        mult = jnp.concatenate([jnp.broadcast_to(one, (p.shape[0], slope_at)), off,
-                                jnp.broadcast_to(one, (p.shape[0], n_chan - slope_at - 3))], -1)
+        mult = jnp.concatenate([jnp.broadcast_to(one, (p.shape[0], slope_at)),
+                                jnp.maximum(off, 0.0), jnp.minimum(off, 0.0),
+                                jnp.broadcast_to(one, (p.shape[0],
+                                                       n_chan - slope_at - SLOPE_CHANNELS))], -1)
         out.append((i, w[:, None] * mult))
     return out
 
@@ -355,7 +363,7 @@ def _interp(table, p, geo, slope_at: int | None = None):
 
     ``geo`` = (lo, h, shape, periodic_xy), static.  Eight separate (R, C) gathers: on XLA:CPU
     this is ~3x faster than one (R, 8, C) gather and a contraction.  ``slope_at``: the first
-    of three slope channels (``_weights``), or None.
+    of the slope channels (``_weights``), or None.
     """
     out = 0.0
     for i, w in _weights(p, geo, slope_at, table.shape[-1]):
@@ -376,7 +384,7 @@ class _MarchConfig(NamedTuple):
     n_steps: int
     step: float
     has_sdf: bool = True  # False: the hits are given (exact), the table has no sdf channel
-    slopes: bool = False  # the linear scheme: 3 slope channels after the coefficients'
+    slopes: bool = False  # the linear scheme: SLOPE_CHANNELS after the coefficients'
     sun_exp: bool = False  # coefficient 0 is the sun's, attenuated along the step by e^(−u)
 
     @property
@@ -386,12 +394,12 @@ class _MarchConfig(NamedTuple):
     @property
     def u_at(self) -> int:
         """The channel of the optical depth towards the sun (with ``sun_exp``)."""
-        return 2 + self.n_coef + (3 if self.slopes else 0)
+        return 2 + self.n_coef + (SLOPE_CHANNELS if self.slopes else 0)
 
 
 def _mix(c, coef, cfg: _MarchConfig):
     """(σ_t, source, sdf, sun, u) from table samples c (..., C) — channels σ_t, j_iso, then
-    one per per-ray coefficient, [then the three slope channels, already weighted by the
+    one per per-ray coefficient, [then the slope channels, already weighted by the
     point's offsets (``_weights``),] [then u, the optical depth towards the sun,] then the sdf
     — and the per-ray coefficients (R, J): source = j_iso + Σ_j coef_j·c_(2+j) [+ the
     slopes']; the sdf is 1 (never a crossing) when the table has none.  With ``sun_exp`` the
@@ -403,7 +411,7 @@ def _mix(c, coef, cfg: _MarchConfig):
         src = src + coef[:, j] * c[..., 2 + j]
     if cfg.slopes:
         k = 2 + cfg.n_coef
-        src = src + c[..., k] + c[..., k + 1] + c[..., k + 2]
+        src = src + sum(c[..., k + a] for a in range(SLOPE_CHANNELS))
     sdf = c[..., -1] if cfg.has_sdf else jnp.ones_like(c[..., 0])
     if cfg.sun_exp:
         return c[..., 0], src, sdf, coef[:, 0] * c[..., 2], c[..., cfg.u_at]
@@ -536,7 +544,7 @@ def _unmix_ct(g, c, coef, cfg: _MarchConfig):
     g_sig, g_src, g_sdf, g_sun, g_u = g
     tail = [g_sdf] if cfg.has_sdf else []
     J = cfg.n_coef
-    slopes = [g_src] * 3 if cfg.slopes else []
+    slopes = [g_src] * SLOPE_CHANNELS if cfg.slopes else []
     g_coef = [g_sun if (cfg.sun_exp and j == 0) else g_src for j in range(J)]
     depth = [g_u] if cfg.sun_exp else []
     chans = ([g_sig, g_src] + [coef[:, j] * g_coef[j] for j in range(J)] + slopes + depth
@@ -772,7 +780,7 @@ def _chunks(arrays, chunk: int):
 
 def _source_channels(fields: LatticeFields) -> list:
     """σ_t, j_iso, then one channel per per-ray coefficient of ``_segments``: j_sun (with a
-    sun), the K of j_aniso (with harmonics); the three slopes (the linear scheme); the
+    sun), the K of j_aniso (with harmonics); the six side slopes (the linear scheme); the
     optical depth towards the sun (``sun_depth``, with a sun)."""
     chans = [fields.sigma_t, fields.j_iso]
     if fields.sun_dir is not None:
@@ -780,7 +788,7 @@ def _source_channels(fields: LatticeFields) -> list:
     if fields.j_aniso is not None:
         chans += [fields.j_aniso[..., k] for k in range(fields.j_aniso.shape[-1])]
     if fields.j_slope is not None:
-        chans += [fields.j_slope[..., a] for a in range(3)]
+        chans += [fields.j_slope[..., a] for a in range(SLOPE_CHANNELS)]
     if _sun_exp(fields):
         chans.append(fields.sun_depth)
     return chans

@@ -179,6 +179,41 @@ class CameraGeometry(eqx.Module):
         )
 
 
+def side_slopes(slope, sigma_t, periodic_xy: bool):
+    """A node's source slope (nx, ny, nz, 3) towards each side (nx, ny, nz, 6: upper x, y, z,
+    then lower), scaled by min(1, σ_t(neighbour)/σ_t(node)) on that side.
+
+    A node's linear profile describes its own cell.  Where the neighbour holds as much fog the
+    two profiles blend into one linear field between them, and the scale is 1; where it holds
+    none (a cloud's top in a density grid) the fog the camera finds between them is the node's
+    own — the density ramps to 0 over the spacing — and the node's extrapolation beyond its
+    cell (towards the escaping surface) would read a source that is not there: its mean holds,
+    as it does at a sharp face (the fog's box, whose extension copies the node and cancels the
+    slope).  The ratio keeps it continuous as the neighbour's density goes to 0 (measured:
+    issue 14's half-space whose density grid drops to 0 above z = 1 was +10–17% brighter than
+    the same fog ending at a sharp face, `benchmarks/thick_top.py`).  Outside the lattice the
+    neighbour is the node itself (1); periodic x, y wrap."""
+    out_hi, out_lo = [], []
+    for a in range(3):
+        wrap = periodic_xy and a < 2
+        if wrap:
+            up, dn = jnp.roll(sigma_t, -1, axis=a), jnp.roll(sigma_t, 1, axis=a)
+        else:
+            pad = [(0, 0)] * 3
+            pad[a] = (1, 1)
+            ext = jnp.pad(sigma_t, pad, mode="edge")
+            n = sigma_t.shape[a]
+            up = jax.lax.slice_in_dim(ext, 2, n + 2, axis=a)
+            dn = jax.lax.slice_in_dim(ext, 0, n, axis=a)
+        has = sigma_t > 0
+        safe = jnp.where(has, sigma_t, 1.0)
+        f_up = jnp.where(has, jnp.clip(up / safe, 0.0, 1.0), 1.0)
+        f_dn = jnp.where(has, jnp.clip(dn / safe, 0.0, 1.0), 1.0)
+        out_hi.append(slope[..., a] * f_up)
+        out_lo.append(slope[..., a] * f_dn)
+    return jnp.stack(out_hi + out_lo, axis=-1)
+
+
 def camera_fields(cam: CameraGeometry, density, light: LightField, params: Params) -> LatticeFields:
     """The node fields a camera marches through, from a converged light field.
 
@@ -228,6 +263,8 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         sigma_t, j_iso, j_sun = sup(sigma_t), sup(j_iso), sup(j_sun)
         j_slope = None if j_slope is None else sup_k(j_slope)
         j_aniso = None if j_aniso is None else sup_k(j_aniso)
+    if j_slope is not None:
+        j_slope = side_slopes(j_slope, sigma_t, cam.periodic_xy)
     if cam.has_surfaces:
         rad = ext(light.radiosity, cam.near_surface)
         irr = ext(light.irradiance, cam.near_surface)
