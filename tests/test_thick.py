@@ -116,26 +116,22 @@ def test_side_slopes_blend_one_linear_field_and_stop_where_the_fog_does():
 def test_a_density_grid_falling_to_zero_reflects_like_the_fogs_sharp_face():
     """A half-space whose density varies only with depth reflects as the uniform one: the
     thick cube's fog as a density grid of ones that drops to 0 above z = 1 (trilinear: a ramp
-    over one spacing, as a cloud's top) against the same fog ending at a sharp face, and both
-    against the semi-infinite value.  ζ = 1000, N = 12 (a step depth of ~180): the grid was
-    +15.6% before the cameras' slopes stopped where the fog does, the face +3.4%; now the grid
-    +0.1% (measured)."""
+    over one spacing, as a cloud's top) against the semi-infinite value, which the same fog
+    ending at a sharp face meets (the test above).  ζ = 1000, N = 12 (a step depth of ~180): the grid was
+    +19.7% before the cameras' slopes stopped where the fog does, the face +3.4%; now the grid
+    +0.1% (measured; ``benchmarks/thick_top.py`` has all three)."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from thick_top import VARIANTS, scene
 
-    means = {}
-    for variant in VARIANTS[1:]:
-        sc, n = scene(1000.0, 12, variant)
-        m = df.forward_model(sc, "sweep", accuracy=None, resolution=n, M=2, tol=1e-4,
-                             max_iterations=2000, supersample=1)
-        with pytest.warns(df.ThickStepWarning):
-            means[variant] = float(df.render(m).images["top"].mean())
-    face, grid = means[VARIANTS[1]], means[VARIANTS[2]]
+    sc, n = scene(1000.0, 12, VARIANTS[2])
+    m = df.forward_model(sc, "sweep", accuracy=None, resolution=n, M=2, tol=1e-4,
+                         max_iterations=2000, supersample=1)
+    with pytest.warns(df.ThickStepWarning):
+        grid = float(df.render(m).images["top"].mean())
     assert grid == pytest.approx(semi_infinite_value(), rel=0.03)
-    assert grid == pytest.approx(face, rel=0.05)
 
 
 # -- the diffusion preconditioner (issue 14, part 2) ------------------------------------------
