@@ -278,13 +278,11 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if _linear(scene, resolution, M, phase_order, scheme):
         per_iter *= LINEAR_COST
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
-    from .geometry._hits import casts_exactly
-
-    shadows = surfaces and scene.sun is not None and casts_exactly(scene)
+    from .geometry._hits import shadows_exactly
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
                  + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0)
-             + (SETUP_S_PER_NODE_SHADOW * n if shadows else 0))
+             + (SETUP_S_PER_NODE_SHADOW * n if shadows_exactly(scene) else 0))
     return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
 
 

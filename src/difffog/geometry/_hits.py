@@ -28,7 +28,8 @@ from ..scene._description import Box, OpenBox, Quad, Scene, Sphere, Torus
 from ._lattice import _TorusS
 from ._rays import _shape_meshes, cast_rays, scene_triangles
 
-__all__ = ["Hits", "casts_exactly", "first_hits", "sun_depth", "sun_visibility"]
+__all__ = ["Hits", "casts_exactly", "first_hits", "shadows_exactly", "sun_depth",
+           "sun_visibility"]
 
 @dataclass(frozen=True, eq=False)
 class Hits:
@@ -238,6 +239,13 @@ def casts_exactly(scene: Scene) -> bool:
     whose shapes repeat across its periodic sides (the caster does not repeat them).  The
     sweep then keeps the lattice's hits and shadow buffer."""
     return not (scene.domain.boundary == "periodic-xy" and bool(scene.shapes))
+
+
+def shadows_exactly(scene: Scene) -> bool:
+    """Whether the sweep takes the sun's shadow in the fog from exact shadow rays
+    (:func:`sun_visibility`): a sun, shapes to cast a shadow, and rays that see the scene as
+    it is (:func:`casts_exactly`)."""
+    return scene.sun is not None and bool(scene.shapes) and casts_exactly(scene)
 
 
 def first_hits(scene: Scene, origins, directions, *, t_min: float = 0.0) -> Hits:

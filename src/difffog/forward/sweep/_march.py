@@ -128,8 +128,8 @@ class LatticeFields(eqx.Module):
     # ``harmonics`` = (L, M), static)
     j_aniso: Float[Array, "nx ny nz K"] | None = None
     harmonics: tuple[int, int] | None = eqx.field(static=True, default=None)
-    # optional, the linear scheme (``SweepSolver.scheme``): each node's source changes by
-    # the linear scheme: each node's source change per lattice spacing along x, y, z, towards
+    # optional, the linear scheme (``SweepSolver.scheme``): each node's source change per
+    # lattice spacing along x, y, z, towards
     # the node's upper neighbours (channels 0-2) and towards its lower ones (3-5); the march
     # blends the nodes' own linear extrapolations j + j_slope·(x − x_node)/h with the
     # trilinear weights, each offset reading its side's channel (``SLOPE_CHANNELS``)

@@ -193,10 +193,11 @@ def side_slopes(slope, sigma_t, periodic_xy: bool):
     issue 14's half-space whose density grid drops to 0 above z = 1 was +10–17% brighter than
     the same fog ending at a sharp face, `benchmarks/thick_top.py`).  Outside the lattice the
     neighbour is the node itself (1); periodic x, y wrap."""
+    has = sigma_t > 0
+    safe = jnp.where(has, sigma_t, 1.0)
     out_hi, out_lo = [], []
     for a in range(3):
-        wrap = periodic_xy and a < 2
-        if wrap:
+        if periodic_xy and a < 2:
             up, dn = jnp.roll(sigma_t, -1, axis=a), jnp.roll(sigma_t, 1, axis=a)
         else:
             pad = [(0, 0)] * 3
@@ -205,8 +206,6 @@ def side_slopes(slope, sigma_t, periodic_xy: bool):
             n = sigma_t.shape[a]
             up = jax.lax.slice_in_dim(ext, 2, n + 2, axis=a)
             dn = jax.lax.slice_in_dim(ext, 0, n, axis=a)
-        has = sigma_t > 0
-        safe = jnp.where(has, sigma_t, 1.0)
         f_up = jnp.where(has, jnp.clip(up / safe, 0.0, 1.0), 1.0)
         f_dn = jnp.where(has, jnp.clip(dn / safe, 0.0, 1.0), 1.0)
         out_hi.append(slope[..., a] * f_up)

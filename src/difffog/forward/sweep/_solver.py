@@ -24,7 +24,7 @@ import lineax as lx
 import numpy as np
 
 from ...geometry._blocking import segment_blocking
-from ...geometry._hits import casts_exactly, sun_visibility
+from ...geometry._hits import shadows_exactly, sun_visibility
 from ...geometry._directions import (FACE_AXES, cosine_normalization, direction_set,
                                      face_plane_axes, sky_quadrature)
 from ...geometry._lattice import FREE, SOLID, SURFACE
@@ -208,7 +208,7 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         # casts exactly (not across a periodic domain's sides)
         vis_job = (pool.submit(sun_visibility, scene, nt.shape, lattice.origin, lattice.h,
                                sun_dir)
-                   if sun_dir is not None and scene.shapes and casts_exactly(scene) else None)
+                   if shadows_exactly(scene) else None)
         cnorm_job = pool.submit(cosines)
         faces = [FaceGeometry(**{k: jnp.asarray(a) for k, a in arrays.items()})
                  for arrays in pool.map(face_arrays, range(6))]
