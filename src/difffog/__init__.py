@@ -78,6 +78,7 @@ from .scene._params import (
     get_param as get_param,
     param_paths as param_paths,
     set_param as set_param,
+    with_density as with_density,
 )
 from .scene._toml import (
     apply_overrides as apply_overrides,

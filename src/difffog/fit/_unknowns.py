@@ -144,6 +144,10 @@ def _scene_value(scene: Scene, base: Params, path: str) -> float | None:
             raise DifffogError(f"unknown '{path}': camera '{cam}' has no target (the targets' "
                                f"cameras: {', '.join(names)})")
         return None
+    if path == "fog.density":
+        raise DifffogError("unknown 'fog.density' is a grid, not a scalar: fit it with "
+                           "difffog.fit_density(scene, targets) (the command line: difffog fit "
+                           "SCENE --unknown fog.density)")
     try:
         return float(get_param(base, scene, path))
     except SceneError as e:

@@ -338,8 +338,16 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
     if not len(lit) or not np.any(density):
         return cos_vis, depth
     lo = np.asarray(origin, float)
-    hi = lo + h * np.asarray(density.shape, float)
-    q = p[lit]
+    q, t_end = _sun_segment(p[lit], s, lo, density.shape, h, box)
+    depth[lit] = _midpoint_depth(np.asarray(density), q, s, lo, h, t_end, step * h)
+    return cos_vis, depth
+
+
+def _sun_segment(q, s, lo, shape, h: float, box=None):
+    """Where the path towards the sun (unit ``s``) from points ``q`` (R, 3) is integrated:
+    (start (R, 3), length (R,)), to the lattice box's edge and within the fog's ``box`` if
+    given (the start moved to where the path enters it; length 0 where it never does)."""
+    hi = lo + h * np.asarray(shape, float)
     with np.errstate(divide="ignore"):
         ta = np.where(s != 0, (lo - q) / s, np.inf)
         tb = np.where(s != 0, (hi - q) / s, np.inf)
@@ -355,8 +363,40 @@ def sun_depth(scene: Scene, points, normals, sun_dir, density, origin, h: float,
                            t_end)
         q = q + np.minimum(t_in, t_end)[:, None] * s
         t_end = np.maximum(t_out - t_in, 0.0)
-    depth[lit] = _midpoint_depth(np.asarray(density), q, s, lo, h, t_end, step * h)
-    return cos_vis, depth
+    return q, t_end
+
+
+def sun_depth_plan(points, lit, sun_dir, density, origin, h: float, *, step: float = 0.5,
+                   box=None):
+    """The samples of :func:`sun_depth`'s midpoint rule for points whose path towards the sun
+    is wanted (``lit`` (R,) bool; the shadow rays are the caller's), for a density that is not
+    known yet but is 0 wherever ``density`` is (a traced density grid with the scene grid's
+    support): (start q (R, 3), first sample j0 (R,) int, sample count n (R,) int, t_end/ds
+    (R,)), so that depth = ds·Σ_{j0 ≤ j < j0 + n} clip(t_end/ds − j, 0, 1)·ρ(q + (j + ½)·ds·s),
+    ds = step·h: the same samples as :func:`_midpoint_depth` takes (0 for the unlit)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    s = np.asarray(sun_dir, np.float64)
+    s = s / np.linalg.norm(s)
+    lo = np.asarray(origin, float)
+    density = np.asarray(density)
+    q, t_end = _sun_segment(p, s, lo, density.shape, h, box)
+    ds = step * h
+    nz = np.argwhere(density != 0)
+    lit = np.asarray(lit, bool)
+    if not len(nz):
+        lit = np.zeros_like(lit)
+        a = b = np.zeros(3)
+    else:
+        a, b = nz.min(axis=0).astype(float), nz.max(axis=0).astype(float)
+    u0 = (q - lo) / h - 0.5
+    n_end = np.ceil(t_end / ds)
+    ts0, ts1 = _node_span(u0, s / h, a - 1.0, b + 1.0)
+    with np.errstate(invalid="ignore"):
+        j0 = np.clip(np.ceil(ts0 / ds - 0.5) - 1, 0, n_end)
+        j1 = np.clip(np.floor(ts1 / ds - 0.5) + 1, -1, n_end - 1)
+    n = np.where(lit & np.isfinite(j0) & np.isfinite(j1), np.maximum(j1 - j0 + 1, 0), 0)
+    j0 = np.where(n > 0, j0, 0)
+    return q, j0.astype(np.int64), n.astype(np.int64), t_end / ds
 
 
 def sun_visibility(scene: Scene, shape, origin, h: float, sun_dir, *, sub: int = 3) -> np.ndarray:

@@ -106,6 +106,9 @@ class Lattice:
     # at a hit): trilinear between the last fog node and a SOLID node it does not fall to 0
     # half-way; None: ``density``
     fog_density: np.ndarray | None = None
+    # a density grid's fog: ``density`` and ``fog_density`` as linear maps of the grid (what a
+    # fit of the density traces); None for a uniform fog
+    density_map: "DensityMap | None" = None
 
     def counts(self) -> dict[str, int]:
         """Number of nodes of each type: ``{"free": …, "surface": …, "solid": …}``."""
@@ -232,7 +235,9 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
         normal[idx] = nv
 
     fog_density, cell_fog = _density(scene, grid)
-    density = _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid)
+    grid_fog = scene.fog is not None and scene.fog.density is not None
+    parts = [] if grid_fog else None
+    density = _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid, parts)
     return Lattice(
         shape=n,
         h=grid.h,
@@ -245,6 +250,7 @@ def voxelize(scene: Scene, resolution: int, M: int, *, normals: str = "auto",
         density=density,
         sdf=sdf32,
         fog_density=fog_density,
+        density_map=_density_map(scene, grid, parts) if grid_fog else None,
     )
 
 
@@ -1297,20 +1303,7 @@ def _density(scene: Scene, grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
     fog = scene.fog
     if fog is None:
         return np.zeros(grid.shape, np.float32), np.zeros(grid.shape)
-    if fog.region is not None:
-        (r0, r1) = (np.asarray(fog.region[0], float), np.asarray(fog.region[1], float))
-    else:
-        r0, r1 = grid.domain_min, grid.domain_min + grid.domain_size
-    r0 = np.maximum(r0, grid.domain_min)  # the fog never leaves the domain (vacuum margin)
-    r1 = np.minimum(r1, grid.domain_min + grid.domain_size)
-    ins, share = [], []
-    for a in range(3):
-        x = grid.axis_coords(a)
-        ins.append((x >= r0[a]) & (x <= r1[a]))
-        lo, hi = np.maximum(x - grid.h / 2, r0[a]), np.minimum(x + grid.h / 2, r1[a])
-        # a face on a cell boundary must give exactly 0 and 1, not 1e-15 of fog in the vacuum
-        # margin (a node with any fog is a fog node to the solver)
-        share.append(_exact_ends(np.clip((hi - lo) / grid.h, 0.0, 1.0)))
+    ins, share = _region_factors(fog, grid)
     mask = ins[0][:, None, None] & ins[1][None, :, None] & ins[2][None, None, :]
     cell = share[0][:, None, None] * share[1][None, :, None] * share[2][None, None, :]
     if fog.density is None:
@@ -1326,13 +1319,116 @@ def _density(scene: Scene, grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
     return np.multiply(g, mask, out=out), g * cell  # in float64, rounded on the way out
 
 
+def _region_factors(fog, grid: _Grid):
+    """Per axis, which nodes lie inside the fog's region (bool) and the share of each node's
+    cell inside it (float64, exactly 0 or 1 away from the region's faces)."""
+    if fog.region is not None:
+        (r0, r1) = (np.asarray(fog.region[0], float), np.asarray(fog.region[1], float))
+    else:
+        r0, r1 = grid.domain_min, grid.domain_min + grid.domain_size
+    r0 = np.maximum(r0, grid.domain_min)  # the fog never leaves the domain (vacuum margin)
+    r1 = np.minimum(r1, grid.domain_min + grid.domain_size)
+    ins, share = [], []
+    for a in range(3):
+        x = grid.axis_coords(a)
+        ins.append((x >= r0[a]) & (x <= r1[a]))
+        lo, hi = np.maximum(x - grid.h / 2, r0[a]), np.minimum(x + grid.h / 2, r1[a])
+        # a face on a cell boundary must give exactly 0 and 1, not 1e-15 of fog in the vacuum
+        # margin (a node with any fog is a fog node to the solver)
+        share.append(_exact_ends(np.clip((hi - lo) / grid.h, 0.0, 1.0)))
+    return ins, share
+
+
+def _lerp_matrix(n_grid: int, u) -> np.ndarray:
+    """(len(u), n_grid): ``_lerp_axis`` as a matrix (trilinear between cell centres, clamped)."""
+    return _lerp_axis(np.eye(n_grid)[:, :, None], u, 0)[:, :, 0]
+
+
+@dataclass(frozen=True, eq=False)
+class DensityMap:
+    """The lattice's fog fields as linear maps of a density grid of ``grid_shape`` (cell-centred
+    over the domain, indexed [ix, iy, iz] as scene files are): what makes ``fog.density`` an
+    unknown (``Params.density``) while the geometry stays on the host.
+
+    ``fog_density`` (the fog's own density at the nodes) is the grid interpolated per axis
+    (``at_node``: trilinear, clamped, × the region's mask); ``density`` (the fog each node's
+    cell holds, the solver's) is the grid × the cell's share in the region (``in_cell``), × the
+    share of the cell outside the solids (``keep``), plus the fog of SOLID cells moved onto a
+    neighbour (``src`` → ``dst``, flat indices, × ``moved``): ``_fog_volumes`` as a linear map.
+    Which cells beside a surface hold fog is fixed by the grid the map was built for (a grid
+    that is 0 where that one was not, or the other way round, moves its SOLID cells' fog as
+    that one would); a fit that keeps the grid positive where it was (log or softplus
+    parameters) stays exact.
+    """
+
+    grid_shape: tuple[int, int, int]
+    at_node: tuple[np.ndarray, np.ndarray, np.ndarray]  # (n_a, g_a) float64
+    in_cell: tuple[np.ndarray, np.ndarray, np.ndarray]  # (n_a, g_a) float64
+    keep: np.ndarray  # (nx, ny, nz) float64, 0 at SOLID nodes
+    src: np.ndarray  # (K,) int64
+    dst: np.ndarray  # (K,) int64
+    moved: np.ndarray  # (K,) float64
+
+    def apply(self, grid, xp=np):
+        """(fog_density, density) on the lattice for ``grid`` (NumPy, or ``jax.numpy``: then
+        traced and differentiable), in ``grid``'s dtype."""
+        return apply_density_map(self, grid, xp)
+
+
+def apply_density_map(m, grid, xp=np):
+    """:meth:`DensityMap.apply` for ``m``, a ``DensityMap`` or anything with its fields (the
+    sweep model keeps them as device arrays)."""
+    grid = xp.asarray(grid)
+    if tuple(grid.shape) != tuple(m.grid_shape):
+        raise SceneError(f"fog.density: a grid of shape {tuple(grid.shape)} was given, but "
+                         f"the model was built for the scene's grid of shape "
+                         f"{tuple(m.grid_shape)}; build the model from a scene whose fog has a "
+                         f"grid of that shape (scene.replace(fog=...))")
+    dt = grid.dtype
+
+    def sep(mats):
+        out = grid
+        for a, mat in enumerate(mats):  # contract one axis at a time (small GEMMs)
+            out = xp.moveaxis(xp.tensordot(xp.asarray(mat, dt), out, axes=([1], [a])), 0, a)
+        return out
+
+    fog = sep(m.at_node)
+    cell = sep(m.in_cell)
+    dens = cell * xp.asarray(m.keep, dt)
+    if len(m.src):
+        add = cell.reshape(-1)[m.src] * xp.asarray(m.moved, dt)
+        flat = dens.reshape(-1)
+        if xp is np:
+            np.add.at(flat, m.dst, add)
+            dens = flat.reshape(dens.shape)
+        else:
+            dens = flat.at[m.dst].add(add).reshape(dens.shape)
+    return fog, dens
+
+
+def _density_map(scene: Scene, grid: _Grid, volume_parts) -> DensityMap:
+    ins, share = _region_factors(scene.fog, grid)
+    g = np.asarray(scene.fog.density)
+    at_node, in_cell = [], []
+    for a in range(3):
+        x = grid.axis_coords(a)
+        u = (x - grid.domain_min[a]) / grid.domain_size[a] * g.shape[a] - 0.5
+        m = _lerp_matrix(g.shape[a], u)
+        at_node.append(m * ins[a][:, None])
+        in_cell.append(m * share[a][:, None])
+    keep, src, dst, moved = volume_parts
+    return DensityMap(grid_shape=tuple(int(n) for n in g.shape), at_node=tuple(at_node),
+                      in_cell=tuple(in_cell), keep=keep, src=src, dst=dst, moved=moved)
+
+
 # the half-diagonal of a cell in cells: a node farther than this from every surface has its
 # whole cell on one side
 _HALF_DIAGONAL = 0.5 * math.sqrt(3.0)
 _COLUMNS = 8  # midpoint columns per cell side for a cell's share on one side of a plane
 
 
-def _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid) -> np.ndarray:
+def _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid, parts: list | None = None
+                 ) -> np.ndarray:
     """The lattice's density (float32): each node's ``cell_fog`` × the share of its cell outside
     the solids, and the fog of the cells of SOLID nodes moved onto a non-SOLID neighbour, so
     that Σ density·h³ is the scene's fog volume at every resolution.
@@ -1351,7 +1447,10 @@ def _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid) -> np.ndarray:
     where the tangent plane overestimates a share, is left out).  SOLID nodes keep density 0.
     """
     out = np.zeros(grid.shape, np.float64)
+    none = np.zeros(0, np.int64)
     if not cell_fog.any():
+        if parts is not None:
+            parts.extend((np.where(solid, 0.0, 1.0), none, none, np.zeros(0)))
         return out.astype(np.float32)
     h = grid.h
     frac = np.where(solid, 0.0, 1.0)
@@ -1364,6 +1463,7 @@ def _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid) -> np.ndarray:
         frac[band] = f
     np.multiply(cell_fog, frac, out=out)
     np.copyto(out, 0.0, where=solid)
+    moves = (none, none, np.zeros(0))
     if band[0].size:
         give = solid[band] & (f > 0)
         if give.any():
@@ -1371,6 +1471,10 @@ def _fog_volumes(cell_fog, sdf, solid, owner, shapes, grid) -> np.ndarray:
             dst = _outward_neighbour(src, normal[give], sdf, solid | (cell_fog <= 0), grid)
             ok = dst[0] >= 0
             np.add.at(out, tuple(i[ok] for i in dst), (cell_fog[src] * f[give])[ok])
+            moves = (np.ravel_multi_index(tuple(i[ok] for i in src), grid.shape),
+                     np.ravel_multi_index(tuple(i[ok] for i in dst), grid.shape), f[give][ok])
+    if parts is not None:  # the linear map, for ``DensityMap``
+        parts.extend((np.where(solid, 0.0, frac),) + moves)
     return out.astype(np.float32)
 
 

@@ -4,7 +4,8 @@
 per-shape albedo and emission, and the light intensities.  Geometry (shapes, sun direction,
 the lattice) is static.  The same dotted paths serve ``--set`` overrides and the unknowns of
 a fit: ``fog.scattering``, ``fog.absorption``, ``fog.g``, ``sun.irradiance``, ``sky.radiance``,
-``shape.<name>.albedo``, ``shape.<name>.emission``.
+``shape.<name>.albedo``, ``shape.<name>.emission``; and ``fog.density``, the density grid
+(an array, traced by the sweep solver only: ``with_density``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ class Params(eqx.Module):
     emission: Float[Array, " shapes"]  # emitted radiance per shape
     sun_irradiance: Float[Array, ""]
     sky_radiance: Float[Array, ""]
+    # the fog's density grid as an unknown (cell-centred over the domain, [ix, iy, iz] as scene
+    # files index it), or None: the scene's own density, fixed on the host.  Only the sweep
+    # solver traces it (``with_density``; the lattice maps it by ``Lattice.density_map``).
+    density: Float[Array, "gx gy gz"] | None = None
 
     @classmethod
     def from_scene(cls, scene: Scene, dtype=None) -> "Params":
@@ -51,9 +56,26 @@ _SCALAR_PATHS = {
 }
 
 
+def with_density(params: Params, grid) -> Params:
+    """``params`` with the fog's density grid ``grid`` (a 3-D array, cell-centred over the
+    domain, indexed [ix, iy, iz]) as a traced parameter, in the parameters' dtype.
+
+    The model maps it onto its lattice as it maps the scene's own grid (same shape); cells where
+    the scene's grid is 0 must stay 0 (the light solve's and the cameras' work is restricted to
+    where the scene's fog can be: fog appearing there is a discontinuity, not a derivative), as
+    they do under a fit's log parameters (:func:`difffog.fit_density`)."""
+    g = jnp.asarray(grid, dtype=params.scattering.dtype)
+    if g.ndim != 3:
+        raise SceneError(f"fog.density must be a 3-D grid [ix, iy, iz], got shape {g.shape}")
+    return eqx.tree_at(lambda p: p.density, params, g, is_leaf=lambda x: x is None)
+
+
 def param_paths(scene: Scene) -> list[str]:
-    """Every dotted path of this scene that names a differentiable parameter."""
+    """Every dotted path of this scene that names a differentiable parameter (``fog.density``:
+    the density grid, an array; the rest are scalars)."""
     out = list(_SCALAR_PATHS)
+    if scene.fog is not None:
+        out.append("fog.density")
     for s in scene.shapes:
         out += [f"shape.{s.name}.albedo", f"shape.{s.name}.emission"]
     return out
@@ -62,6 +84,8 @@ def param_paths(scene: Scene) -> list[str]:
 def _locate(scene: Scene, path: str):
     if path in _SCALAR_PATHS:
         return _SCALAR_PATHS[path], None
+    if path == "fog.density" and scene.fog is not None:
+        return "density", None
     parts = path.split(".")
     if len(parts) == 3 and parts[0] == "shape" and parts[2] in ("albedo", "emission"):
         names = [s.name for s in scene.shapes]
@@ -80,11 +104,17 @@ def _locate(scene: Scene, path: str):
 def get_param(params: Params, scene: Scene, path: str):
     leaf, idx = _locate(scene, path)
     v = getattr(params, leaf)
+    if leaf == "density" and v is None:  # the scene's own grid (1 for a uniform fog)
+        d = scene.fog.density
+        return jnp.ones((1, 1, 1), params.scattering.dtype) if d is None else jnp.asarray(
+            d, params.scattering.dtype)
     return v if idx is None else v[idx]
 
 
 def set_param(params: Params, scene: Scene, path: str, value) -> Params:
     leaf, idx = _locate(scene, path)
+    if leaf == "density":
+        return with_density(params, value)
     if idx is None:
         new = jnp.asarray(value, dtype=getattr(params, leaf).dtype)
     else:

@@ -200,9 +200,10 @@ class SplatModel(AbstractForwardModel):
         return {"scattered_phase": o["scattered_phase"], "similarity": o["similarity"]}
 
     def check(self, params: Params) -> None:
-        return None
+        _no_density(params)
 
     def light(self, params: Params) -> SheetLight:
+        _no_density(params)
         images, streams = {}, []
         for cam, geo in zip(self.cameras, self.passes):
             img, ys = splat_pass(geo, params, return_light=True, **self._pass_options())
@@ -244,3 +245,10 @@ class SplatModel(AbstractForwardModel):
             "dtype": str(jnp.result_type(float)),
             "setup_s": dict(self.host.setup_s),
         }
+
+
+def _no_density(params: Params) -> None:
+    if params.density is not None:
+        raise SceneError("fog.density: the splat solver takes the scene's density grid as "
+                         "fixed and does not trace it; render or fit a density with the sweep "
+                         "solver (forward_model(scene, \"sweep\"))")

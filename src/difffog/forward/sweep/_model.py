@@ -18,13 +18,15 @@ from scipy import ndimage
 
 from ..._numerics import FOUR_PI
 from ...geometry._hits import casts_exactly
-from ...geometry._lattice import SOLID, SURFACE, Lattice, voxelize
+from ..._errors import SceneError
+from ...geometry._lattice import SOLID, SURFACE, Lattice, apply_density_map, voxelize
 from ...scene._description import Camera, Scene
 from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
-from ._march import LatticeFields, RayHits, camera_hits, edge_pixels, render_camera
+from ._march import (LatticeFields, RayHits, _flat_table, _interp, camera_hits, edge_pixels,
+                     render_camera)
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
@@ -97,17 +99,23 @@ def _sun_path(scene: Scene, lattice, fog_box, ranges) -> np.ndarray:
     else:
         path = np.asarray(sun_path(jnp.asarray(lattice.fog_density, jnp.float32), s, lattice.h,
                                    lattice.boundary == "periodic-xy"), np.float64)
-    for a, (i0, i1) in enumerate(ranges):  # continue linearly past the box, axis by axis
+    return _continue_past_box(path, ranges, np)
+
+
+def _continue_past_box(path, ranges, xp):
+    """``path`` continued linearly past the fog's box (node index ``ranges`` per axis) from its
+    last two nodes inside, axis by axis (NumPy or jax.numpy)."""
+    for a, (i0, i1) in enumerate(ranges):
         n = path.shape[a]
         i = np.arange(n)
-        take = lambda k: np.take(path, np.full(n, k), axis=a)  # noqa: E731
+        take = lambda k: xp.take(path, np.full(n, k), axis=a)  # noqa: E731
         lo_slope = take(i0) - take(min(i0 + 1, i1))
         hi_slope = take(i1) - take(max(i1 - 1, i0))
         shape = [1, 1, 1]
         shape[a] = n
         below = np.clip(i0 - i, 0, None).reshape(shape)
         above = np.clip(i - i1, 0, None).reshape(shape)
-        path = (np.take(path, np.clip(i, i0, i1), axis=a) + below * lo_slope
+        path = (xp.take(path, np.clip(i, i0, i1), axis=a) + below * lo_slope
                 + above * hi_slope)
     return path
 
@@ -137,6 +145,9 @@ class CameraGeometry(eqx.Module):
     # without shapes; extended into solids from the nearest fluid node)
     sun_path: jax.Array | None = None
     sun_vis: jax.Array | None = None
+    # the node index ranges of the fog's box per axis (``_fog_support``), for a traced density's
+    # ``sun_path``; None without ``fog_box``
+    support_ranges: tuple | None = eqx.field(static=True, default=None)
 
     @classmethod
     def build(cls, scene: Scene, lattice, exact_hits: bool = False,
@@ -150,7 +161,7 @@ class CameraGeometry(eqx.Module):
         # the lattice's hits the fog fades over the last spacing, and the node-mean sun stays)
         support = (_fog_support(scene, lattice) if exact_hits and lattice.fog_density is not None
                    else None)
-        fog_box = support_index = sun_path = sun_vis = None
+        fog_box = support_index = sun_path = sun_vis = ranges = None
         if support is not None:
             fog_box, ranges = support
             sharp = _clamped_index(lattice.shape, ranges)
@@ -164,6 +175,8 @@ class CameraGeometry(eqx.Module):
                 sun_vis = jnp.asarray(vis.reshape(nt.shape))
         return cls(
             fog_box=fog_box, support_index=support_index, sun_path=sun_path, sun_vis=sun_vis,
+            support_ranges=None if ranges is None else tuple(
+                (int(a), int(b)) for a, b in ranges),
             near_fluid=jnp.asarray(near_fluid),
             fog_density=(jnp.asarray(lattice.fog_density, jnp.float32) if exact_hits
                          and lattice.fog_density is not None else None),
@@ -295,6 +308,85 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     )
 
 
+class HitSunPlan(eqx.Module):
+    """One camera's exact hits: the samples of their path towards the sun
+    (``geometry._hits.sun_depth_plan``), for a traced density."""
+
+    start: jax.Array  # (R, 3)
+    j0: jax.Array  # (R,) int32
+    count: jax.Array  # (R,) int32
+    t_end: jax.Array  # (R,) the path's length in steps
+    steps: int = eqx.field(static=True)  # the largest count
+    ds: float = eqx.field(static=True)
+
+
+class DensityOperators(eqx.Module):
+    """What a traced density grid (``Params.density``) needs on the device: the lattice's
+    ``DensityMap`` (its fields as device arrays) and, per camera with exact hits, the samples of
+    each hit's path towards the sun (the same midpoint rule as the host's
+    ``geometry._hits.sun_depth``, through the traced density: the same values at the scene's
+    grid, and exact gradients).  A traced grid must be 0 where the scene's grid is 0 (the
+    samples are those that can meet fog)."""
+
+    at_node: tuple[jax.Array, jax.Array, jax.Array]
+    in_cell: tuple[jax.Array, jax.Array, jax.Array]
+    keep: jax.Array
+    src: jax.Array
+    dst: jax.Array
+    moved: jax.Array
+    hit_plans: tuple[HitSunPlan, ...] | None
+    grid_shape: tuple[int, int, int] = eqx.field(static=True)
+
+    @classmethod
+    def build(cls, lattice, hits, sun_dir, fog_box, fog) -> "DensityOperators":
+        """``fog``: the density the host's hits integrate (the fog's own, continued past its
+        box), at the scene's grid."""
+        from ...geometry._hits import sun_depth_plan
+
+        m = lattice.density_map
+        plans = None
+        if hits is not None and sun_dir is not None:
+            plans = []
+            for h in hits:
+                t = np.asarray(h.t, np.float64)
+                p = (np.asarray(h.origins, np.float64) + np.where(np.isfinite(t), t, 0.0)[:, None]
+                     * np.asarray(h.directions, np.float64))
+                q, j0, n, te = sun_depth_plan(p, np.asarray(h.sun_cos) > 0, sun_dir, fog,
+                                              lattice.origin, lattice.h, box=fog_box)
+                plans.append(HitSunPlan(start=jnp.asarray(q), j0=jnp.asarray(j0, jnp.int32),
+                                        count=jnp.asarray(n, jnp.int32), t_end=jnp.asarray(te),
+                                        steps=int(n.max(initial=0)), ds=0.5 * lattice.h))
+            plans = tuple(plans)
+        dev = lambda a: tuple(jnp.asarray(x) for x in a)  # noqa: E731
+        return cls(at_node=dev(m.at_node), in_cell=dev(m.in_cell), keep=jnp.asarray(m.keep),
+                   src=jnp.asarray(m.src, jnp.int32), dst=jnp.asarray(m.dst, jnp.int32),
+                   moved=jnp.asarray(m.moved), hit_plans=plans, grid_shape=tuple(m.grid_shape))
+
+
+def _hit_sun_depth(fog, plan: HitSunPlan, sun_dir, origin, h: float, periodic_xy: bool):
+    """∫ fog ds towards the sun from each hit (``HitSunPlan``): the midpoint rule through the
+    trilinear field, one sample of every ray per step (rematerialized in reverse mode: the
+    gradient keeps one (R,) vector per step, not the stencils)."""
+    dt = fog.dtype
+    R = plan.start.shape[0]
+    if plan.steps == 0:
+        return jnp.zeros(R, dt)
+    table = _flat_table([fog], dt)
+    geo = (np.asarray(origin, np.float64), h, tuple(fog.shape), periodic_xy)
+    s = jnp.asarray(np.asarray(sun_dir, np.float64) / np.linalg.norm(sun_dir), dt)
+    start, te = plan.start.astype(dt), plan.t_end.astype(dt)
+
+    @jax.checkpoint
+    def body(acc, k):
+        j = plan.j0 + k
+        x = start + ((j.astype(dt) + 0.5) * plan.ds)[:, None] * s
+        w = jnp.where(k < plan.count, jnp.clip(te - j.astype(dt), 0.0, 1.0), 0.0)
+        return acc + w * _interp(table, x, geo)[:, 0], None
+
+    acc, _ = jax.lax.scan(body, jnp.zeros(R, dt), jnp.arange(plan.steps))
+    return acc * plan.ds
+
+
 class SweepModel(AbstractForwardModel):
     """The sweep's forward model (final): a scene prepared for repeated, differentiable renders.
 
@@ -318,6 +410,7 @@ class SweepModel(AbstractForwardModel):
     camera_geometry: CameraGeometry
     density: jax.Array
     hits: tuple[RayHits, ...] | None
+    density_ops: DensityOperators | None  # a density grid's linear maps (``Params.density``)
     resolution: int = eqx.field(static=True)
     supersample: int = eqx.field(static=True)
     host: HostInfo = eqx.field(static=True)
@@ -360,6 +453,15 @@ class SweepModel(AbstractForwardModel):
                             lattice.shape, periodic, sun_box=sun_box) for c in self.cameras)
         else:
             self.hits = None
+        self.density_ops = None
+        if lattice.density_map is not None:
+            cg = self.camera_geometry
+            fog = lattice.fog_density
+            if cg.support_index is not None:
+                fog = np.asarray(fog).reshape(-1)[np.asarray(cg.support_index)]
+            self.density_ops = DensityOperators.build(
+                lattice, self.hits, cg.sun_dir, cg.fog_box,
+                np.asarray(fog).reshape(lattice.shape))
         self.host = HostInfo(lattice=lattice, setup_s={
             "voxelize_s": voxelize_s, "prepare_s": prepare_s,
             "camera_hits_s": time.perf_counter() - t})
@@ -390,8 +492,9 @@ class SweepModel(AbstractForwardModel):
         """Warn above a step optical depth σ_t·h·M of 1 (``THICK_STEP``)."""
         lat = self.lattice
         try:
+            peak = lat.peak_density if params.density is None else float(jnp.max(params.density))
             depth = step_depth(params.scattering, params.absorption, params.g,
-                               self.geometry.order, lat.peak_density, lat.h, lat.M)
+                               self.geometry.order, peak, lat.h, lat.M)
         except (TypeError, jax.errors.ConcretizationTypeError):  # traced or batched: no check
             return None
         if depth <= THICK_STEP:
@@ -403,12 +506,45 @@ class SweepModel(AbstractForwardModel):
                 f"(docs/validation.md); resolution >= {need} (or a smaller M) brings the step "
                 f"to {THICK_STEP:g}")
 
+    def _with_density(self, params: Params):
+        """(solver geometry, camera geometry, the cameras' density, hits) for ``params``: the
+        host's, or with ``params.density`` (a traced grid) mapped onto the lattice."""
+        if params.density is None:
+            return self.geometry, self.camera_geometry, self.density, self.hits
+        ops = self.density_ops
+        if ops is None:
+            raise SceneError(
+                "fog.density: this model's scene has a uniform fog, so its density is not a "
+                "grid it can trace; give the scene's fog a density grid (e.g. "
+                "scene.replace(fog=dataclasses.replace(scene.fog, density=np.ones((16,) * 3))))")
+        dt = params.scattering.dtype
+        fog, dens = apply_density_map(ops, params.density.astype(dt), jnp)
+        solid = self.geometry.solid
+        geom = eqx.tree_at(lambda g: g.density, self.geometry, jnp.where(solid, 0.0, dens))
+        cg, hits = self.camera_geometry, self.hits
+        if cg.fog_density is not None:
+            cg = eqx.tree_at(lambda c: c.fog_density, cg, fog)
+        if cg.sun_path is not None:
+            path = _continue_past_box(sun_path(fog, cg.sun_dir, cg.h, cg.periodic_xy),
+                                      cg.support_ranges, jnp)
+            cg = eqx.tree_at(lambda c: c.sun_path, cg, path)
+        if hits is not None and ops.hit_plans is not None:
+            ext = fog if cg.support_index is None else fog.reshape(-1)[cg.support_index].reshape(
+                fog.shape)
+            hits = tuple(
+                eqx.tree_at(lambda r: r.sun_depth, h, _hit_sun_depth(
+                    ext, plan, cg.sun_dir, cg.origin, cg.h, cg.periodic_xy))
+                for h, plan in zip(hits, ops.hit_plans))
+        return geom, cg, jnp.where(solid, 0.0, fog), hits
+
     def light(self, params: Params) -> LightField:
-        return self.solver.solve(self.geometry, params)
+        geom, *_ = self._with_density(params)
+        return self.solver.solve(geom, params)
 
     def images_from(self, light: LightField, params: Params) -> dict[str, jax.Array]:
-        f = camera_fields(self.camera_geometry, self.density, light, params)
-        hits = self.hits if self.hits is not None else (None,) * len(self.cameras)
+        _, cg, density, hits = self._with_density(params)
+        f = camera_fields(cg, density, light, params)
+        hits = hits if hits is not None else (None,) * len(self.cameras)
         return {c.name: render_camera(f, c, supersample=self.supersample, hits=h)
                 for c, h in zip(self.cameras, hits)}
 

@@ -1,0 +1,128 @@
+"""The fog's density grid as an unknown (``Params.density``): the lattice's linear maps of the
+grid, the traced forward model against the host's, and its gradient for every cell against
+finite differences in float64."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import difffog as df
+from difffog.geometry._lattice import voxelize
+from helpers import small_scene
+
+
+def tiny_cloud(grid: int = 8, size=(16, 16), cameras=("top", "view0")):
+    """cloud-tomo with its 32³ cloud averaged down to ``grid``³ cells and ``cameras`` at
+    ``size`` pixels."""
+    scene = df.load_scene("cloud-tomo")
+    g = np.asarray(scene.fog.density, np.float64)
+    k = g.shape[0] // grid
+    g = g.reshape(grid, k, grid, k, grid, k).mean(axis=(1, 3, 5))
+    cams = tuple(dataclasses.replace(scene.camera(c), resolution=size) for c in cameras)
+    return scene.replace(fog=dataclasses.replace(scene.fog, density=g), cameras=cams)
+
+
+#: the tiny cloud's lattice steps are optically thick (σ_t·h·M up to 6.6): "auto" would pick the
+#: linear scheme, which these tests of the density's plumbing do not need (and it compiles
+#: longer)
+TINY = dict(scheme="step")
+
+
+def with_grid(scene, g):
+    return scene.replace(fog=dataclasses.replace(scene.fog, density=np.asarray(g)))
+
+
+@pytest.mark.parametrize("name", ["cloud-tomo", "fog-balls"])
+def test_density_map_gives_the_lattices_fog(name):
+    """The grid's linear map reproduces what voxelize computes on the host (the fog's own
+    density and each cell's fog volume, with SOLID cells' fog moved beside fog-balls' walls
+    and balls), to float32 rounding, and is linear (a sum of grids maps to the sum)."""
+    scene = df.load_scene(name)
+    rng = np.random.default_rng(0)
+    if name == "fog-balls":  # a uniform fog: give it a positive random grid
+        scene = with_grid(scene, rng.uniform(0.2, 1.5, (6, 5, 7)))
+    lat = voxelize(scene, 20, 3, margin=4)
+    m = lat.density_map
+    g = np.asarray(scene.fog.density, np.float64)
+    fog, dens = m.apply(g)
+    assert np.abs(fog - lat.fog_density).max() <= 2e-7 * lat.fog_density.max()
+    assert np.abs(dens - lat.density).max() <= 2e-7 * lat.density.max()
+    if name == "fog-balls":
+        assert len(m.src) > 0  # the walls' and balls' cells moved fog: the map has those too
+    other = rng.uniform(0.0, 1.0, g.shape) * (g > 0)
+    f2, d2 = m.apply(other)
+    f3, d3 = m.apply(g + other)
+    np.testing.assert_allclose(f3, fog + f2, atol=1e-12)
+    np.testing.assert_allclose(d3, dens + d2, atol=1e-12)
+
+
+def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
+    """``with_density(params, scene's grid)`` gives every field the model derives from the
+    density as the host computed it for the fixed grid: the solver's cell fog, the cameras'
+    density and sun path, and each exact hit's depth towards the sun (the same midpoint
+    samples); twice the grid doubles the hits' depths (linear); a uniform fog and a grid of
+    another shape are refused with one line each."""
+    scene = tiny_cloud()
+    model = df.forward_model(scene, "sweep", resolution=12, M=2, supersample=1, accuracy=None,
+                             **TINY)
+    p = model.params()
+    g = np.asarray(scene.fog.density)
+    host = model._with_density(p)
+    traced = jax.jit(lambda q: model._with_density(q)[1:])  # the solver's: the same map
+    geom, cam, dens, hits = model._with_density(df.with_density(p, g))
+    cam2, _, hits2 = traced(df.with_density(p, 2 * g))
+    close = lambda a, b: np.testing.assert_allclose(  # noqa: E731
+        np.asarray(a), np.asarray(b), rtol=0, atol=2e-6 * float(np.abs(np.asarray(b)).max()))
+    close(geom.density, host[0].density)
+    close(dens, host[2])
+    close(cam.fog_density, host[1].fog_density)
+    close(cam.sun_path, host[1].sun_path)
+    lit = 0
+    for h, h0, h2 in zip(hits, host[3], hits2):
+        close(h.sun_depth, h0.sun_depth)
+        close(h2.sun_depth, 2 * np.asarray(h0.sun_depth))
+        lit += int(np.sum(np.asarray(h0.sun_depth) > 0.01))
+    assert lit > 50  # the cloud's shadow falls on ground the cameras see
+    m2 = df.forward_model(small_scene(), "sweep", resolution=12, M=2, supersample=1,
+                          accuracy=None)
+    with pytest.raises(df.SceneError, match="uniform fog"):
+        m2.images(df.with_density(m2.params(), np.ones((4, 4, 4))))
+    with pytest.raises(df.SceneError, match="shape"):
+        model.images(df.with_density(p, np.ones((4, 4, 4))))
+
+
+def test_density_gradient_matches_finite_differences(x64):
+    """d(loss)/d(cell) by reverse mode through the implicit light solve (one adjoint solve for
+    all 512 cells) against central differences on the cloud's densest, a middling and its
+    thinnest cell, float64."""
+    scene = tiny_cloud(size=(12, 12), cameras=("view0",))
+    model = df.forward_model(scene, "sweep", resolution=10, M=2, tol=1e-11, max_iterations=400,
+                             supersample=1, accuracy=None, **TINY)
+    p = model.params()
+    g0 = jnp.asarray(scene.fog.density, jnp.float64)
+    rng = np.random.default_rng(3)
+    wts = {c.name: jnp.asarray(rng.random((c.height, c.width))) for c in model.cameras}
+
+    def loss(g):
+        imgs = model.images(df.with_density(p, g))
+        return sum(jnp.sum(wts[c] * imgs[c]) for c in imgs)
+
+    vg = jax.jit(jax.value_and_grad(loss))  # one compiled program for both (compile time)
+    grad = np.asarray(vg(g0)[1])
+    f = lambda g: vg(g)[0]  # noqa: E731
+    g = np.asarray(g0)
+    pos = np.flatnonzero(g > 0)
+    order = pos[np.argsort(g.flat[pos])]
+    # the densest cell, a middling one and the thinnest (the grid's zeros stay zero: the traced
+    # density keeps the scene grid's support, as a fit's log parameters do)
+    cells = [np.unravel_index(i, g.shape) for i in (order[-1], order[len(order) // 2], order[0])]
+    for cell in cells:
+        eps = 1e-4
+        fd = (float(f(g0.at[cell].add(eps))) - float(f(g0.at[cell].add(-eps)))) / (2 * eps)
+        assert abs(fd) > 1e-6, cell  # the cell reaches the images
+        assert grad[cell] == pytest.approx(fd, rel=1e-5, abs=1e-9 * np.abs(grad).max()), cell
