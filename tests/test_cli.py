@@ -296,6 +296,22 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
     assert [h["values"] for h in resumed["history"]] == [h["values"] for h in whole["history"]]
 
 
+@pytest.mark.parametrize("extra, needle", [
+    (["--unknown", "fog.density", "--unknown", "fog.scattering"], "is fitted alone"),
+    (["--unknown", "fog.density", "--prior", "l2=1"], "--prior l2=1: use tv=WEIGHT"),
+    (["--unknown", "fog.density", "--prior", "tv=-1"], "must be >= 0"),
+    (["--unknown", "fog.density", "--resume"], "does not write checkpoints"),
+])
+def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):
+    np.save(tmp_path / "T.npy", np.ones((64, 64), np.float32))
+    argv = ["fit", "cloud-tomo-start", "--target", f"top={tmp_path / 'T.npy'}", *extra,
+            "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("difffog: error:") and needle in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("extra,needle", [
     (["--target", "top=MISSING.npy", "--unknown", "fog.scattering"], "no such file"),
     (["--target", "side=T.npy", "--unknown", "fog.scattering"], "has no camera 'side'"),

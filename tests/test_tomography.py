@@ -5,6 +5,7 @@ finite differences in float64."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -96,33 +97,69 @@ def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
         model.images(df.with_density(p, np.ones((4, 4, 4))))
 
 
-def test_density_gradient_matches_finite_differences(x64):
-    """d(loss)/d(cell) by reverse mode through the implicit light solve (one adjoint solve for
-    all 512 cells) against central differences on the cloud's densest, a middling and its
-    thinnest cell, float64."""
-    scene = tiny_cloud(size=(12, 12), cameras=("view0",))
-    model = df.forward_model(scene, "sweep", resolution=10, M=2, tol=1e-11, max_iterations=400,
-                             supersample=1, accuracy=None, **TINY)
-    p = model.params()
-    g0 = jnp.asarray(scene.fog.density, jnp.float64)
-    rng = np.random.default_rng(3)
-    wts = {c.name: jnp.asarray(rng.random((c.height, c.width))) for c in model.cameras}
+@pytest.fixture(scope="module")
+def tiny_fit_case():
+    """float64 (restored after the module): the tiny cloud, its two views rendered by the sweep
+    at a finer lattice (N = 16), and a start: a uniform box one cell around the cloud.  The
+    gradient test and the end-to-end fit use the same level (N = 10, M = 2, full images), so
+    they share one compiled program."""
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    scene = tiny_cloud()
+    fine = df.forward_model(scene, "sweep", resolution=16, M=2, supersample=1, accuracy=None,
+                            **TINY)
+    targets = {c: np.asarray(v) for c, v in fine().items()}
+    truth = np.asarray(scene.fog.density, np.float64)
+    box = np.zeros_like(truth)
+    nz = np.argwhere(truth > 0)
+    lo, hi = np.maximum(nz.min(0) - 1, 0), np.minimum(nz.max(0) + 2, truth.shape)
+    box[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = truth[truth > 0].mean()
+    yield scene, targets, truth, box
+    jax.config.update("jax_enable_x64", old)
 
-    def loss(g):
-        imgs = model.images(df.with_density(p, g))
-        return sum(jnp.sum(wts[c] * imgs[c]) for c in imgs)
 
-    vg = jax.jit(jax.value_and_grad(loss))  # one compiled program for both (compile time)
-    grad = np.asarray(vg(g0)[1])
-    f = lambda g: vg(g)[0]  # noqa: E731
-    g = np.asarray(g0)
-    pos = np.flatnonzero(g > 0)
-    order = pos[np.argsort(g.flat[pos])]
-    # the densest cell, a middling one and the thinnest (the grid's zeros stay zero: the traced
-    # density keeps the scene grid's support, as a fit's log parameters do)
-    cells = [np.unravel_index(i, g.shape) for i in (order[-1], order[len(order) // 2], order[0])]
-    for cell in cells:
+#: the tiny fit's level: lattice, image reduction, solver settings (tight tolerances: the
+#: gradient check)
+LEVEL = dict(resolutions=(10,), downsample=(1,), M=2,
+             settings=dict(TINY, tol=1e-10, adjoint_rtol=1e-10, max_iterations=400))
+
+
+def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_case, tmp_path):
+    """End to end at a tiny size (one grid level, 8 evaluations, float64): the loss falls, the
+    error to the truth falls well below the start's, the carving removes cells the views see
+    through, the cells outside the start's support stay 0, and density.npz / fit.json are
+    written.  Then the fit's gradient at its estimate (the images' relative misfit + the TV
+    prior, in the log of every support cell; reverse mode through the implicit light solve:
+    one adjoint solve for all the cells) against central differences on the densest, a
+    middling and the thinnest cell (the fit's own compiled program)."""
+    from difffog.fit._density import _value_and_grad
+
+    scene, targets, truth, box = tiny_fit_case
+    res = df.fit_density(scene, targets, start=box, grids=None, max_steps=8, progress=False,
+                         **LEVEL)
+    start_err = np.linalg.norm(box - truth) / np.linalg.norm(truth)
+    assert res.density.shape == truth.shape
+    assert res.relative_error(truth) < 0.5 * start_err
+    losses = [h["loss"] for h in res.history if "loss" in h]
+    assert len(losses) <= 8 and min(losses) < 0.2 * losses[0]
+    assert res.levels[0]["carved_cells"] > 0
+    assert np.all(res.density[box == 0] == 0)
+    res.save(tmp_path / "out")
+    with np.load(tmp_path / "out" / "density.npz") as z:
+        np.testing.assert_array_equal(z["density"], res.density)
+    report = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert report["grid"] == list(truth.shape) and report["levels"][0]["steps"] == len(losses)
+
+    loss, x = res.final_level
+    (_, (_, _, code, _)), grad = _value_and_grad(x, loss)
+    assert int(code) == 0
+    grad = np.asarray(grad)
+    keep = np.flatnonzero(np.asarray(loss.keep) > 0)
+    dens = np.exp(np.asarray(x))[keep]
+    order = keep[np.argsort(dens)]
+    for i in (order[-1], order[len(order) // 2], order[0]):
         eps = 1e-4
-        fd = (float(f(g0.at[cell].add(eps))) - float(f(g0.at[cell].add(-eps)))) / (2 * eps)
-        assert abs(fd) > 1e-6, cell  # the cell reaches the images
-        assert grad[cell] == pytest.approx(fd, rel=1e-5, abs=1e-9 * np.abs(grad).max()), cell
+        f = [float(_value_and_grad(x.at[i].add(s * eps), loss)[0][0]) for s in (1, -1)]
+        fd = (f[0] - f[1]) / (2 * eps)
+        assert abs(fd) > 1e-10, i  # the cell reaches the loss
+        assert grad[i] == pytest.approx(fd, rel=1e-5, abs=1e-6 * np.abs(grad).max()), i

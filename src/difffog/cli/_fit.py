@@ -75,7 +75,9 @@ def add_parser(sub) -> None:
     p.add_argument("--downsample", type=int, default=None,
                    help="render the cameras at 1/K width and height, box-averaging the "
                         "targets to match (default: the largest of 4, 2, 1 that divides)")
-    p.add_argument("--max-steps", type=int, default=50, help="optimizer steps (default 50)")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="optimizer steps (default 50; --unknown fog.density: evaluations per "
+                        "grid level, default 30)")
     p.add_argument("--ladder", default="none", metavar="auto|none|NC,N",
                    help="experimental estimate of the model's own error: fit at a coarser "
                         "resolution first (auto: 3/4 of -N), then at -N from there; the "
@@ -87,6 +89,12 @@ def add_parser(sub) -> None:
                         "lattice twice as fine (or N) and take the Gauss-Newton step that "
                         "image change causes, extrapolated to first order (default refine; "
                         "none: noise only)")
+    p.add_argument("--prior", default=None, metavar="tv=WEIGHT",
+                   help="--unknown fog.density: the total-variation prior's weight (default "
+                        "tv=1e-3, relative to the images' mean squared misfit)")
+    p.add_argument("--grid", type=int, default=None, metavar="N",
+                   help="--unknown fog.density: the estimate's grid, N cells along each axis "
+                        "(default: the scene's density grid, or 32)")
     p.add_argument("--devices", type=int, default=None, metavar="N",
                    help="sweep: share each light solve over N devices (on a CPU, N host "
                         "devices sharing its cores; the same estimates; default 1)")
@@ -178,6 +186,9 @@ def run(args) -> int:
     for flag, v in (("--resolution", args.resolution), ("--directions", args.directions),
                     ("--max-steps", args.max_steps), ("--devices", args.devices)):
         positive_int(flag, v)
+    density_fit = any(u.partition("=")[0].strip() == "fog.density" for u in args.unknown or [])
+    if args.max_steps is None and not density_fit:
+        args.max_steps = 50
     # without --accuracy a fit uses the solver's fit defaults (the sweep: N = 32, M = 3; a
     # step is 1 + n light solves), else that preset; single flags override either
     settings = model_settings(args, args.solver, accuracy=args.accuracy)
@@ -203,6 +214,8 @@ def run(args) -> int:
         if len(parts) != 2:
             raise DifffogError(f"--bounds {key}={val}: expected LOWER,UPPER")
         bounds[key] = tuple(_float("--bounds", key, x) for x in parts)
+    if density_fit:
+        return _run_density(args, scene, targets)
     unknowns = []
     for item in args.unknown or []:
         path, _, init = item.partition("=")
@@ -270,3 +283,94 @@ def run(args) -> int:
     return 0 if result.converged else 1
 
 
+def _density_plots(result, truth_shape, tmp: Path) -> None:
+    """density.png: the estimate's middle slices along each axis, beside its loss."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    d = result.density
+    fig, ax = plt.subplots(1, 4, figsize=(15, 3.6))
+    vmax = float(d.max()) or 1.0
+    for a, (axis, label) in enumerate(((0, "x"), (1, "y"), (2, "z"))):
+        sl = np.take(d, d.shape[axis] // 2, axis=axis)
+        im = ax[a].imshow(sl.T, origin="lower", vmin=0, vmax=vmax, cmap="magma")
+        ax[a].set_title(f"density, middle {label} slice")
+        ax[a].set_xlabel("cell" if axis else "y cell")
+        fig.colorbar(im, ax=ax[a])
+    losses = [h["loss"] for h in result.history if "loss" in h]
+    ax[3].semilogy(range(1, len(losses) + 1), losses, "o-", ms=3)
+    ax[3].set_xlabel("evaluation")
+    ax[3].set_ylabel("loss (relative misfit + prior)")
+    ax[3].set_title("convergence")
+    fig.tight_layout()
+    fig.savefig(tmp / "density.png", dpi=100)
+    plt.close(fig)
+
+
+def _run_density(args, scene, targets) -> int:
+    """``difffog fit SCENE --unknown fog.density``: density tomography (``fit_density``)."""
+    from .._output import atomic_folder, check_out_dir
+    from .._progress import NoProgress, TqdmProgress
+    from ..fit._density import DEFAULT_PRIOR_WEIGHT, fit_density
+    from ..fit._images import load_target
+
+    others = [u for u in args.unknown if u.partition("=")[0].strip() != "fog.density"]
+    if others:
+        raise DifffogError(f"--unknown fog.density is fitted alone; drop --unknown {others[0]} "
+                           f"(fit the scalars first, then the density with them set)")
+    if args.solver != "sweep":
+        raise DifffogError("--unknown fog.density: only the sweep solver traces the density; "
+                           "drop --solver")
+    if args.resume:
+        raise DifffogError("--resume: a density fit does not write checkpoints yet; run it "
+                           "again without --resume")
+    weight = DEFAULT_PRIOR_WEIGHT
+    if args.prior is not None:
+        kind, _, val = args.prior.partition("=")
+        if kind.strip() != "tv" or not val:
+            raise DifffogError(f"--prior {args.prior}: use tv=WEIGHT, e.g. --prior tv=1e-3")
+        weight = _float("--prior", "tv", val)
+        if weight < 0:
+            raise DifffogError(f"--prior tv={val}: the weight must be >= 0")
+    grid = None if args.grid is None else positive_int("--grid", args.grid)
+    if scene.fog is None:
+        raise DifffogError("--unknown fog.density: the scene has no [fog]; add one")
+    start = None
+    if scene.fog.density is None:
+        import numpy as np
+
+        start = np.ones((grid or 32,) * 3)
+    images = {}
+    for cam, path in targets.items():
+        img, _ = load_target(path, channel=args.channel, transfer=args.transfer)
+        images[cam] = img
+    out = check_out_dir(args.out)
+    progress = TqdmProgress("density fit") if sys.stderr.isatty() and not args.quiet \
+        else NoProgress()
+    t0 = time.perf_counter()
+    kw = {} if args.max_steps is None else {"max_steps": args.max_steps}
+    if args.resolution is not None:  # the final level's lattice; coarser ones at most that
+        kw["resolution"] = args.resolution
+    if args.downsample is not None:
+        kw["downsample"] = positive_int("--downsample", args.downsample)
+    result = fit_density(scene, images, start=start, grid=grid, prior_weight=weight,
+                         M=args.directions or 3, progress=progress, **kw)
+    with atomic_folder(out) as tmp:
+        result.save(tmp)
+        report = json.loads((tmp / "fit.json").read_text())
+        report.update({"scene": scene.title, "overrides": args.overrides,
+                       "targets": {c: str(p) for c, p in targets.items()},
+                       "total_s": round(time.perf_counter() - t0, 3),
+                       "peak_memory_mb": peak_memory_mb()})
+        (tmp / "fit.json").write_text(json.dumps(report, indent=1))
+        _density_plots(result, None, tmp)
+    ok = result.result == "successful"
+    if not args.quiet:
+        lv = result.levels[-1]
+        print(f"density {'x'.join(map(str, result.density.shape))}: {result.result}, loss "
+              f"{lv['loss']:.3g} after {sum(x['steps'] for x in result.levels)} evaluations, "
+              f"{result.time_s:.1f} s; {out / 'density.npz'}")
+    return 0 if ok else 1

@@ -1,0 +1,429 @@
+"""Density tomography: the fog's density grid from images of several views (issue 17).
+
+The unknowns are the logarithms of the grid's cells inside a support (so the density stays
+positive and the cells outside stay exactly 0, as the sweep model's traced density requires,
+``difffog.with_density``); the loss is the images' mean squared misfit relative to the
+targets' brightness plus a weighted total-variation prior; L-BFGS-B (SciPy: a Python loop
+around one compiled value-and-gradient, which optimistix' jitted step would compile a second
+time) minimises it
+from a coarse grid to the final one (each level starts from the last one's estimate,
+upsampled).  The support is the start grid's nonzero cells less the cells that some target
+pixel sees through to clear sky or ground (space carving: a pixel whose target equals the
+model's image of the scene without fog, within ``carve_tol``).
+
+Every evaluation is one light solve, one adjoint light solve (the implicit function theorem:
+one for all the cells) and the cameras' march and its reverse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+import warnings
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from .._errors import DifffogError, SceneError
+from .._progress import as_meter
+from ..scene._description import Scene
+from ..scene._params import with_density
+from ._targets import _block_mean, reduced_scene
+
+#: the prior's weight: the total variation of the grid (per support cell, relative to the
+#: start's mean density) against the images' relative mean squared misfit (``fit_density``)
+DEFAULT_PRIOR_WEIGHT = 1e-3
+#: a target pixel within this relative difference of the fog-free image sees clear sky or
+#: ground: its ray carves the cells it crosses out of the support
+DEFAULT_CARVE_TOL = 0.05
+#: the smallest density a support cell starts from, relative to the start's largest (its log
+#: must be finite)
+_FLOOR = 1e-3
+
+
+@dataclasses.dataclass
+class DensityFit:
+    """What :func:`fit_density` returns.
+
+    density: (nx, ny, nz) float32, the estimate, indexed [ix, iy, iz] as scene files are.
+    support: (nx, ny, nz) bool, the cells the fit could fill (the rest are 0).
+    history: one entry per evaluation: level, step, loss, data and prior terms, seconds.
+    levels: one entry per grid level: its grid, lattice resolution, image downsampling,
+        steps, final loss, carved cells, seconds (compile included) and compile seconds.
+    result: "successful" (the loss stopped falling), "max_steps" (the last level's step
+        budget ran out) or "light_failed" (the light solve at the estimate did not converge).
+    time_s: the whole fit's wall time.
+    settings: the fit's options (JSON-able).
+    """
+
+    density: np.ndarray
+    support: np.ndarray
+    history: list[dict]
+    levels: list[dict]
+    result: str
+    time_s: float
+    settings: dict
+    # the last level's loss and its estimate's coordinates (not serialized): what a caller
+    # differentiates further (``_value_and_grad(x, loss)``, compiled already)
+    final_level: Any = dataclasses.field(default=None, repr=False, compare=False)
+
+    def relative_error(self, truth) -> float:
+        """‖estimate − truth‖ / ‖truth‖ over all cells (the truth resampled to this grid)."""
+        t = resample(np.asarray(truth, np.float64), self.density.shape)
+        return float(np.linalg.norm(self.density - t) / np.linalg.norm(t))
+
+    def mass_bias(self, truth) -> float:
+        """Σ estimate / Σ truth − 1 (the truth resampled to this grid)."""
+        t = resample(np.asarray(truth, np.float64), self.density.shape)
+        return float(self.density.sum(dtype=np.float64) / t.sum() - 1.0)
+
+    def to_json(self) -> dict:
+        return {"result": self.result, "time_s": self.time_s, "grid": list(self.density.shape),
+                "support_cells": int(self.support.sum()), "levels": self.levels,
+                "history": self.history, "settings": self.settings}
+
+    def save(self, out) -> None:
+        """``out/density.npz`` (key ``density``, float32 [ix, iy, iz]) and ``out/fit.json``,
+        written together or not at all."""
+        from .._output import atomic_folder
+
+        with atomic_folder(out) as tmp:
+            np.savez_compressed(tmp / "density.npz", density=self.density.astype(np.float32))
+            (tmp / "fit.json").write_text(json.dumps(self.to_json(), indent=1))
+
+
+class _Budget(Exception):
+    """A level's evaluations are spent."""
+
+
+def resample(g: np.ndarray, shape) -> np.ndarray:
+    """A cell-centred grid resampled to ``shape`` (trilinear between cell centres, clamped;
+    the same map the lattice uses), so that a coarse level's estimate seeds the next."""
+    from ..geometry._lattice import _lerp_matrix
+
+    out = np.asarray(g, np.float64)
+    for a, n in enumerate(shape):
+        m = out.shape[a]
+        if m == n:
+            continue
+        u = (np.arange(n) + 0.5) / n * m - 0.5
+        out = np.moveaxis(np.tensordot(_lerp_matrix(m, u), out, axes=([1], [a])), 0, a)
+    return out
+
+
+def total_variation(g, eps):
+    """Σ over cells of sqrt(|∇g|² + eps²) − eps, forward differences (0 past the grid)."""
+    d = [jnp.diff(g, axis=a, append=jnp.take(g, jnp.array([-1]), axis=a)) for a in range(3)]
+    return jnp.sum(jnp.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2 + eps * eps) - eps)
+
+
+class _Loss(eqx.Module):
+    """The loss of one level: (loss, (data, prior, light result, images))."""
+
+    model: Any
+    params: Any
+    targets: dict
+    support: jax.Array  # flat indices of the support cells
+    keep: jax.Array  # (support cells,) 1, or 0 where carving emptied the cell
+    shape: tuple = eqx.field(static=True)
+    scale: float = eqx.field(static=True)  # 1 / (pixels · brightness²)
+    prior_weight: float = eqx.field(static=True)
+    prior_norm: float = eqx.field(static=True)  # 1 / (support cells · start's mean)
+    eps: float = eqx.field(static=True)
+
+    def grid(self, x):
+        g = jnp.zeros(math.prod(self.shape), x.dtype).at[self.support].set(
+            jnp.exp(x) * self.keep.astype(x.dtype))
+        return g.reshape(self.shape)
+
+    def __call__(self, x):
+        g = self.grid(x)
+        light = self.model.light(with_density(self.params, g))
+        imgs = self.model.images_from(light, with_density(self.params, g))
+        data = 0.5 * self.scale * sum(jnp.sum((imgs[c] - self.targets[c]) ** 2)
+                                      for c in self.targets)
+        prior = self.prior_weight * self.prior_norm * total_variation(g, self.eps)
+        return data + prior, (data, prior, light.result, imgs)
+
+
+@eqx.filter_jit
+def _value_and_grad(x, loss):
+    """((loss, (data, prior, light result, images)), d loss / d x): the fit's one compiled
+    program (the carving's fog-free images come from it too)."""
+
+    return eqx.filter_value_and_grad(loss, has_aux=True)(x)
+
+
+def _carved(scene: Scene, cameras, targets, clear, shape, tol: float) -> np.ndarray:
+    """(nx, ny, nz) bool: the grid cells that some pixel whose target is within ``tol`` of the
+    fog-free image (``clear``) sees through, up to the surface it meets."""
+    from ..forward._camera import camera_rays
+    from ..geometry._hits import first_hits
+
+    lo = np.asarray(scene.domain.min, float)
+    size = np.asarray(scene.domain.max, float) - lo
+    n = np.asarray(shape)
+    out = np.zeros(shape, bool)
+    cell = float(np.min(size / n))
+    for cam in cameras:
+        t, c = np.asarray(targets[cam.name], np.float64), np.asarray(clear[cam.name], np.float64)
+        ref = np.maximum(np.abs(c), 0.1 * float(np.mean(np.abs(c))) + 1e-12)
+        rows, cols = np.nonzero(np.abs(t - c) <= tol * ref)
+        if not len(rows):
+            continue
+        o, d = camera_rays(cam, 1)
+        o, d = o[rows, cols, 0], d[rows, cols, 0]
+        t_hit = np.asarray(first_hits(scene, o, d).t, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta, tb = (lo - o) / d, (lo + size - o) / d
+        t0 = np.maximum(np.nanmax(np.minimum(ta, tb), axis=1), 0.0)
+        t1 = np.minimum(np.nanmin(np.maximum(ta, tb), axis=1), t_hit)
+        step = 0.25 * cell
+        for k in range(int(np.ceil(np.max(t1 - t0, initial=0.0) / step)) + 1):
+            tk = t0 + (k + 0.5) * step
+            ok = tk < t1
+            if not ok.any():
+                break
+            p = o[ok] + tk[ok, None] * d[ok]
+            idx = np.floor((p - lo) / size * n).astype(np.int64)
+            inside = np.all((idx >= 0) & (idx < n), axis=1)
+            idx = idx[inside]
+            out[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    return out
+
+
+def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray,
+               resolution: int, downsample: int, prior_weight: float, M: int = 3,
+               supersample: int = 1, settings: Mapping | None = None):
+    """One level's loss (``_Loss``), its start x (the log of ``seed``'s nonzero cells, the
+    support), its forward model and scene: the sweep on a lattice of ``resolution``, the
+    cameras of ``targets`` reduced ``downsample`` times (the targets box-averaged to match)."""
+    from ..forward._registry import forward_model
+
+    lev_scene = reduced_scene(scene, list(targets), downsample)
+    lev_scene = lev_scene.replace(fog=dataclasses.replace(scene.fog, density=seed))
+    model = forward_model(lev_scene, "sweep", resolution=resolution, M=M,
+                          supersample=supersample, accuracy=None, **dict(settings or {}))
+    p = model.params()
+    dt = p.scattering.dtype
+    T = {c: jnp.asarray(_block_mean(np.asarray(targets[c], np.float64), downsample)
+                        if downsample > 1 else targets[c], dt) for c in targets}
+    pixels = sum(int(np.prod(v.shape)) for v in T.values())
+    bright = float(np.sqrt(np.mean(np.concatenate(
+        [np.asarray(v, np.float64).ravel() for v in T.values()]) ** 2)))
+    sup = seed > 0
+    idx = np.flatnonzero(sup)
+    loss = _Loss(model=model, params=p, targets=T, support=jnp.asarray(idx),
+                 keep=jnp.ones(len(idx), dt), shape=tuple(seed.shape),
+                 scale=1.0 / (pixels * bright ** 2), prior_weight=float(prior_weight),
+                 prior_norm=1.0 / (len(idx) * float(seed[sup].mean())),
+                 eps=1e-3 * float(seed.max()))
+    return loss, jnp.asarray(np.log(seed.reshape(-1)[idx]), dt), model, lev_scene
+
+
+def _ladder(final: tuple, grids) -> list[tuple]:
+    """The grid shapes of the levels: each of ``grids`` (cells along the longest axis) below
+    the final grid's, the final grid's shape last."""
+    big = max(final)
+    out = []
+    for k in grids or ():
+        if k < big:
+            out.append(tuple(max(1, round(n * k / big)) for n in final))
+    out.append(tuple(final))
+    return out
+
+
+def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=None,
+                grids: Sequence[int] | None = (8, 16), resolution: int | None = None,
+                resolutions: Sequence[int] | None = None,
+                downsample: Sequence[int] | int | None = None,
+                prior_weight: float = DEFAULT_PRIOR_WEIGHT, carve: bool = True,
+                carve_tol: float = DEFAULT_CARVE_TOL, max_steps: Sequence[int] | int = 30,
+                rtol: float = 1e-3, M: int = 3, supersample: int = 1,
+                settings: Mapping | None = None, progress=True) -> DensityFit:
+    """The fog's density grid from images (density tomography).
+
+    scene: the scene (geometry, sun, sky, cameras, ζ and γ); its fog's density grid, or a
+        uniform 1 where it has none, is the start unless ``start`` is given.
+    targets: {camera name: (H, W) linear image at the camera's resolution}.
+    start: a start grid (3-D, cell-centred over the domain); its nonzero cells are the
+        support the fit may fill.
+    grid: the estimate's shape (default: the start's).
+    grids: the coarser levels' cells along the longest axis (default 8 and 16), each level
+        starting from the last one's estimate.
+    resolution: the final level's lattice resolution (default 32); ``resolutions``: one per
+        level (default: 2 nodes per cell, at least 16, at most ``resolution``; the final level
+        ``resolution``).
+    downsample: the images' reduction per level (default: to about 2 pixels per cell along
+        the longest axis, at least 1).
+    prior_weight: the total variation's weight (see ``DEFAULT_PRIOR_WEIGHT``).
+    carve, carve_tol: space carving of the support (see the module's docstring).
+    max_steps: L-BFGS evaluations per level (one number for all levels, or one per level).
+    rtol: a level stops when an iteration lowers its loss by less than ``rtol`` of the level's
+        start loss (or after ``max_steps`` evaluations).
+    M, supersample: the sweep solver's direction half-width and the cameras' rays per pixel
+        side; settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
+    """
+    t_start = time.perf_counter()
+    if scene.fog is None:
+        raise SceneError("fit_density: the scene has no [fog]; add one (its ζ and γ multiply "
+                         "the density grid the fit estimates)")
+    names = [c.name for c in scene.cameras]
+    if not isinstance(targets, Mapping) or not targets:
+        raise DifffogError("targets: give a dict {camera name: (H, W) image}, at least one")
+    for name in targets:
+        if name not in names:
+            raise DifffogError(f"target '{name}': the scene has no camera of that name "
+                               f"(cameras: {', '.join(names)})")
+    tgt = {}
+    for c in scene.cameras:
+        if c.name in targets:
+            a = np.asarray(targets[c.name], np.float64)
+            if a.shape != (c.height, c.width):
+                raise DifffogError(f"target '{c.name}': {a.shape[1] if a.ndim > 1 else '?'}x"
+                                   f"{a.shape[0]} pixels, camera is {c.width}x{c.height}; "
+                                   f"give the image at the camera's resolution")
+            if not np.all(np.isfinite(a)):
+                raise DifffogError(f"target '{c.name}': has non-finite pixels; mask or fill "
+                                   f"them")
+            tgt[c.name] = a
+    if start is None:
+        start = (np.ones((16, 16, 16)) if scene.fog.density is None
+                 else np.asarray(scene.fog.density, np.float64))
+    start = np.asarray(start, np.float64)
+    if start.ndim != 3 or not np.all(np.isfinite(start)) or np.any(start < 0):
+        raise DifffogError(f"start: a 3-D grid of finite densities >= 0 is needed, got shape "
+                           f"{start.shape}")
+    if not np.any(start > 0):
+        raise DifffogError("start: every cell is 0, so the fit has no support to fill; give "
+                           "a positive density where the fog may be")
+    final = tuple(start.shape) if grid is None else (
+        (int(grid),) * 3 if np.ndim(grid) == 0 else tuple(int(n) for n in grid))
+    shapes = _ladder(final, grids)
+    L = len(shapes)
+    per = lambda v: list(v) if isinstance(v, Sequence) else [v] * L  # noqa: E731
+    top = 32 if resolution is None else int(resolution)
+    res = per(resolutions) if resolutions is not None else [
+        int(min(top, max(16, 2 * max(s)))) for s in shapes[:-1]] + [top]
+    longest = max(max(c.width, c.height) for c in scene.cameras if c.name in tgt)
+    ds = per(downsample) if downsample is not None else [
+        _divisor(scene, tgt, max(1, longest // (2 * max(s)))) for s in shapes]
+    steps = per(max_steps)
+    if not (len(res) == len(ds) == len(steps) == L):
+        raise DifffogError(f"resolutions, downsample and max_steps need one value per level "
+                           f"({L} levels: grids {[max(s) for s in shapes]})")
+    meter = as_meter(progress, "density fit")
+    history, levels = [], []
+    g_prev, result = None, "max_steps"
+    support_start = start > 0
+    try:
+        for lev, (shape, n_res, k_ds, n_steps) in enumerate(zip(shapes, res, ds, steps)):
+            t_lev = time.perf_counter()
+            sup = resample(support_start.astype(float), shape) > 0.5 if shape != start.shape \
+                else support_start
+            seed = resample(start, shape) if g_prev is None else resample(g_prev, shape)
+            seed = np.where(sup, np.maximum(seed, _FLOOR * max(float(seed.max()), 1e-12)), 0.0)
+            loss, x, model, lev_scene = level_loss(scene, tgt, seed, n_res, k_ds,
+                                                   prior_weight, M, supersample, settings)
+            dt = x.dtype
+            T = loss.targets
+            idx = np.asarray(loss.support)
+            carved = 0
+            if carve:  # the fog-free images (every support cell at ~0) against the targets
+                t_c = time.perf_counter()
+                (_, (_, _, _, clear)), _ = _value_and_grad(jnp.full_like(x, -30.0), loss)
+                cut = _carved(lev_scene, model.cameras, {c: np.asarray(T[c]) for c in T},
+                              {c: np.asarray(v) for c, v in clear.items()}, shape, carve_tol)
+                keep = ~cut.reshape(-1)[idx]
+                carved = int((~keep).sum())
+                if not keep.any():
+                    raise DifffogError("fit_density: space carving removed every cell of the "
+                                       "support (every target pixel matches the fog-free "
+                                       "image); check the targets, or carve=False")
+                history.append({"level": lev, "step": -1, "what": "carve",
+                                "carved_cells": carved, "seconds": time.perf_counter() - t_c})
+                # held at 0 by the mask (their gradient is 0: L-BFGS never moves them), so
+                # that the compiled program stays the one it is
+                loss = eqx.tree_at(lambda lo: lo.keep, loss, jnp.asarray(keep, dt))
+            # L-BFGS-B (SciPy) on the host, one compiled value-and-gradient per evaluation
+            # (one light solve, one adjoint solve, the cameras' march and its reverse)
+            t_c = time.perf_counter()
+            _value_and_grad(x, loss)  # compile (and the first evaluation)
+            compile_s = time.perf_counter() - t_c
+            best = [np.inf, np.asarray(x)]
+            count = [0]
+            # SciPy's ftol is relative to max(|f|, 1): the loss is scaled to 1 at the start,
+            # so that rtol is the decrease per iteration relative to the start's loss
+            unit = [None]
+
+            def fun(xn, lev=lev, loss=loss, best=best, count=count, unit=unit,
+                    n_steps=n_steps):
+                if count[0] >= n_steps:  # SciPy's maxfun is checked per iteration only
+                    raise _Budget
+                t_s = time.perf_counter()
+                (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
+                val = float(val)
+                history.append({"level": lev, "step": count[0], "loss": val,
+                                "data": float(data), "prior": float(prior),
+                                "light_result": int(code),
+                                "seconds": time.perf_counter() - t_s})
+                count[0] += 1
+                if val < best[0] and int(code) == 0:
+                    best[0], best[1] = val, np.array(xn)
+                meter.update(sum(steps[:lev]) + count[0], sum(steps), level=lev, loss=val)
+                if unit[0] is None:
+                    unit[0] = val if val > 0 else 1.0
+                return val / unit[0], np.asarray(grad, np.float64) / unit[0]
+
+            spent = False
+            try:
+                scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
+                                        method="L-BFGS-B",
+                                        options={"maxfun": n_steps, "maxiter": n_steps,
+                                                 "ftol": rtol, "gtol": 0.0, "maxcor": 10})
+            except _Budget:
+                spent = True
+            spent = spent or count[0] >= n_steps
+            k = count[0] - 1
+            failed = not np.isfinite(best[0])  # no evaluation's light solve converged
+            best = (best[0], jnp.asarray(best[1], dt))
+            x = best[1]
+            g_prev = np.asarray(loss.grid(x), np.float64)
+            levels.append({"grid": list(shape), "resolution": n_res, "downsample": k_ds,
+                           "steps": k + 1, "loss": best[0],
+                           "support_cells": int(np.sum(np.asarray(loss.keep) > 0)),
+                           "carved_cells": carved, "compile_s": compile_s,
+                           "seconds": time.perf_counter() - t_lev})
+            if failed:
+                result = "light_failed"
+                warnings.warn(f"fit_density: no light solve of level {lev} (grid "
+                              f"{'x'.join(map(str, shape))}) converged; the estimate is its "
+                              f"start; raise the solver's max_iterations", stacklevel=2)
+                break
+            if lev == L - 1 and not spent:
+                result = "successful"
+    finally:
+        meter.close()
+    est = g_prev.astype(np.float32)
+    return DensityFit(density=est, support=est > 0, history=history, levels=levels,
+                      result=result, time_s=time.perf_counter() - t_start,
+                      settings={"grids": [list(s) for s in shapes], "resolutions": res,
+                                "downsample": ds, "prior_weight": prior_weight,
+                                "carve": carve, "carve_tol": carve_tol, "max_steps": steps,
+                                "rtol": rtol, "M": M, "supersample": supersample},
+                      final_level=(loss, x))
+
+
+def _divisor(scene: Scene, tgt, want: int) -> int:
+    """The largest k <= ``want`` that divides every target camera's width and height."""
+    for k in range(max(1, want), 0, -1):
+        if all(c.width % k == 0 and c.height % k == 0 for c in scene.cameras if c.name in tgt):
+            return k
+    return 1
