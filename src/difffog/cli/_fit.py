@@ -283,7 +283,7 @@ def run(args) -> int:
     return 0 if result.converged else 1
 
 
-def _density_plots(result, truth_shape, tmp: Path) -> None:
+def _density_plots(result, tmp: Path) -> None:
     """density.png: the estimate's middle slices along each axis, beside its loss."""
     import matplotlib
 
@@ -366,7 +366,7 @@ def _run_density(args, scene, targets) -> int:
                        "total_s": round(time.perf_counter() - t0, 3),
                        "peak_memory_mb": peak_memory_mb()})
         (tmp / "fit.json").write_text(json.dumps(report, indent=1))
-        _density_plots(result, None, tmp)
+        _density_plots(result, tmp)
     ok = result.result == "successful"
     if not args.quiet:
         lv = result.levels[-1]
