@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .._errors import DifffogError, MemoryWarning
 from ..fit._stepper import OPTIMIZERS
-from ..forward._registry import SOLVERS
+from ..forward._registry import SOLVERS, solver_entry
 from ._main import add_scene_args, model_settings, peak_memory_mb, positive_int, solver_help
 
 
@@ -321,9 +321,10 @@ def _run_density(args, scene, targets) -> int:
     if others:
         raise DifffogError(f"--unknown fog.density is fitted alone; drop --unknown {others[0]} "
                            f"(fit the scalars first, then the density with them set)")
-    if args.solver != "sweep":
-        raise DifffogError("--unknown fog.density: only the sweep solver traces the density; "
-                           "drop --solver")
+    if not solver_entry(args.solver).traces_density:
+        able = [n for n, e in SOLVERS.items() if e.traces_density]
+        raise DifffogError(f"--unknown fog.density: --solver {args.solver} does not trace the "
+                           f"density; use --solver {' or '.join(able)}")
     if args.resume:
         raise DifffogError("--resume: a density fit does not write checkpoints yet; run it "
                            "again without --resume")

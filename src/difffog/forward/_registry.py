@@ -49,6 +49,8 @@ class SolverEntry:
     fit_defaults: the settings a fit uses unless told otherwise.
     study: the settings ``difffog bench`` measures, cheapest first; quick: its smoke test.
     estimate: (scene, *, cameras, **settings) → its :class:`difffog.CostEstimate` (``_cost.py``).
+    traces_density: whether its model takes ``fog.density`` as a traced parameter
+        (``difffog.with_density``; density tomography).
     """
 
     name: str
@@ -59,6 +61,7 @@ class SolverEntry:
     study: tuple[Mapping, ...] = ()
     quick: tuple[Mapping, ...] = ()
     estimate: Callable | None = None
+    traces_density: bool = False
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -118,6 +121,7 @@ SOLVERS: dict[str, SolverEntry] = {
                dict(resolution=64, M=3, tol=1e-4), dict(resolution=96, M=4, tol=1e-4)),
         quick=(dict(resolution=16, M=2, tol=1e-3),),
         estimate=estimate_sweep,
+        traces_density=True,
     ),
     "splat": SolverEntry(
         name="splat",
