@@ -75,7 +75,7 @@ def main(argv=None):
     lines = [f"# Density tomography, cloud-tomo from {len(views)} views ({args.targets} targets)",
              "", *C.machine_lines(info), "",
              *C.md_table(["grid", "N", "images", "evaluations", "loss", "support cells",
-                          "compile s", "level s"], rows), "",
+                          "first call s (compile + 1 evaluation)", "level s"], rows), "",
              f"- relative L2 error: start {np.linalg.norm(start - truth) / np.linalg.norm(truth):.3f}"
              f" → estimate {res.relative_error(truth):.3f}",
              f"- total-mass bias: start {start.sum() / truth.sum() - 1:+.3f} → estimate "
