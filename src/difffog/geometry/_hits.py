@@ -388,12 +388,8 @@ def sun_depth_plan(points, lit, sun_dir, density, origin, h: float, *, step: flo
         a = b = np.zeros(3)
     else:
         a, b = nz.min(axis=0).astype(float), nz.max(axis=0).astype(float)
-    u0 = (q - lo) / h - 0.5
-    n_end = np.ceil(t_end / ds)
-    ts0, ts1 = _node_span(u0, s / h, a - 1.0, b + 1.0)
     with np.errstate(invalid="ignore"):
-        j0 = np.clip(np.ceil(ts0 / ds - 0.5) - 1, 0, n_end)
-        j1 = np.clip(np.floor(ts1 / ds - 0.5) + 1, -1, n_end - 1)
+        j0, j1 = _sample_range((q - lo) / h - 0.5, s / h, a, b, t_end, ds)
     n = np.where(lit & np.isfinite(j0) & np.isfinite(j1), np.maximum(j1 - j0 + 1, 0), 0)
     j0 = np.where(n > 0, j0, 0)
     return q, j0.astype(np.int64), n.astype(np.int64), t_end / ds
@@ -475,6 +471,17 @@ def _node_span(u0, g, A, B):
     return t0, t1
 
 
+def _sample_range(u0, g, a, b, t_end, ds: float):
+    """The midpoint samples j0 ≤ j ≤ j1 (R,) of the lines u0 + t·g (node coordinates) within
+    one spacing of the node box [a, b], one sample more either side (rounding at a range's end
+    must not drop one), none at or past t_end (``_midpoint_depth``)."""
+    n_end = np.ceil(t_end / ds)  # w_j > 0 for j < n_end
+    ts0, ts1 = _node_span(u0, g, a - 1.0, b + 1.0)
+    j0 = np.clip(np.ceil(ts0 / ds - 0.5) - 1, 0, n_end)
+    j1 = np.clip(np.floor(ts1 / ds - 0.5) + 1, -1, n_end - 1)
+    return j0, j1
+
+
 def _midpoint_depth(density, q, s, lo, h: float, t_end, ds: float, chunk: int = 1 << 22):
     """The midpoint rule of :func:`sun_depth`: ds·Σ_j ρ(q + k_j·s)·w_j over k_j = (j + 1/2)·ds,
     w_j = clip((t_end - j·ds)/ds, 0, 1) (the share of step j before the box's edge), ρ the
@@ -508,10 +515,7 @@ def _midpoint_depth(density, q, s, lo, h: float, t_end, ds: float, chunk: int = 
                                    for i in range(3))], np.float64)
     u0 = (q - lo) / h - 0.5  # node coordinates of q; a sample's are u0 + k·s/h
     g = s / h
-    n_end = np.ceil(t_end / ds)  # w_j > 0 for j < n_end
-    ts0, ts1 = _node_span(u0, g, a - 1.0, b + 1.0)
-    j0 = np.clip(np.ceil(ts0 / ds - 0.5) - 1, 0, n_end)
-    j1 = np.clip(np.floor(ts1 / ds - 0.5) + 1, -1, n_end - 1)
+    j0, j1 = _sample_range(u0, g, a, b, t_end, ds)
     if uniform:  # [c0, c1]: samples inside the region, 2 steps short of t_end (w = 1)
         tc0, tc1 = _node_span(u0, g, a.astype(float), b.astype(float))
         c0 = np.clip(np.ceil(tc0 / ds - 0.5) + 1, j0, j1 + 1)
