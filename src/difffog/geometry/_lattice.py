@@ -1312,9 +1312,7 @@ def _density(scene: Scene, grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
     if g.ndim != 3:
         raise SceneError(f"fog density grid must be 3-D [ix, iy, iz], got shape {g.shape}")
     for a in range(3):  # separable: trilinear between cell centres, clamped to the edge cells
-        x = grid.axis_coords(a)
-        u = (x - grid.domain_min[a]) / grid.domain_size[a] * g.shape[a] - 0.5
-        g = _lerp_axis(g, u, a)
+        g = _lerp_axis(g, _grid_coords(grid, a, g.shape[a]), a)
     out = np.empty(grid.shape, np.float32)
     return np.multiply(g, mask, out=out), g * cell  # in float64, rounded on the way out
 
@@ -1337,6 +1335,12 @@ def _region_factors(fog, grid: _Grid):
         # margin (a node with any fog is a fog node to the solver)
         share.append(_exact_ends(np.clip((hi - lo) / grid.h, 0.0, 1.0)))
     return ins, share
+
+
+def _grid_coords(grid: _Grid, a: int, n: int) -> np.ndarray:
+    """The nodes' coordinates along axis ``a`` in the cells of a density grid with ``n`` cells
+    over the domain (cell centres at integers)."""
+    return (grid.axis_coords(a) - grid.domain_min[a]) / grid.domain_size[a] * n - 0.5
 
 
 def _lerp_matrix(n_grid: int, u) -> np.ndarray:
@@ -1411,9 +1415,7 @@ def _density_map(scene: Scene, grid: _Grid, volume_parts) -> DensityMap:
     g = np.asarray(scene.fog.density)
     at_node, in_cell = [], []
     for a in range(3):
-        x = grid.axis_coords(a)
-        u = (x - grid.domain_min[a]) / grid.domain_size[a] * g.shape[a] - 0.5
-        m = _lerp_matrix(g.shape[a], u)
+        m = _lerp_matrix(g.shape[a], _grid_coords(grid, a, g.shape[a]))
         at_node.append(m * ins[a][:, None])
         in_cell.append(m * share[a][:, None])
     keep, src, dst, moved = volume_parts
