@@ -226,6 +226,12 @@ def side_slopes(slope, sigma_t, periodic_xy: bool):
     return jnp.stack(out_hi + out_lo, axis=-1)
 
 
+def _on_support(a, index):
+    """A node field (nx, ny, nz) continued past the fog's box: each node takes the value of the
+    node ``index`` names (``CameraGeometry.support_index``)."""
+    return a.reshape(-1)[index].reshape(a.shape)
+
+
 def camera_fields(cam: CameraGeometry, density, light: LightField, params: Params) -> LatticeFields:
     """The node fields a camera marches through, from a converged light field.
 
@@ -270,7 +276,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         mom = jax.vmap(lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(mom)
         j_aniso = (zeta_r * dens)[..., None] * coef * mom
     if cam.support_index is not None:  # the fog ends sharply at its box: extend it there
-        sup = lambda a: a.reshape(-1)[cam.support_index].reshape(a.shape)  # noqa: E731
+        sup = lambda a: _on_support(a, cam.support_index)  # noqa: E731
         sup_k = jax.vmap(sup, in_axes=-1, out_axes=-1)
         sigma_t, j_iso, j_sun = sup(sigma_t), sup(j_iso), sup(j_sun)
         j_slope = None if j_slope is None else sup_k(j_slope)
@@ -440,6 +446,7 @@ class SweepModel(AbstractForwardModel):
         self.density = jnp.asarray(own, jnp.float32)
         prepare_s = time.perf_counter() - t
         t = time.perf_counter()
+        hit_fog = None  # the density the hits' sun depth integrates
         if exact:
             fog = lattice.fog_density if lattice.fog_density is not None else lattice.density
             # the sun's depth at the hits: through the fog's box exactly, the fog continued to
@@ -451,17 +458,12 @@ class SweepModel(AbstractForwardModel):
             self.hits = tuple(
                 camera_hits(scene, c, self.supersample, fog, lattice.origin, lattice.h,
                             lattice.shape, periodic, sun_box=sun_box) for c in self.cameras)
+            hit_fog = np.asarray(fog)
         else:
             self.hits = None
-        self.density_ops = None
-        if lattice.density_map is not None:
-            cg = self.camera_geometry
-            fog = lattice.fog_density
-            if cg.support_index is not None:
-                fog = np.asarray(fog).reshape(-1)[np.asarray(cg.support_index)]
-            self.density_ops = DensityOperators.build(
-                lattice, self.hits, cg.sun_dir, cg.fog_box,
-                np.asarray(fog).reshape(lattice.shape))
+        self.density_ops = (None if lattice.density_map is None else DensityOperators.build(
+            lattice, self.hits, self.camera_geometry.sun_dir, self.camera_geometry.fog_box,
+            hit_fog))
         self.host = HostInfo(lattice=lattice, setup_s={
             "voxelize_s": voxelize_s, "prepare_s": prepare_s,
             "camera_hits_s": time.perf_counter() - t})
@@ -506,9 +508,10 @@ class SweepModel(AbstractForwardModel):
                 f"(docs/validation.md); resolution >= {need} (or a smaller M) brings the step "
                 f"to {THICK_STEP:g}")
 
-    def _with_density(self, params: Params):
+    def _with_density(self, params: Params, cameras: bool = True):
         """(solver geometry, camera geometry, the cameras' density, hits) for ``params``: the
-        host's, or with ``params.density`` (a traced grid) mapped onto the lattice."""
+        host's, or with ``params.density`` (a traced grid) mapped onto the lattice (without
+        ``cameras``, the cameras' three are the host's: the light solve needs none of them)."""
         if params.density is None:
             return self.geometry, self.camera_geometry, self.density, self.hits
         ops = self.density_ops
@@ -522,6 +525,8 @@ class SweepModel(AbstractForwardModel):
         solid = self.geometry.solid
         geom = eqx.tree_at(lambda g: g.density, self.geometry, jnp.where(solid, 0.0, dens))
         cg, hits = self.camera_geometry, self.hits
+        if not cameras:
+            return geom, cg, self.density, hits
         if cg.fog_density is not None:
             cg = eqx.tree_at(lambda c: c.fog_density, cg, fog)
         if cg.sun_path is not None:
@@ -529,8 +534,7 @@ class SweepModel(AbstractForwardModel):
                                       cg.support_ranges, jnp)
             cg = eqx.tree_at(lambda c: c.sun_path, cg, path)
         if hits is not None and ops.hit_plans is not None:
-            ext = fog if cg.support_index is None else fog.reshape(-1)[cg.support_index].reshape(
-                fog.shape)
+            ext = fog if cg.support_index is None else _on_support(fog, cg.support_index)
             hits = tuple(
                 eqx.tree_at(lambda r: r.sun_depth, h, _hit_sun_depth(
                     ext, plan, cg.sun_dir, cg.origin, cg.h, cg.periodic_xy))
@@ -538,7 +542,7 @@ class SweepModel(AbstractForwardModel):
         return geom, cg, jnp.where(solid, 0.0, fog), hits
 
     def light(self, params: Params) -> LightField:
-        geom, *_ = self._with_density(params)
+        geom, *_ = self._with_density(params, cameras=False)
         return self.solver.solve(geom, params)
 
     def images_from(self, light: LightField, params: Params) -> dict[str, jax.Array]:
