@@ -46,6 +46,37 @@ def test_render_of_a_scene_builds_through_the_registry():
     assert out.settings["solver"] == "splat" and out.settings["resolution"] == 12
 
 
+def test_models_built_alike_share_their_compiled_programs(model):
+    """A model built again from the same scene and settings (a notebook cell run twice, a fit
+    level rebuilt from a new start) renders with the programs compiled for the first: nothing
+    is traced or compiled (``HostInfo``, the models' host-side record, compares equal), and
+    the images are the same.  A model whose arrays differ (another density) shares them too.
+    The listener is shown to count: a new function compiles once."""
+    from jax._src.dispatch import BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT
+
+    solver = "sweep" if isinstance(model, df.SweepModel) else "splat"
+    first = np.asarray(model()["top"])
+    events = []
+
+    def listen(name, secs, **kw):
+        if name in (BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT):
+            events.append(name)
+
+    again = build_model(solver)
+    assert again is not model
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        second = np.asarray(again()["top"])
+        n_again = len(events)
+        jax.jit(lambda x: x * 3.0 + 1.0)(jnp.ones(3)).block_until_ready()
+        n_new = len(events) - n_again
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert n_again == 0, events
+    assert n_new >= 1  # the listener sees a compile when there is one
+    np.testing.assert_array_equal(second, first)
+
+
 def _sets(model):
     p0 = model.params()
     s = model.scene

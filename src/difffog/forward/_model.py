@@ -58,10 +58,19 @@ class AbstractLight(eqx.Module):
 
 class HostInfo:
     """Host-side facts a model keeps for reports (timings, the lattice, pass summaries) in a
-    static field: compared and hashed by identity, never traced."""
+    static field, never traced.  Any two compare equal and hash alike: what a model computes
+    lives in its arrays and its other static fields, so two models built alike (the same
+    scene at the same settings, a fit level rebuilt with a new start) share their compiled
+    programs instead of compiling again (by identity, every build compiled anew)."""
 
     def __init__(self, **items):
         self.__dict__.update(items)
+
+    def __eq__(self, other):
+        return isinstance(other, HostInfo)
+
+    def __hash__(self):
+        return hash(HostInfo)
 
     def __repr__(self):
         return f"HostInfo({', '.join(self.__dict__)})"
