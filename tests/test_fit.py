@@ -209,6 +209,24 @@ def test_noisy_fit_standard_errors_cover_the_truth(small_forward, small_targets)
     assert res.residual_rms == pytest.approx(sigma, rel=0.25)
 
 
+def test_a_fit_model_built_again_steps_with_the_compiled_stepper():
+    """Fitting with a model built anew from the same scene and settings (``fit(scene, ...)``
+    twice: each builds its model) reuses the first fit's stepper and so its compiled step; a
+    model of another shape, or other unknowns, gets its own."""
+    from difffog.fit._stepper import stepper_for
+    from helpers import build_fit_model
+
+    coords = tuple(Coordinate(p, 0.0, math.inf) for p in ("fog.scattering", "fog.absorption"))
+    a, b = build_fit_model("sweep"), build_fit_model("sweep")
+    assert a is not b
+    first = stepper_for(a, coords, ("top", "oblique"), "linear", "lm")
+    assert stepper_for(b, coords, ("top", "oblique"), "linear", "lm") is first
+    assert stepper_for(b, coords[:1], ("top", "oblique"), "linear", "lm") is not first
+    other = make_model(_small_scene(), "sweep", cameras=["top", "oblique"], resolution=10,
+                       downsample=8, model_settings={"M": 2, "tol": 1e-6})
+    assert stepper_for(other, coords, ("top", "oblique"), "linear", "lm") is not first
+
+
 def test_edge_weight_leaves_out_the_pixels_that_straddle_an_edge(small_forward, small_targets):
     """edge_weight=0: pixels the model's exact geometry says straddle an edge (a silhouette, a
     rim, a shadow's edge) do not count, so corrupting exactly those pixels leaves the estimate

@@ -6,6 +6,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
 from .._errors import DifffogError
@@ -100,17 +101,26 @@ class Stepper:
 
 
 # Compiled steppers of recent fits, so that fitting new targets (or from a new start) with
-# the same forward model, unknowns and optimizer does not compile again.
+# the same forward model, unknowns and optimizer does not compile again.  Keyed on the model's
+# structure (its static fields, which compare by value, and its arrays' shapes and dtypes),
+# not its identity: a fit that builds its model anew (``fit(scene, ...)`` called twice in a
+# notebook, a command line fit after a test's) steps with the program compiled for the first.
 _STEPPERS: dict = {}
 
 
+def _model_key(model):
+    leaves, treedef = jax.tree_util.tree_flatten(model)
+    shapes = tuple((np.shape(x), str(getattr(x, "dtype", type(x).__name__))) for x in leaves)
+    return treedef, shapes
+
+
 def stepper_for(model, coords, names, loss, optimizer) -> Stepper:
-    key = (id(model), tuple(coords), tuple(names), loss, repr(optimizer))
+    key = (_model_key(model), tuple(coords), tuple(names), loss, repr(optimizer))
     hit = _STEPPERS.get(key)
-    if hit is not None and hit[0] is model:
-        return hit[1]
+    if hit is not None:
+        return hit
     st = Stepper(FitProblem(model.scene, tuple(coords), tuple(names), loss), optimizer)
-    _STEPPERS[key] = (model, st)
+    _STEPPERS[key] = st
     while len(_STEPPERS) > 4:
         _STEPPERS.pop(next(iter(_STEPPERS)))
     return st
