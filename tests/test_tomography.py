@@ -98,21 +98,29 @@ def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
 
 @pytest.fixture(scope="module")
 def tiny_fit_case():
-    """float64 (restored after the module): the tiny cloud, its two views rendered by the sweep
-    at a finer lattice (N = 16), and a start: a uniform box one cell around the cloud.  The
-    gradient test and the end-to-end fit use the same level (N = 10, M = 2, full images), so
-    they share one compiled program."""
+    """float64 (restored after the module): the tiny cloud, its two views, and a start: a
+    uniform box one cell around the cloud.  The views are the fit level's own images of the
+    truth (``LEVEL``: N = 10, M = 2, full images), rendered by the very program the fit and the
+    gradient check run (models built alike share their compiled programs): this test checks
+    the machinery; the benchmark (benchmarks/tomography.py) fits independent Mitsuba images."""
+    from difffog.fit._density import _value_and_grad, level_loss
+
     old = jax.config.jax_enable_x64
     jax.config.update("jax_enable_x64", True)
     scene = tiny_cloud()
-    fine = df.forward_model(scene, "sweep", resolution=16, M=2, supersample=1, accuracy=None,
-                            **TINY)
-    targets = {c: np.asarray(v) for c, v in fine().items()}
     truth = np.asarray(scene.fog.density, np.float64)
     box = np.zeros_like(truth)
     nz = np.argwhere(truth > 0)
     lo, hi = np.maximum(nz.min(0) - 1, 0), np.minimum(nz.max(0) + 2, truth.shape)
     box[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = truth[truth > 0].mean()
+    blank = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
+    loss, _, _, _ = level_loss(scene, blank, box, LEVEL["resolutions"][0],
+                               LEVEL["downsample"][0], 1e-3, LEVEL["M"], 1, LEVEL["settings"])
+    # the truth on the box's cells (its zeros as e^-80: 0 to float64's resolution)
+    x_true = np.log(np.maximum(truth.reshape(-1)[np.asarray(loss.support)], 1e-35))
+    (_, (_, _, code, imgs)), _ = _value_and_grad(jax.numpy.asarray(x_true), loss)
+    assert int(code) == 0
+    targets = {c: np.asarray(v) for c, v in imgs.items()}
     yield scene, targets, truth, box
     jax.config.update("jax_enable_x64", old)
 

@@ -134,10 +134,11 @@ class _Loss(eqx.Module):
     support: jax.Array  # flat indices of the support cells
     keep: jax.Array  # (support cells,) 1, or 0 where carving emptied the cell
     shape: tuple = eqx.field(static=True)
-    scale: float = eqx.field(static=True)  # 1 / (pixels · brightness²)
-    prior_weight: float = eqx.field(static=True)
-    prior_norm: float = eqx.field(static=True)  # 1 / (support cells · start's mean)
-    eps: float = eqx.field(static=True)
+    # arguments, not constants, so that levels of one shape share one compiled program
+    scale: jax.Array  # 1 / (pixels · brightness²)
+    prior_weight: jax.Array
+    prior_norm: jax.Array  # 1 / (support cells · start's mean)
+    eps: jax.Array
 
     def grid(self, x):
         g = jnp.zeros(math.prod(self.shape), x.dtype).at[self.support].set(
@@ -223,9 +224,10 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
     idx = np.flatnonzero(sup)
     loss = _Loss(model=model, params=p, targets=T, support=jnp.asarray(idx),
                  keep=jnp.ones(len(idx), dt), shape=tuple(seed.shape),
-                 scale=1.0 / (pixels * bright ** 2), prior_weight=float(prior_weight),
-                 prior_norm=1.0 / (len(idx) * float(seed[sup].mean())),
-                 eps=1e-3 * float(seed.max()))
+                 scale=jnp.asarray(1.0 / (pixels * bright ** 2), dt),
+                 prior_weight=jnp.asarray(float(prior_weight), dt),
+                 prior_norm=jnp.asarray(1.0 / (len(idx) * float(seed[sup].mean())), dt),
+                 eps=jnp.asarray(1e-3 * float(seed.max()), dt))
     return loss, jnp.asarray(np.log(seed.reshape(-1)[idx]), dt), model, lev_scene
 
 
