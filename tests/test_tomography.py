@@ -170,3 +170,26 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
         fd = (f[0] - f[1]) / (2 * eps)
         assert abs(fd) > 1e-10, i  # the cell reaches the loss
         assert grad[i] == pytest.approx(fd, rel=1e-5, abs=1e-6 * np.abs(grad).max()), i
+
+
+def test_a_density_fit_resumes_from_its_checkpoint(tiny_fit_case, tmp_path):
+    """A fit stopped after 3 evaluations (max_steps) leaves a checkpoint; resumed with 6 it
+    goes on from its best point (its first evaluation there gives that point's loss again,
+    the same program) and spends only the 3 it has left; a checkpoint of another fit (another
+    prior weight) is refused with one line."""
+    scene, targets, truth, box = tiny_fit_case
+    ck = tmp_path / "density-checkpoint.npz"
+    kw = dict(start=box, grids=None, progress=False, checkpoint=ck, **LEVEL)
+    part = df.fit_density(scene, targets, max_steps=3, **kw)
+    assert part.result == "max_steps" and ck.exists()
+    before = [h["loss"] for h in part.history if "loss" in h]
+    assert len(before) == 3
+    with pytest.raises(df.DifffogError, match="different fit"):
+        df.fit_density(scene, targets, max_steps=6, resume=True, prior_weight=2e-3, **kw)
+    full = df.fit_density(scene, targets, max_steps=6, resume=True, **kw)
+    losses = [h["loss"] for h in full.history if "loss" in h]
+    assert losses[:3] == before and len(losses) == 6
+    assert losses[3] == pytest.approx(min(before), rel=1e-12)
+    assert min(losses[3:]) < min(before)
+    assert full.levels[-1]["steps"] == 6
+    assert full.relative_error(truth) < part.relative_error(truth)

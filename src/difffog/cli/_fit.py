@@ -325,9 +325,6 @@ def _run_density(args, scene, targets) -> int:
         able = [n for n, e in SOLVERS.items() if e.traces_density]
         raise DifffogError(f"--unknown fog.density: --solver {args.solver} does not trace the "
                            f"density; use --solver {' or '.join(able)}")
-    if args.resume:
-        raise DifffogError("--resume: a density fit does not write checkpoints yet; run it "
-                           "again without --resume")
     weight = DEFAULT_PRIOR_WEIGHT
     if args.prior is not None:
         kind, _, val = args.prior.partition("=")
@@ -349,6 +346,11 @@ def _run_density(args, scene, targets) -> int:
         img, _ = load_target(path, channel=args.channel, transfer=args.transfer)
         images[cam] = img
     out = check_out_dir(args.out)
+    ckpt = out.parent / f".{out.name}.density-checkpoint.npz"
+    if args.resume and not ckpt.exists():
+        raise DifffogError(f"--resume: no checkpoint {ckpt} (a killed or stopped `difffog fit "
+                           f"--unknown fog.density --out {out}` leaves one); run without "
+                           f"--resume")
     progress = TqdmProgress("density fit") if sys.stderr.isatty() and not args.quiet \
         else NoProgress()
     t0 = time.perf_counter()
@@ -358,20 +360,26 @@ def _run_density(args, scene, targets) -> int:
     if args.downsample is not None:
         kw["downsample"] = positive_int("--downsample", args.downsample)
     result = fit_density(scene, images, start=start, grid=grid, prior_weight=weight,
-                         M=args.directions or 3, progress=progress, **kw)
+                         M=args.directions or 3, progress=progress, checkpoint=ckpt,
+                         resume=args.resume, **kw)
     with atomic_folder(out) as tmp:
         result.save(tmp)
         report = json.loads((tmp / "fit.json").read_text())
         report.update({"scene": scene.title, "overrides": args.overrides,
                        "targets": {c: str(p) for c, p in targets.items()},
                        "total_s": round(time.perf_counter() - t0, 3),
-                       "peak_memory_mb": peak_memory_mb()})
+                       "peak_memory_mb": peak_memory_mb(), "resumed": bool(args.resume)})
         (tmp / "fit.json").write_text(json.dumps(report, indent=1))
         _density_plots(result, tmp)
     ok = result.result == "successful"
+    if ok and ckpt.exists():
+        ckpt.unlink()
     if not args.quiet:
         lv = result.levels[-1]
         print(f"density {'x'.join(map(str, result.density.shape))}: {result.result}, loss "
               f"{lv['loss']:.3g} after {sum(x['steps'] for x in result.levels)} evaluations, "
               f"{result.time_s:.1f} s; {out / 'density.npz'}")
+        if not ok and ckpt.exists():
+            print(f"the checkpoint {ckpt} is kept: add --resume (and a larger --max-steps) to "
+                  f"continue")
     return 0 if ok else 1

@@ -23,6 +23,7 @@ import math
 import time
 import warnings
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -250,7 +251,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 prior_weight: float = DEFAULT_PRIOR_WEIGHT, carve: bool = True,
                 carve_tol: float = DEFAULT_CARVE_TOL, max_steps: Sequence[int] | int = 30,
                 rtol: float = 1e-3, M: int = 3, supersample: int = 1,
-                settings: Mapping | None = None, progress=True) -> DensityFit:
+                settings: Mapping | None = None, progress=True, checkpoint=None,
+                resume: bool = False) -> DensityFit:
     """The fog's density grid from images (density tomography).
 
     scene: the scene (geometry, sun, sky, cameras, ζ and γ); its fog's density grid, or a
@@ -273,6 +275,13 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         start loss (or after ``max_steps`` evaluations).
     M, supersample: the sweep solver's direction half-width and the cameras' rays per pixel
         side; settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
+    checkpoint: a file (.npz) written atomically after every evaluation: the finished levels'
+        estimate and records, the current level's best point and its evaluations.
+    resume: continue from ``checkpoint`` (a killed fit's, or one that ran out of
+        ``max_steps``: give more).  Finished levels are not run again; the current level goes
+        on from its best point with the evaluations it has spent, and a fresh L-BFGS memory
+        (so the path differs from an uninterrupted fit's after the resume point).  The
+        checkpoint must come from the same scene, targets, start and settings.
     """
     t_start = time.perf_counter()
     if scene.fog is None:
@@ -322,12 +331,31 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     if not (len(res) == len(ds) == len(steps) == L):
         raise DifffogError(f"resolutions, downsample and max_steps need one value per level "
                            f"({L} levels: grids {[max(s) for s in shapes]})")
-    meter = as_meter(progress, "density fit")
+    settings_json = {"grids": [list(s) for s in shapes], "resolutions": res, "downsample": ds,
+                     "prior_weight": prior_weight, "carve": carve, "carve_tol": carve_tol,
+                     "max_steps": steps, "rtol": rtol, "M": M, "supersample": supersample}
     history, levels = [], []
     g_prev, result = None, "max_steps"
+    ckpt = None if checkpoint is None else Path(checkpoint)
+    # (not max_steps: a resume may give more)
+    print_ = _fingerprint(scene, tgt, start, settings,
+                          {k: v for k, v in settings_json.items() if k != "max_steps"})
+    lev0, resumed = 0, None
+    if resume:
+        if ckpt is None:
+            raise DifffogError("resume=True needs checkpoint=PATH (the file an earlier fit "
+                               "wrote)")
+        lev0, g_prev, resumed, history, levels = _load(ckpt, print_, len(shapes))
+        if lev0 >= len(shapes):
+            raise DifffogError(f"resume: the fit in {ckpt} finished (its last level converged); "
+                               f"its result is the one to use, or delete the checkpoint")
+        history.append({"level": lev0, "step": -1, "what": "resume"})
+    meter = as_meter(progress, "density fit")
     support_start = start > 0
     try:
         for lev, (shape, n_res, k_ds, n_steps) in enumerate(zip(shapes, res, ds, steps)):
+            if lev < lev0:  # finished before the resume
+                continue
             t_lev = time.perf_counter()
             sup = resample(support_start.astype(float), shape) > 0.5
             seed = resample(start if g_prev is None else g_prev, shape)
@@ -364,6 +392,18 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             # SciPy's ftol is relative to max(|f|, 1): the loss is scaled to 1 at the start,
             # so that rtol is the decrease per iteration relative to the start's loss
             unit = [None]
+            if resumed is not None and lev == lev0:  # go on from the level's best point
+                if resumed["x"].shape != x.shape:
+                    raise DifffogError(f"resume: the checkpoint {ckpt} does not match this "
+                                       f"fit's level {lev}; delete it or run without resume")
+                best[0], best[1] = resumed["best"], resumed["x"]
+                count[0], unit[0] = resumed["count"], resumed["unit"]
+                x = jnp.asarray(resumed["x"], dt)
+                resumed = None
+
+            def save(lev=lev, best=best, count=count, unit=unit):
+                if ckpt is not None:
+                    _save(ckpt, print_, lev, g_prev, best, count[0], unit[0], history, levels)
 
             def fun(xn, lev=lev, loss=loss, best=best, count=count, unit=unit,
                     n_steps=n_steps, first_call=first_call):
@@ -381,17 +421,19 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 count[0] += 1
                 if val < best[0] and int(code) == 0:
                     best[0], best[1] = val, np.array(xn)
+                save()
                 meter.update(sum(steps[:lev]) + count[0], sum(steps), level=lev, loss=val)
                 if unit[0] is None:
                     unit[0] = val if val > 0 else 1.0
                 return val / unit[0], np.asarray(grad, np.float64) / unit[0]
 
-            spent = False
+            spent = count[0] >= n_steps
             try:
-                scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
-                                        method="L-BFGS-B",
-                                        options={"maxfun": n_steps, "maxiter": n_steps,
-                                                 "ftol": rtol, "gtol": 0.0, "maxcor": 10})
+                if not spent:
+                    scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
+                                            method="L-BFGS-B",
+                                            options={"maxfun": n_steps, "maxiter": n_steps,
+                                                     "ftol": rtol, "gtol": 0.0, "maxcor": 10})
             except _Budget:
                 spent = True
             spent = spent or count[0] >= n_steps
@@ -413,16 +455,74 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 break
             if lev == L - 1 and not spent:
                 result = "successful"
+            if ckpt is not None and (lev < L - 1 or not spent):
+                # the level is done: a resume starts at the next (a final level that ran out
+                # of evaluations keeps its own checkpoint, so that more of them continue it)
+                _save(ckpt, print_, lev + 1, g_prev, [np.inf, None], 0, None, history, levels)
     finally:
         meter.close()
     est = g_prev.astype(np.float32)
     return DensityFit(density=est, support=est > 0, history=history, levels=levels,
                       result=result, time_s=time.perf_counter() - t_start,
-                      settings={"grids": [list(s) for s in shapes], "resolutions": res,
-                                "downsample": ds, "prior_weight": prior_weight,
-                                "carve": carve, "carve_tol": carve_tol, "max_steps": steps,
-                                "rtol": rtol, "M": M, "supersample": supersample},
-                      final_level=(loss, x))
+                      settings=settings_json, final_level=(loss, x))
+
+
+def _fingerprint(scene: Scene, tgt, start, settings, fit_settings) -> str:
+    """What a checkpoint must match: the scene, targets, start and settings."""
+    from ._checkpoint import digest, fingerprint
+
+    return fingerprint(scene=repr(scene), targets={c: digest(a) for c, a in tgt.items()},
+                       start=digest(np.asarray(start, np.float64)),
+                       settings=dict(settings or {}), fit=fit_settings)
+
+
+def _save(path: Path, fp: str, lev: int, g_prev, best, count: int, unit, history,
+          levels) -> None:
+    """The checkpoint, written atomically (a kill leaves the previous one intact)."""
+    import os
+    import tempfile
+
+    meta = json.dumps({"fingerprint": fp, "level": lev, "count": count, "unit": unit,
+                       "best": None if not np.isfinite(best[0]) else best[0],
+                       "history": history, "levels": levels})
+    arrays = {"meta": np.array(meta)}
+    if g_prev is not None:
+        arrays["g_prev"] = np.asarray(g_prev, np.float64)
+    if best[1] is not None:
+        arrays["x"] = np.asarray(best[1], np.float64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _load(path: Path, fp: str, n_levels: int):
+    """(level, the grid before it, {x, best, count, unit} or None, history, levels)."""
+    if not path.exists():
+        raise DifffogError(f"resume: no checkpoint at {path}; run the fit without resume first")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            g_prev = z["g_prev"] if "g_prev" in z else None
+            x = z["x"] if "x" in z else None
+    except (OSError, ValueError, KeyError) as e:
+        raise DifffogError(f"resume: {path} is not a density fit's checkpoint ({e}); delete "
+                           f"it or run without resume") from None
+    if meta.get("fingerprint") != fp:
+        raise DifffogError(f"resume: the checkpoint {path} belongs to a different fit (scene, "
+                           f"targets, start or settings changed); delete it or run without "
+                           f"resume")
+    lev = int(meta["level"])
+    state = None
+    if x is not None and lev < n_levels:
+        state = {"x": x, "count": int(meta["count"]), "unit": meta["unit"],
+                 "best": np.inf if meta["best"] is None else float(meta["best"])}
+    return lev, g_prev, state, meta["history"], meta["levels"]
 
 
 def _divisor(scene: Scene, tgt, want: int) -> int:
