@@ -20,7 +20,8 @@ from notebook_runs import SRC, small_run_names
 
 ROOT = Path(__file__).resolve().parents[1]
 NB_DIR = ROOT / "notebooks"
-NAMES = ["01-forward-rendering", "02-fitting", "03-speed-vs-accuracy", "04-the-papers"]
+NAMES = ["01-forward-rendering", "02-fitting", "03-speed-vs-accuracy", "04-the-papers",
+         "05-tomography"]
 MIN_FIGURES = 5  # every notebook displays at least this many figures
 MAX_IPYNB_MB = 2.0  # outputs are figures at screen resolution, not data
 SYNC_HINT = "run `jupytext --sync notebooks/*.py` (or edit and save the notebook in Jupyter)"

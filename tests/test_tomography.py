@@ -156,6 +156,14 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
         np.testing.assert_array_equal(z["density"], res.density)
     report = json.loads((tmp_path / "out" / "fit.json").read_text())
     assert report["grid"] == list(truth.shape) and report["levels"][0]["steps"] == len(losses)
+    # the estimate's images: their misfit is the best evaluation's data term
+    imgs, tg = res.images()
+    assert set(imgs) == set(targets) and all(imgs[c].shape == targets[c].shape for c in imgs)
+    t_all = np.concatenate([tg[c].ravel() for c in tg])
+    misfit = 0.5 * sum(np.sum((imgs[c] - tg[c]) ** 2) for c in imgs) / (
+        t_all.size * np.mean(t_all ** 2))
+    best = min((h for h in res.history if "loss" in h), key=lambda h: h["loss"])
+    assert misfit == pytest.approx(best["data"], rel=1e-9)
 
     loss, x = res.final_level
     (_, (_, _, code, _)), grad = _value_and_grad(x, loss)

@@ -86,6 +86,17 @@ class DensityFit:
         t = resample(np.asarray(truth, np.float64), self.density.shape)
         return float(self.density.sum(dtype=np.float64) / t.sum() - 1.0)
 
+    def images(self) -> tuple[dict, dict]:
+        """({camera: the estimate's image}, {camera: its target}) at the last level's lattice
+        and image size (one more evaluation of the fit's compiled program)."""
+        if self.final_level is None:
+            raise DifffogError("DensityFit.images: this result has no compiled level (it was "
+                               "loaded, not fitted)")
+        loss, x = self.final_level
+        (_, (_, _, _, imgs)), _ = _value_and_grad(x, loss)
+        return ({c: np.asarray(v) for c, v in imgs.items()},
+                {c: np.asarray(v) for c, v in loss.targets.items()})
+
     def to_json(self) -> dict:
         return {"result": self.result, "time_s": self.time_s, "grid": list(self.density.shape),
                 "support_cells": int(self.support.sum()), "levels": self.levels,
