@@ -123,45 +123,7 @@ def slices(grids, titles, suptitle):
 slices([truth, start], ["truth", "start"], "the truth and the start")
 
 # %% [markdown]
-# ## 2. One adjoint solve: the gradient for every cell
-#
-# `df.with_density(params, grid)` makes the grid a traced parameter. The gradient of the
-# images' misfit at the start, for every cell at once (reverse mode through the implicit light
-# solve: one adjoint solve), shows where the images want more fog (negative) and less
-# (positive). A small lattice here: the point is the gradient's shape, not its precision.
-
-# %%
-import jax
-import jax.numpy as jnp
-
-gm = df.forward_model(scene, "sweep", resolution=10 if SMALL else 16, M=2, supersample=1,
-                      accuracy=None, cameras=VIEWS[:2])
-p0 = gm.params()
-small_t = {v: jnp.asarray(box_mean(targets[v], targets[v].shape[0] // c.height),
-                          p0.scattering.dtype) for v, c in zip(VIEWS[:2], gm.cameras)}
-
-
-def misfit(g):
-    imgs = gm.images(df.with_density(p0, g), throw=False)
-    return sum(jnp.mean((imgs[v] - small_t[v]) ** 2) for v in small_t)
-
-
-t = time.perf_counter()
-grad = np.asarray(jax.jit(jax.grad(misfit))(jnp.asarray(start, p0.scattering.dtype)))
-grad = np.where(start > 0, grad, 0.0)  # cells outside the start's support stay empty
-print(f"gradient for {np.count_nonzero(start)} cells in {time.perf_counter() - t:.1f} s "
-      f"(compile included)")
-lim = float(np.abs(grad).max())
-n = grad.shape
-fig, ax = plt.subplots(1, 2, figsize=(7.5, 3.2))
-for a, (cut, lab) in zip(ax, ((grad[n[0] // 2], "x"), (grad[:, :, n[2] // 2], "z"))):
-    im = a.imshow(cut.T, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
-    a.set_title(f"d misfit / d density, middle {lab} slice", fontsize=9)
-fig.colorbar(im, ax=ax, shrink=0.8)
-plt.show()
-
-# %% [markdown]
-# ## 3. The fit
+# ## 2. The fit
 #
 # `fit_density` carves the support first (a pixel whose target matches the fog-free image
 # within 5% sees clear sky or ground: the cells its ray crosses are emptied), then runs L-BFGS-B
@@ -211,6 +173,44 @@ ax[1].set_ylabel("seconds")
 ax[1].set_title("where the time goes, per level")
 ax[1].legend(fontsize=8)
 fig.tight_layout()
+plt.show()
+
+# %% [markdown]
+# ## 3. One adjoint solve: the gradient for every cell
+#
+# The grid is a traced parameter (`df.with_density(params, grid)`), so the gradient of a loss
+# with respect to every cell comes from reverse mode through the implicit light solve: one
+# adjoint solve, whatever the number of cells. `fit.gradient(grid)` evaluates the fit's own
+# loss (the images' relative misfit + the prior) and its gradient per unit density with the
+# program the fit compiled; your own loss is a few lines:
+#
+# ```python
+# model = df.forward_model(scene, "sweep", resolution=16)
+# p = model.params()
+# misfit = lambda g: sum(jnp.mean((img - targets[c]) ** 2) for c, img in
+#                        model.images(df.with_density(p, g)).items())
+# grad = jax.jit(jax.grad(misfit))(grid)   # one adjoint light solve for every cell
+# ```
+#
+# Negative: more density there lowers the loss. (Carved cells, which the fit holds empty,
+# show 0.)
+
+# %%
+t = time.perf_counter()
+val0, g0 = fit.gradient(start)
+val1, g1 = fit.gradient()
+print(f"loss {val0:.3g} at the start, {val1:.3g} at the estimate; two gradients for "
+      f"{np.count_nonzero(fit.support)} cells in {time.perf_counter() - t:.1f} s")
+fig, ax = plt.subplots(2, 2, figsize=(7.5, 6.4))
+n = g0.shape
+for r, (g, name) in enumerate(((g0, "start"), (g1, "estimate"))):
+    lim = float(np.abs(g).max()) or 1.0
+    for c, (cut, lab) in enumerate(((g[n[0] // 2], "x"), (g[:, :, n[2] // 2], "z"))):
+        im = ax[r, c].imshow(cut.T, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
+        ax[r, c].set_title(f"d loss / d density at the {name},\nmiddle {lab} slice", fontsize=9)
+        ax[r, c].set_xticks([])
+        ax[r, c].set_yticks([])
+    fig.colorbar(im, ax=ax[r], shrink=0.8)
 plt.show()
 
 # %% [markdown]

@@ -172,6 +172,12 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
     keep = np.flatnonzero(np.asarray(loss.keep) > 0)
     dens = np.exp(np.asarray(x))[keep]
     order = keep[np.argsort(dens)]
+    # the same gradient per unit density on the grid (DensityFit.gradient), 0 off the support
+    val, dg = res.gradient()
+    flat = dg.reshape(-1)[np.asarray(loss.support)]
+    np.testing.assert_allclose(flat[keep] * dens, grad[keep], rtol=1e-10,
+                               atol=1e-12 * np.abs(grad).max())
+    assert np.all(dg[box == 0] == 0) and val == pytest.approx(min(losses), rel=1e-12)
     for i in (order[-1], order[len(order) // 2], order[0]):
         eps = 1e-4
         f = [float(_value_and_grad(x.at[i].add(s * eps), loss)[0][0]) for s in (1, -1)]

@@ -97,6 +97,30 @@ class DensityFit:
         return ({c: np.asarray(v) for c, v in imgs.items()},
                 {c: np.asarray(v) for c, v in loss.targets.items()})
 
+    def gradient(self, density=None) -> tuple[float, np.ndarray]:
+        """(loss, d loss / d density): the last level's loss (the images' relative misfit +
+        the prior) and its gradient for every cell (0 outside the support and in carved
+        cells, which the fit holds empty) at ``density`` (the level's grid shape; default: the
+        estimate), by the fit's compiled program: one light solve and one adjoint solve for
+        all the cells."""
+        if self.final_level is None:
+            raise DifffogError("DensityFit.gradient: this result has no compiled level (it was "
+                               "loaded, not fitted)")
+        loss, x = self.final_level
+        if density is not None:
+            g = np.asarray(density, np.float64)
+            if g.shape != loss.shape:
+                raise DifffogError(f"DensityFit.gradient: a grid of shape {loss.shape} is "
+                                   f"needed (the last level's), got {g.shape}")
+            cells = g.reshape(-1)[np.asarray(loss.support)]
+            x = jnp.asarray(np.log(np.maximum(cells, 1e-30)), x.dtype)
+        (val, _), gx = _value_and_grad(x, loss)
+        dens = np.exp(np.asarray(x, np.float64)) * np.asarray(loss.keep, np.float64)
+        out = np.zeros(math.prod(loss.shape))
+        out[np.asarray(loss.support)] = np.where(dens > 0, np.asarray(gx, np.float64)
+                                                 / np.where(dens > 0, dens, 1.0), 0.0)
+        return float(val), out.reshape(loss.shape)
+
     def to_json(self) -> dict:
         return {"result": self.result, "time_s": self.time_s, "grid": list(self.density.shape),
                 "support_cells": int(self.support.sum()), "levels": self.levels,
