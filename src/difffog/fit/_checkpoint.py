@@ -28,13 +28,19 @@ def save_checkpoint(path: Path, u, state, k: int, history: list, fingerprint: st
     leaves = jax.tree.leaves(eqx.filter((u, state), eqx.is_array))
     meta = json.dumps({"fingerprint": fingerprint, "step": k, "history": history,
                        "elapsed_s": elapsed})
+    savez_atomic(path, meta=np.array(meta),
+                 **{f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)})
+
+
+def savez_atomic(path: Path, **arrays) -> None:
+    """``np.savez(path, **arrays)`` written to a temporary file beside it and moved into place:
+    a kill leaves the previous checkpoint intact."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, meta=np.array(meta), **{f"leaf{i}": np.asarray(x)
-                                                for i, x in enumerate(leaves)})
-        os.replace(tmp, path)  # atomic: a kill leaves the previous checkpoint intact
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -86,13 +86,17 @@ class DensityFit:
         t = resample(np.asarray(truth, np.float64), self.density.shape)
         return float(self.density.sum(dtype=np.float64) / t.sum() - 1.0)
 
+    def _level(self, what: str):
+        """(the last level's loss, its estimate's coordinates), compiled already."""
+        if self.final_level is None:
+            raise DifffogError(f"DensityFit.{what}: this result has no compiled level (it was "
+                               f"loaded, not fitted)")
+        return self.final_level
+
     def images(self) -> tuple[dict, dict]:
         """({camera: the estimate's image}, {camera: its target}) at the last level's lattice
         and image size (one more evaluation of the fit's compiled program)."""
-        if self.final_level is None:
-            raise DifffogError("DensityFit.images: this result has no compiled level (it was "
-                               "loaded, not fitted)")
-        loss, x = self.final_level
+        loss, x = self._level("images")
         (_, (_, _, _, imgs)), _ = _value_and_grad(x, loss)
         return ({c: np.asarray(v) for c, v in imgs.items()},
                 {c: np.asarray(v) for c, v in loss.targets.items()})
@@ -103,10 +107,7 @@ class DensityFit:
         cells, which the fit holds empty) at ``density`` (the level's grid shape; default: the
         estimate), by the fit's compiled program: one light solve and one adjoint solve for
         all the cells."""
-        if self.final_level is None:
-            raise DifffogError("DensityFit.gradient: this result has no compiled level (it was "
-                               "loaded, not fitted)")
-        loss, x = self.final_level
+        loss, x = self._level("gradient")
         if density is not None:
             g = np.asarray(density, np.float64)
             if g.shape != loss.shape:
@@ -514,8 +515,7 @@ def _fingerprint(scene: Scene, tgt, start, settings, fit_settings) -> str:
 def _save(path: Path, fp: str, lev: int, g_prev, best, count: int, unit, history,
           levels) -> None:
     """The checkpoint, written atomically (a kill leaves the previous one intact)."""
-    import os
-    import tempfile
+    from ._checkpoint import savez_atomic
 
     meta = json.dumps({"fingerprint": fp, "level": lev, "count": count, "unit": unit,
                        "best": None if not np.isfinite(best[0]) else best[0],
@@ -525,15 +525,7 @@ def _save(path: Path, fp: str, lev: int, g_prev, best, count: int, unit, history
         arrays["g_prev"] = np.asarray(g_prev, np.float64)
     if best[1] is not None:
         arrays["x"] = np.asarray(best[1], np.float64)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".npz", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    savez_atomic(path, **arrays)
 
 
 def _load(path: Path, fp: str, n_levels: int):
