@@ -50,8 +50,8 @@ def test_models_built_alike_share_their_compiled_programs(model):
     """A model built again from the same scene and settings (a notebook cell run twice, a fit
     level rebuilt from a new start) renders with the programs compiled for the first: nothing
     is traced or compiled (``HostInfo``, the models' host-side record, compares equal), and
-    the images are the same.  A model whose arrays differ (another density) shares them too.
-    The listener is shown to count: a new function compiles once."""
+    the images are the same.  The listener is shown to count: a new function compiles
+    once."""
     from jax._src.dispatch import BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT
 
     solver = "sweep" if isinstance(model, df.SweepModel) else "splat"
