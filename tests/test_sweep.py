@@ -214,6 +214,35 @@ def test_gradients_match_finite_differences(fog_balls, x64):
         assert float(get_param(g, scene, path)) == pytest.approx(fd, rel=1e-6), path
 
 
+def test_krylov_solver_solves_stops_early_transposes_and_says_when_it_has_not_converged(x64):
+    """The tangent/adjoint solves' GMRES (``KrylovSolver``) against dense solves: the solution,
+    its transpose (reverse mode through ``lineax.linear_solve``), that it stops at the product
+    where it converged (lineax's GMRES runs every restart cycle to its end) and that a solve
+    cut short reports it."""
+    import lineax as lx
+
+    from difffog.forward.sweep._implicit import KrylovSolver
+
+    rng = np.random.default_rng(3)
+    n = 80
+    K = 0.3 * rng.standard_normal((n, n)) / np.sqrt(n)  # spectral radius ~0.3
+    A = np.eye(n) - K
+    b, c = rng.standard_normal(n), rng.standard_normal(n)
+    op = lx.MatrixLinearOperator(jnp.asarray(A))
+    solver = KrylovSolver(rtol=1e-10, restart=40, max_matvecs=400)
+    sol = lx.linear_solve(op, jnp.asarray(b), solver, throw=False)
+    assert sol.result == lx.RESULTS.successful
+    x = np.linalg.solve(A, b)
+    assert np.linalg.norm(np.asarray(sol.value) - x) <= 1e-9 * np.linalg.norm(x)
+    assert int(sol.stats["num_steps"]) < 30  # converged inside the first cycle, and stopped
+    grad = jax.grad(lambda v: jnp.dot(jnp.asarray(c), lx.linear_solve(op, v, solver).value))
+    y = np.linalg.solve(A.T, c)  # d(c·A⁻¹b)/db = A⁻ᵀc
+    assert np.linalg.norm(np.asarray(grad(jnp.asarray(b))) - y) <= 1e-9 * np.linalg.norm(y)
+    short = lx.linear_solve(op, jnp.asarray(b), KrylovSolver(rtol=1e-10, max_matvecs=4),
+                            throw=False)
+    assert short.result != lx.RESULTS.successful
+
+
 # ---------------------------------------------------------------- kernels and devices
 @pytest.mark.parametrize("surfaces", [False, True])
 @pytest.mark.parametrize("shape", [(9, 8, 10), (7, 1, 5)])  # a plane thinner than M wraps twice

@@ -10,6 +10,12 @@ adjoint solve with (I − ∂F/∂x)ᵀ and its memory does not grow with the it
 Written on the public APIs of equinox (``filter_custom_jvp``) and lineax (``linear_solve``,
 ``JacobianLinearOperator``), so that difffog does not depend on optimistix' internals.
 
+:class:`KrylovSolver` solves those systems by the sweep's own restarted GMRES
+(``_krylov.gmres``), which stops at the Krylov step where its error estimate reaches the
+tolerance; ``lineax.GMRES`` checks only at the end of each restart cycle, so every solve costs
+at least ``restart`` + 1 products, however few it needs (cloud-tomo's adjoint at 1e-4: a
+handful, against 41 with ``restart=40``).
+
 :class:`CheckedSolver` wraps the linear solver of these tangent and adjoint solves and says
 when one did not converge: it raises at run time (``throw=True``) or warns with an
 :class:`AdjointWarning` (``throw=False``); it never passes an unconverged gradient silently.
@@ -22,11 +28,13 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 
 from ..._errors import AdjointWarning
+from ._krylov import gmres
 
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver):
@@ -88,6 +96,54 @@ def _warn(bad, steps):
             f"converge in {int(steps)} steps: the gradient is inaccurate; raise the solver's "
             f"max_iterations or adjoint_rtol, or check that the forward solve converged"),
             stacklevel=2)
+
+
+class KrylovSolver(lx.AbstractLinearSolver):
+    """A lineax solver for a square operator A by ``_krylov.gmres`` (restarted GMRES with a
+    stopping test after every product).
+
+    rtol: stop when the estimated relative error of the solution is below it.
+    restart: Krylov steps per cycle (memory: restart + 1 vectors).
+    max_matvecs: the products allowed; a solve that has not reached ``rtol`` by then returns
+        ``RESULTS.max_steps_reached`` (and a non-finite one too).
+    """
+
+    rtol: float = eqx.field(static=True)
+    restart: int = eqx.field(static=True, default=40)
+    max_matvecs: int = eqx.field(static=True, default=400)
+
+    def init(self, operator, options):
+        if "preconditioner" in options:
+            raise ValueError("KrylovSolver takes no preconditioner")
+        if not eqx.tree_equal(operator.in_structure(), operator.out_structure()):
+            raise ValueError("KrylovSolver needs a square operator")
+        return lx.linearise(operator)
+
+    def compute(self, state, vector, options):
+        del options
+        operator = state
+        b, unravel = jax.flatten_util.ravel_pytree(vector)
+
+        def apply_k(u, with_sources):  # K = I − A, so that (I − K)x = Ax = b
+            au, _ = jax.flatten_util.ravel_pytree(operator.mv(unravel(u)))
+            return u - au + jnp.where(with_sources, b, jnp.zeros_like(b))
+
+        x, _, k, err = gmres(apply_k, b.shape, b.dtype, restart=self.restart,
+                             max_matvecs=self.max_matvecs, tol=self.rtol)
+        ok = (err <= self.rtol) & jnp.all(jnp.isfinite(x))
+        result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
+        return unravel(x), result, {"num_steps": k}
+
+    def transpose(self, state, options):
+        del options
+        return state.transpose(), {}
+
+    def conj(self, state, options):
+        del options
+        return lx.conj(state), {}
+
+    def assume_full_rank(self):
+        return True
 
 
 class CheckedSolver(lx.AbstractLinearSolver):

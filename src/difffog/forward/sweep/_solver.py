@@ -20,7 +20,6 @@ import os
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 
 from ...geometry._blocking import segment_blocking
@@ -32,7 +31,7 @@ from ..._errors import SceneError, SolverError
 from ..._numerics import FOUR_PI, safe_div
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
-from ._implicit import CheckedSolver, fixed_point
+from ._implicit import CheckedSolver, KrylovSolver, fixed_point
 from ._dsa import DiffusionOperator, neighbour
 from ._harmonics import MAX_ORDER, basis, delta_m, moment_coefficients
 from ._krylov import gmres
@@ -938,15 +937,17 @@ class SweepSolver(eqx.Module):
         if geom.terms is not None:
             params = _check_terms(geom.terms, params)
         pb = self.problem(geom, params)
-        # The adjoint has the forward's spectrum: budget it like the forward (max_steps counts
-        # restart cycles of 40 applications).  On a device mesh the adjoint's GMRES converges
-        # far more slowly than on one device (fog-balls N = 11, mesh (1, 2, 2): 4 restart
-        # cycles reach 1e-10 on one device, 20 reach 8e-7 on the mesh; the forward and its
-        # JVP agree to 1e-16): give it 20 cycles there.
+        # The adjoint has the forward's spectrum: budget it like the forward (2 ×
+        # max_iterations products, at least 4 cycles of 40).  On a device mesh the adjoint's
+        # GMRES converged far more slowly than on one device (fog-balls N = 11, mesh (1, 2, 2),
+        # lineax's GMRES: 4 restart cycles reached 1e-10 on one device, 20 reached 8e-7 on the
+        # mesh; the forward and its JVP agree to 1e-16): give it 20 cycles there.  The
+        # sweep's own GMRES stops at the product where it has converged (lineax's ran every
+        # cycle to its end: 41 products for an adjoint that needs a handful).
         cycles = 4 if int(np.prod(self.layout())) == 1 else 20
-        linear_solver = CheckedSolver(lx.GMRES(
-            rtol=self.adjoint_rtol, atol=self.adjoint_rtol, restart=40,
-            max_steps=max(cycles, -(-2 * self.max_iterations // 40))), throw=self.throw)
+        linear_solver = CheckedSolver(KrylovSolver(
+            rtol=self.adjoint_rtol, restart=40,
+            max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2), throw=self.throw)
         root, (hist, k, err) = fixed_point(_solve_fixed_point, _rewrite, pb, linear_solver)
         q, b = _sources(root, pb)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
