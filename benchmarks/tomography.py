@@ -6,7 +6,7 @@ time went (compile and evaluations), then the estimate's relative L2 error and t
 against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to ``--out``.
 
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
-        [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2] [--steps 15,15,10]
+        [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2] [--steps 15,15,10] [--supersample 2]
         [--targets mitsuba|sweep] [--out benchmarks/results/tomography]
 """
 
@@ -23,6 +23,8 @@ import numpy as np
 import _common as C
 import difffog as df
 
+ROOT = Path(__file__).resolve().parent.parent
+
 
 def ints(text):
     return tuple(int(x) for x in text.split(",")) if text else None
@@ -36,20 +38,30 @@ def main(argv=None):
     ap.add_argument("--resolutions", default=None)
     ap.add_argument("--downsample", default=None)
     ap.add_argument("--steps", default=None)
+    ap.add_argument("--supersample", type=int, default=None,
+                    help="the cameras' rays per reduced pixel side (default: fit_density's)")
     ap.add_argument("--targets", default="mitsuba", choices=["mitsuba", "sweep"],
                     help="mitsuba: the shared references; sweep: rendered by the sweep at "
                          "--target-N from the truth (no noise)")
     ap.add_argument("--target-N", type=int, default=48)
+    ap.add_argument("--cloud", default="shared", choices=["shared", "b"],
+                    help="shared: cloud-tomo and its Mitsuba references; b: the second cloud "
+                         "of data_synthetic/cloud-tomo-b (benchmarks/cloud_b.py)")
     ap.add_argument("--out", default="benchmarks/results/tomography")
     args = ap.parse_args(argv)
     info = C.machine()
     C.print_machine(info)
-    start_scene = df.load_scene("cloud-tomo-start")
-    truth_scene = df.load_scene("cloud-tomo")
+    if args.cloud == "shared":
+        name, refdir = "cloud-tomo", None
+        start_scene, truth_scene = df.load_scene("cloud-tomo-start"), df.load_scene(name)
+    else:
+        name, refdir = "cloud-tomo-b", ROOT / "data_synthetic"
+        start_scene = df.load_scene(refdir / name / f"{name}-start.toml")
+        truth_scene = df.load_scene(refdir / name / f"{name}.toml")
     truth = np.asarray(truth_scene.fog.density, np.float64)
     views = args.views.split(",")
     if args.targets == "mitsuba":
-        targets = {v: np.asarray(C.reference("cloud-tomo", v)[0], np.float64) for v in views}
+        targets = {v: np.asarray(C.reference(name, v, refdir)[0], np.float64) for v in views}
     else:
         m = df.forward_model(truth_scene, "sweep", resolution=args.target_N, M=3,
                              supersample=2, accuracy=None, cameras=views)
@@ -61,6 +73,8 @@ def main(argv=None):
             kw[key] = val
     if args.prior is not None:
         kw["prior_weight"] = args.prior
+    if args.supersample is not None:
+        kw["supersample"] = args.supersample
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.ThickStepWarning)
@@ -72,7 +86,7 @@ def main(argv=None):
         rows.append([f"{lv['grid'][0]}³", lv["resolution"], f"1/{lv['downsample']}",
                      lv["steps"], f"{lv['loss']:.3g}", lv["support_cells"],
                      f"{lv['compile_s']:.0f}", f"{lv['seconds']:.0f}"])
-    lines = [f"# Density tomography, cloud-tomo from {len(views)} views ({args.targets} targets)",
+    lines = [f"# Density tomography, {name} from {len(views)} views ({args.targets} targets)",
              "", *C.machine_lines(info), "",
              *C.md_table(["grid", "N", "images", "evaluations", "loss", "support cells",
                           "first call s (compile + 1 evaluation)", "level s"], rows), "",
