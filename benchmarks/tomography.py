@@ -33,7 +33,8 @@ def ints(text):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", default="top,view0,view1,view2,view3,view4")
-    ap.add_argument("--prior", type=float, default=None)
+    ap.add_argument("--prior", type=float, default=None, help="the prior's weight")
+    ap.add_argument("--prior-kind", default=None, choices=["tv", "smooth"])
     ap.add_argument("--grids", default="8,16")
     ap.add_argument("--resolutions", default=None)
     ap.add_argument("--downsample", default=None)
@@ -73,6 +74,8 @@ def main(argv=None):
             kw[key] = val
     if args.prior is not None:
         kw["prior_weight"] = args.prior
+    if args.prior_kind is not None:
+        kw["prior"] = args.prior_kind
     if args.supersample is not None:
         kw["supersample"] = args.supersample
     t0 = time.perf_counter()

@@ -298,7 +298,7 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
 
 @pytest.mark.parametrize("extra, needle", [
     (["--unknown", "fog.density", "--unknown", "fog.scattering"], "is fitted alone"),
-    (["--unknown", "fog.density", "--prior", "l2=1"], "--prior l2=1: use tv=WEIGHT"),
+    (["--unknown", "fog.density", "--prior", "l2=1"], "--prior l2=1: use KIND=WEIGHT"),
     (["--unknown", "fog.density", "--prior", "tv=-1"], "must be >= 0"),
     (["--unknown", "fog.density", "--resume"], "no checkpoint"),
 ])

@@ -8,6 +8,7 @@ import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -96,6 +97,27 @@ def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
         model.images(df.with_density(p, np.ones((4, 4, 4))))
 
 
+def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
+    """``roughness``: "tv" is Σ sqrt(|∇g|² + ε²) − ε and "smooth" Σ|∇g|² over the cells, with
+    forward differences that are 0 past the grid; fit_density refuses an unknown prior and
+    a negative weight with one line each."""
+    from difffog.fit._density import roughness
+
+    g = np.random.default_rng(1).random((4, 5, 3))
+    d = [np.diff(g, axis=a, append=np.take(g, [-1], axis=a)) for a in range(3)]
+    sq = d[0] ** 2 + d[1] ** 2 + d[2] ** 2
+    assert float(roughness(jnp.asarray(g), "smooth", 0.0)) == pytest.approx(sq.sum(), rel=1e-6)
+    eps = 0.01
+    tv = np.sum(np.sqrt(sq + eps ** 2) - eps)
+    assert float(roughness(jnp.asarray(g), "tv", eps)) == pytest.approx(tv, rel=1e-6)
+    scene = tiny_cloud()
+    t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
+    with pytest.raises(df.DifffogError, match="prior: 'l1' is not one of tv, smooth"):
+        df.fit_density(scene, t, prior="l1")
+    with pytest.raises(df.DifffogError, match="prior_weight: a finite weight >= 0"):
+        df.fit_density(scene, t, prior="smooth", prior_weight=-1.0)
+
+
 @pytest.fixture(scope="module")
 def tiny_fit_case():
     """float64 (restored after the module): the tiny cloud, its two views, and a start: a
@@ -127,7 +149,7 @@ def tiny_fit_case():
 
 #: the tiny fit's level: lattice, image reduction, solver settings (tight tolerances: the
 #: gradient check)
-LEVEL = dict(resolutions=(10,), downsample=(1,), M=2,
+LEVEL = dict(resolutions=(10,), downsample=(1,), M=2, supersample=1,
              settings=dict(TINY, tol=1e-10, adjoint_rtol=1e-10, max_iterations=400))
 
 

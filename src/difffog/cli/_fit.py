@@ -77,7 +77,7 @@ def add_parser(sub) -> None:
                         "targets to match (default: the largest of 4, 2, 1 that divides)")
     p.add_argument("--max-steps", type=int, default=None,
                    help="optimizer steps (default 50; --unknown fog.density: evaluations per "
-                        "grid level, default 30)")
+                        "grid level, default 20, and 40 for the final grid)")
     p.add_argument("--ladder", default="none", metavar="auto|none|NC,N",
                    help="experimental estimate of the model's own error: fit at a coarser "
                         "resolution first (auto: 3/4 of -N), then at -N from there; the "
@@ -89,9 +89,10 @@ def add_parser(sub) -> None:
                         "lattice twice as fine (or N) and take the Gauss-Newton step that "
                         "image change causes, extrapolated to first order (default refine; "
                         "none: noise only)")
-    p.add_argument("--prior", default=None, metavar="tv=WEIGHT",
-                   help="--unknown fog.density: the total-variation prior's weight (default "
-                        "tv=1e-3, relative to the images' mean squared misfit)")
+    p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
+                   help="--unknown fog.density: the prior and its weight relative to the "
+                        "images' mean squared misfit: tv=W (total variation) or smooth=W "
+                        "(squared gradient) (default " + _default_prior() + ")")
     p.add_argument("--grid", type=int, default=None, metavar="N",
                    help="--unknown fog.density: the estimate's grid, N cells along each axis "
                         "(default: the scene's density grid, or 32)")
@@ -310,11 +311,17 @@ def _density_plots(result, tmp: Path) -> None:
     plt.close(fig)
 
 
+def _default_prior() -> str:
+    from ..fit._density import DEFAULT_PRIOR, PRIORS
+
+    return f"{DEFAULT_PRIOR}={PRIORS[DEFAULT_PRIOR]:g}"
+
+
 def _run_density(args, scene, targets) -> int:
     """``difffog fit SCENE --unknown fog.density``: density tomography (``fit_density``)."""
     from .._output import atomic_folder, check_out_dir
     from .._progress import NoProgress, TqdmProgress
-    from ..fit._density import DEFAULT_PRIOR_WEIGHT, fit_density
+    from ..fit._density import DEFAULT_PRIOR, PRIORS, fit_density
     from ..fit._images import load_target
 
     others = [u for u in args.unknown if u.partition("=")[0].strip() != "fog.density"]
@@ -325,14 +332,16 @@ def _run_density(args, scene, targets) -> int:
         able = [n for n, e in SOLVERS.items() if e.traces_density]
         raise DifffogError(f"--unknown fog.density: --solver {args.solver} does not trace the "
                            f"density; use --solver {' or '.join(able)}")
-    weight = DEFAULT_PRIOR_WEIGHT
+    kind, weight = DEFAULT_PRIOR, None
     if args.prior is not None:
         kind, _, val = args.prior.partition("=")
-        if kind.strip() != "tv" or not val:
-            raise DifffogError(f"--prior {args.prior}: use tv=WEIGHT, e.g. --prior tv=1e-3")
-        weight = _float("--prior", "tv", val)
+        kind = kind.strip()
+        if kind not in PRIORS or not val:
+            raise DifffogError(f"--prior {args.prior}: use KIND=WEIGHT with KIND one of "
+                               f"{', '.join(PRIORS)}, e.g. --prior {_default_prior()}")
+        weight = _float("--prior", kind, val)
         if weight < 0:
-            raise DifffogError(f"--prior tv={val}: the weight must be >= 0")
+            raise DifffogError(f"--prior {kind}={val}: the weight must be >= 0")
     grid = None if args.grid is None else positive_int("--grid", args.grid)
     if scene.fog is None:
         raise DifffogError("--unknown fog.density: the scene has no [fog]; add one")
@@ -359,7 +368,7 @@ def _run_density(args, scene, targets) -> int:
         kw["resolution"] = args.resolution
     if args.downsample is not None:
         kw["downsample"] = positive_int("--downsample", args.downsample)
-    result = fit_density(scene, images, start=start, grid=grid, prior_weight=weight,
+    result = fit_density(scene, images, start=start, grid=grid, prior=kind, prior_weight=weight,
                          M=args.directions or 3, progress=progress, checkpoint=ckpt,
                          resume=args.resume, **kw)
     with atomic_folder(out) as tmp:

@@ -3,7 +3,8 @@
 The unknowns are the logarithms of the grid's cells inside a support (so the density stays
 positive and the cells outside stay exactly 0, as the sweep model's traced density requires,
 ``difffog.with_density``); the loss is the images' mean squared misfit relative to the
-targets' brightness plus a weighted total-variation prior; L-BFGS-B (SciPy: a Python loop
+targets' brightness plus a weighted prior (the grid's total variation, or its squared
+gradient: ``prior="smooth"``); L-BFGS-B (SciPy: a Python loop
 around one compiled value-and-gradient, which optimistix' jitted step would compile a second
 time) minimises it
 from a coarse grid to the final one (each level starts from the last one's estimate,
@@ -38,9 +39,16 @@ from ..scene._description import Scene
 from ..scene._params import with_density
 from ._targets import _block_mean, reduced_scene
 
-#: the prior's weight: the total variation of the grid (per support cell, relative to the
-#: start's mean density) against the images' relative mean squared misfit (``fit_density``)
-DEFAULT_PRIOR_WEIGHT = 1e-3
+#: the priors ``fit_density`` offers, each with its default weight against the images'
+#: relative mean squared misfit: "tv", the total variation Σ|∇g| / (cells · mean); "smooth",
+#: the squared gradient Σ|∇g|² / (cells · mean²) (forward differences; cells and mean: the
+#: level's support and its start's mean density there).  TV keeps edges and flattens peaks;
+#: "smooth" penalises cell-to-cell noise far more than broad structure.
+PRIORS = {"tv": 1e-3, "smooth": 3e-5}
+#: the prior a density fit uses unless told (chosen on cloud-tomo and a second cloud of our
+#: own against Mitsuba images: docs/tomography.md)
+DEFAULT_PRIOR = "smooth"
+DEFAULT_PRIOR_WEIGHT = PRIORS[DEFAULT_PRIOR]
 #: a target pixel within this relative difference of the fog-free image sees clear sky or
 #: ground: its ray carves the cells it crosses out of the support
 DEFAULT_CARVE_TOL = 0.05
@@ -156,10 +164,20 @@ def resample(g: np.ndarray, shape) -> np.ndarray:
     return out
 
 
+def _grad2(g):
+    """|∇g|² per cell, forward differences (0 past the grid)."""
+    d = [jnp.diff(g, axis=a, append=jnp.take(g, jnp.array([-1]), axis=a)) for a in range(3)]
+    return d[0] ** 2 + d[1] ** 2 + d[2] ** 2
+
+
 def total_variation(g, eps):
     """Σ over cells of sqrt(|∇g|² + eps²) − eps, forward differences (0 past the grid)."""
-    d = [jnp.diff(g, axis=a, append=jnp.take(g, jnp.array([-1]), axis=a)) for a in range(3)]
-    return jnp.sum(jnp.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2 + eps * eps) - eps)
+    return jnp.sum(jnp.sqrt(_grad2(g) + eps * eps) - eps)
+
+
+def roughness(g, prior: str, eps):
+    """The prior's measure of the grid: its total variation ("tv") or Σ|∇g|² ("smooth")."""
+    return total_variation(g, eps) if prior == "tv" else jnp.sum(_grad2(g))
 
 
 class _Loss(eqx.Module):
@@ -171,10 +189,11 @@ class _Loss(eqx.Module):
     support: jax.Array  # flat indices of the support cells
     keep: jax.Array  # (support cells,) 1, or 0 where carving emptied the cell
     shape: tuple = eqx.field(static=True)
+    prior: str = eqx.field(static=True)  # one of PRIORS
     # arguments, not constants, so that levels of one shape share one compiled program
     scale: jax.Array  # 1 / (pixels · brightness²)
     prior_weight: jax.Array
-    prior_norm: jax.Array  # 1 / (support cells · start's mean)
+    prior_norm: jax.Array  # 1 / (support cells · start's mean (tv) or its square (smooth))
     eps: jax.Array
 
     def grid(self, x):
@@ -188,7 +207,7 @@ class _Loss(eqx.Module):
         imgs = self.model.images_from(light, with_density(self.params, g))
         data = 0.5 * self.scale * sum(jnp.sum((imgs[c] - self.targets[c]) ** 2)
                                       for c in self.targets)
-        prior = self.prior_weight * self.prior_norm * total_variation(g, self.eps)
+        prior = self.prior_weight * self.prior_norm * roughness(g, self.prior, self.eps)
         return data + prior, (data, prior, light.result, imgs)
 
 
@@ -240,7 +259,7 @@ def _carved(scene: Scene, cameras, targets, clear, shape, tol: float) -> np.ndar
 
 def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray,
                resolution: int, downsample: int, prior_weight: float, M: int = 3,
-               supersample: int = 1, settings: Mapping | None = None):
+               supersample: int = 1, settings: Mapping | None = None, prior: str = "tv"):
     """One level's loss (``_Loss``), its start x (the log of ``seed``'s nonzero cells, the
     support), its forward model and scene: the sweep on a lattice of ``resolution``, the
     cameras of ``targets`` reduced ``downsample`` times (the targets box-averaged to match)."""
@@ -259,11 +278,13 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
         [np.asarray(v, np.float64).ravel() for v in T.values()]) ** 2)))
     sup = seed > 0
     idx = np.flatnonzero(sup)
+    mean = float(seed[sup].mean())
     loss = _Loss(model=model, params=p, targets=T, support=jnp.asarray(idx),
-                 keep=jnp.ones(len(idx), dt), shape=tuple(seed.shape),
+                 keep=jnp.ones(len(idx), dt), shape=tuple(seed.shape), prior=prior,
                  scale=jnp.asarray(1.0 / (pixels * bright ** 2), dt),
                  prior_weight=jnp.asarray(float(prior_weight), dt),
-                 prior_norm=jnp.asarray(1.0 / (len(idx) * float(seed[sup].mean())), dt),
+                 prior_norm=jnp.asarray(1.0 / (len(idx) * (mean if prior == "tv" else mean ** 2)),
+                                        dt),
                  eps=jnp.asarray(1e-3 * float(seed.max()), dt))
     return loss, jnp.asarray(np.log(seed.reshape(-1)[idx]), dt), model, lev_scene
 
@@ -284,9 +305,11 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 grids: Sequence[int] | None = (8, 16), resolution: int | None = None,
                 resolutions: Sequence[int] | None = None,
                 downsample: Sequence[int] | int | None = None,
-                prior_weight: float = DEFAULT_PRIOR_WEIGHT, carve: bool = True,
-                carve_tol: float = DEFAULT_CARVE_TOL, max_steps: Sequence[int] | int = 30,
-                rtol: float = 1e-3, M: int = 3, supersample: int = 1,
+                prior_weight: float | None = None, prior: str = DEFAULT_PRIOR,
+                carve: bool = True,
+                carve_tol: float = DEFAULT_CARVE_TOL,
+                max_steps: Sequence[int] | int | None = None, rtol: float = 1e-3, M: int = 3,
+                supersample: int = 2,
                 settings: Mapping | None = None, progress=True, checkpoint=None,
                 resume: bool = False) -> DensityFit:
     """The fog's density grid from images (density tomography).
@@ -300,17 +323,20 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     grids: the coarser levels' cells along the longest axis (default 8 and 16), each level
         starting from the last one's estimate.
     resolution: the final level's lattice resolution (default 32); ``resolutions``: one per
-        level (default: 2 nodes per cell, at least 16, at most ``resolution``; the final level
-        ``resolution``).
-    downsample: the images' reduction per level (default: to about 2 pixels per cell along
-        the longest axis, at least 1).
-    prior_weight: the total variation's weight (see ``DEFAULT_PRIOR_WEIGHT``).
+        level (default: 1.5 nodes per cell, at least 16, at most ``resolution``; the final
+        level ``resolution``).
+    downsample: the images' reduction per level (default: to about one pixel per lattice
+        node along the longest axis, at least 1).
+    prior, prior_weight: the prior ("tv" or "smooth", see ``PRIORS``) and its weight (default:
+        the prior's in ``PRIORS``).
     carve, carve_tol: space carving of the support (see the module's docstring).
-    max_steps: L-BFGS evaluations per level (one number for all levels, or one per level).
+    max_steps: L-BFGS evaluations per level (one number for all levels, or one per level;
+        default 20 per coarser level and 40 for the final one).
     rtol: a level stops when an iteration lowers its loss by less than ``rtol`` of the level's
         start loss (or after ``max_steps`` evaluations).
     M, supersample: the sweep solver's direction half-width and the cameras' rays per pixel
-        side; settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
+        side (default 2: one ray per pixel misses the targets' box filter at the cloud's
+        edges, and its images prefer a cloud 10% too thin on cloud-tomo; docs/tomography.md); settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
     checkpoint: a file (.npz) written atomically after every evaluation: the finished levels'
         estimate and records, the current level's best point and its evaluations.
     resume: continue from ``checkpoint`` (a killed fit's, or one that ran out of
@@ -320,6 +346,11 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         checkpoint must come from the same scene, targets, start and settings.
     """
     t_start = time.perf_counter()
+    if prior not in PRIORS:
+        raise DifffogError(f"prior: {prior!r} is not one of {', '.join(PRIORS)}")
+    prior_weight = PRIORS[prior] if prior_weight is None else float(prior_weight)
+    if not (np.isfinite(prior_weight) and prior_weight >= 0):
+        raise DifffogError(f"prior_weight: a finite weight >= 0 is needed, got {prior_weight!r}")
     if scene.fog is None:
         raise SceneError("fit_density: the scene has no [fog]; add one (its ζ and γ multiply "
                          "the density grid the fit estimates)")
@@ -359,16 +390,16 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     per = lambda v: list(v) if isinstance(v, Sequence) else [v] * L  # noqa: E731
     top = 32 if resolution is None else int(resolution)
     res = per(resolutions) if resolutions is not None else [
-        int(min(top, max(16, 2 * max(s)))) for s in shapes[:-1]] + [top]
+        int(min(top, max(16, round(1.5 * max(s))))) for s in shapes[:-1]] + [top]
     longest = max(max(c.width, c.height) for c in scene.cameras if c.name in tgt)
     ds = per(downsample) if downsample is not None else [
-        _divisor(scene, tgt, max(1, longest // (2 * max(s)))) for s in shapes]
-    steps = per(max_steps)
+        _divisor(scene, tgt, max(1, longest // n)) for n in res]
+    steps = per(max_steps) if max_steps is not None else [20] * (L - 1) + [40]
     if not (len(res) == len(ds) == len(steps) == L):
         raise DifffogError(f"resolutions, downsample and max_steps need one value per level "
                            f"({L} levels: grids {[max(s) for s in shapes]})")
     settings_json = {"grids": [list(s) for s in shapes], "resolutions": res, "downsample": ds,
-                     "prior_weight": prior_weight, "carve": carve, "carve_tol": carve_tol,
+                     "prior": prior, "prior_weight": prior_weight, "carve": carve, "carve_tol": carve_tol,
                      "max_steps": steps, "rtol": rtol, "M": M, "supersample": supersample}
     history, levels = [], []
     g_prev, result = None, "max_steps"
@@ -397,7 +428,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             seed = resample(start if g_prev is None else g_prev, shape)
             seed = np.where(sup, np.maximum(seed, _FLOOR * max(float(seed.max()), 1e-12)), 0.0)
             loss, x, model, lev_scene = level_loss(scene, tgt, seed, n_res, k_ds,
-                                                   prior_weight, M, supersample, settings)
+                                                   prior_weight, M, supersample, settings,
+                                                   prior)
             dt = x.dtype
             T = loss.targets
             idx = np.asarray(loss.support)
