@@ -306,8 +306,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 resolutions: Sequence[int] | None = None,
                 downsample: Sequence[int] | int | None = None,
                 prior_weight: float | None = None, prior: str = DEFAULT_PRIOR,
-                carve: bool = True,
-                carve_tol: float = DEFAULT_CARVE_TOL,
+                carve: bool = True, carve_tol: float = DEFAULT_CARVE_TOL,
                 max_steps: Sequence[int] | int | None = None, rtol: float = 1e-3, M: int = 3,
                 supersample: int = 2,
                 settings: Mapping | None = None, progress=True, checkpoint=None,
@@ -336,7 +335,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         start loss (or after ``max_steps`` evaluations).
     M, supersample: the sweep solver's direction half-width and the cameras' rays per pixel
         side (default 2: one ray per pixel misses the targets' box filter at the cloud's
-        edges, and its images prefer a cloud 10% too thin on cloud-tomo; docs/tomography.md); settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
+        edges, and its images prefer a cloud 10% too thin on cloud-tomo; docs/tomography.md).
+    settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
     checkpoint: a file (.npz) written atomically after every evaluation: the finished levels'
         estimate and records, the current level's best point and its evaluations.
     resume: continue from ``checkpoint`` (a killed fit's, or one that ran out of
