@@ -26,6 +26,16 @@ import difffog as df
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def load_case(cloud: str):
+    """(name, references' folder or None for the shipped ones, start scene, true scene) of
+    the shared cloud-tomo ("shared") or the second cloud ("b")."""
+    if cloud == "shared":
+        return "cloud-tomo", None, df.load_scene("cloud-tomo-start"), df.load_scene("cloud-tomo")
+    name, refdir = "cloud-tomo-b", ROOT / "data_synthetic"
+    return (name, refdir, df.load_scene(refdir / name / f"{name}-start.toml"),
+            df.load_scene(refdir / name / f"{name}.toml"))
+
+
 def ints(text):
     return tuple(int(x) for x in text.split(",")) if text else None
 
@@ -52,13 +62,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     info = C.machine()
     C.print_machine(info)
-    if args.cloud == "shared":
-        name, refdir = "cloud-tomo", None
-        start_scene, truth_scene = df.load_scene("cloud-tomo-start"), df.load_scene(name)
-    else:
-        name, refdir = "cloud-tomo-b", ROOT / "data_synthetic"
-        start_scene = df.load_scene(refdir / name / f"{name}-start.toml")
-        truth_scene = df.load_scene(refdir / name / f"{name}.toml")
+    name, refdir, start_scene, truth_scene = load_case(args.cloud)
     truth = np.asarray(truth_scene.fog.density, np.float64)
     views = args.views.split(",")
     if args.targets == "mitsuba":

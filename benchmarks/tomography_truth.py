@@ -25,7 +25,7 @@ from scipy.ndimage import gaussian_filter
 import _common as C
 import difffog as df
 from difffog.fit import _density as D
-from tomography import ROOT
+from tomography import load_case
 
 VIEWS = ["top", "view0", "view1", "view2", "view3", "view4"]
 
@@ -36,13 +36,7 @@ def main(argv=None):
     ap.add_argument("--settings", default="32:2:1,32:2:2,48:2:2")
     args = ap.parse_args(argv)
     C.print_machine(C.machine())
-    if args.cloud == "shared":
-        name, refdir = "cloud-tomo", None
-        start, truth_scene = df.load_scene("cloud-tomo-start"), df.load_scene(name)
-    else:
-        name, refdir = "cloud-tomo-b", ROOT / "data_synthetic"
-        start = df.load_scene(refdir / name / f"{name}-start.toml")
-        truth_scene = df.load_scene(refdir / name / f"{name}.toml")
+    name, refdir, start, truth_scene = load_case(args.cloud)
     truth = np.asarray(truth_scene.fog.density, np.float64)
     seed = np.asarray(start.fog.density, np.float64)
     targets = {v: C.reference(name, v, refdir)[0] for v in VIEWS}
