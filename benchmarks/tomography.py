@@ -6,8 +6,9 @@ time went (compile and evaluations), then the estimate's relative L2 error and t
 against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to ``--out``.
 
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
-        [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2] [--steps 15,15,10] [--supersample 2]
-        [--targets mitsuba|sweep] [--out benchmarks/results/tomography]
+        [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
+        [--steps 15,15,10] [--supersample 2] [--targets mitsuba|sweep] [--cloud shared|b]
+        [--out benchmarks/results/tomography]
 """
 
 from __future__ import annotations

@@ -48,7 +48,6 @@ PRIORS = {"tv": 1e-3, "smooth": 3e-5}
 #: the prior a density fit uses unless told (chosen on cloud-tomo and a second cloud of our
 #: own against Mitsuba images: docs/tomography.md)
 DEFAULT_PRIOR = "smooth"
-DEFAULT_PRIOR_WEIGHT = PRIORS[DEFAULT_PRIOR]
 #: a target pixel within this relative difference of the fog-free image sees clear sky or
 #: ground: its ray carves the cells it crosses out of the support
 DEFAULT_CARVE_TOL = 0.05
@@ -259,7 +258,8 @@ def _carved(scene: Scene, cameras, targets, clear, shape, tol: float) -> np.ndar
 
 def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray,
                resolution: int, downsample: int, prior_weight: float, M: int = 3,
-               supersample: int = 1, settings: Mapping | None = None, prior: str = "tv"):
+               supersample: int = 1, settings: Mapping | None = None,
+               prior: str = DEFAULT_PRIOR):
     """One level's loss (``_Loss``), its start x (the log of ``seed``'s nonzero cells, the
     support), its forward model and scene: the sweep on a lattice of ``resolution``, the
     cameras of ``targets`` reduced ``downsample`` times (the targets box-averaged to match)."""
@@ -399,7 +399,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         raise DifffogError(f"resolutions, downsample and max_steps need one value per level "
                            f"({L} levels: grids {[max(s) for s in shapes]})")
     settings_json = {"grids": [list(s) for s in shapes], "resolutions": res, "downsample": ds,
-                     "prior": prior, "prior_weight": prior_weight, "carve": carve, "carve_tol": carve_tol,
+                     "prior": prior, "prior_weight": prior_weight, "carve": carve,
+                     "carve_tol": carve_tol,
                      "max_steps": steps, "rtol": rtol, "M": M, "supersample": supersample}
     history, levels = [], []
     g_prev, result = None, "max_steps"
