@@ -127,7 +127,8 @@ slices([truth, start], ["truth", "start"], "the truth and the start")
 # ## 2. The fit
 #
 # `fit_density` carves the support first (a pixel whose target matches the fog-free image
-# within 5% sees clear sky or ground: the cells its ray crosses are emptied), then runs L-BFGS-B
+# within 2% sees clear sky or ground: a cell that such rays of two views cross through its
+# middle is emptied), then runs L-BFGS-B
 # level by level, each level started from the last one's estimate. The command line does the
 # same: `difffog fit cloud-tomo-start --target top=top.exr ... --unknown fog.density --out DIR`.
 
@@ -247,11 +248,16 @@ print(f"residual RMS {rms / bright:.1%} of the targets' RMS")
 # %% [markdown]
 # ## 5. Where this stands
 #
+# (The outputs above are from the full-size run before the carving changed on 2026-11-28,
+# stop 37: it then carved with one view at 5%; the benchmark gives 0.189 and −0.6% with the
+# new carving, docs/tomography.md.)
+#
 # At the full size this fit reaches a relative L2 error of about 0.19 with the total mass
 # right to 0.2% (docs/tomography.md: from a uniform start at 1.46 and +349%; the total-variation
 # prior reached 0.30, its weight trading a flattened core, −20%, against hot spots). The
 # issue's aim is 15% and 2%; on a second cloud of our own (`data_synthetic/cloud-tomo-b`) the
-# same defaults reach 0.33 and −14%, short of it, with the images fitted less closely than
+# same defaults reach 0.29 and −13% (0.33 and −14% before the carving kept its cloud),
+# short of it, with the images fitted less closely than
 # the truth fits them: a weight chosen per fit from the misfit it should reach (the
 # discrepancy principle) is the next step (docs/tomography.md). A fit stopped early keeps a checkpoint:
 # `fit_density(..., checkpoint=PATH)` and `resume=True` (or `difffog fit ... --resume`) go on

@@ -118,6 +118,41 @@ def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
         df.fit_density(scene, t, prior="smooth", prior_weight=-1.0)
 
 
+def test_carving_needs_two_views_and_a_coarse_cell_all_of_its_fine_cells():
+    """Space carving (``_carved``): where every pixel of both views is clear, the cells both
+    views' rays cross are carved with ``views=2`` and none with one camera (fog as bright as
+    the ground behind it leaves one view unchanged); a cell is marked only by a ray through its
+    central part, so a ray along a cell face marks neither neighbour; and a coarse cell is
+    carved only when all of its fine cells are (``coarsen_carved``)."""
+    from difffog.fit._density import _carved, coarsen_carved
+
+    scene = tiny_cloud(grid=8, size=(8, 8))
+    cams = scene.cameras[:2]
+    img = {c.name: np.ones((c.height, c.width)) for c in cams}
+    one = _carved(scene, cams[:1], img, img, (8, 8, 8), 0.02, views=1)
+    both = _carved(scene, cams, img, img, (8, 8, 8), 0.02, views=2)
+    alone = _carved(scene, cams[:1], img, img, (8, 8, 8), 0.02, views=2)
+    other = _carved(scene, cams[1:], img, img, (8, 8, 8), 0.02, views=1)
+    assert one.any() and not alone.any()
+    np.testing.assert_array_equal(both, one & other)
+    assert 0 < both.sum() < one.sum()
+    # the top view is orthographic, straight down: its 8x8 pixel-centre rays pass through
+    # the centres of an 8-cell grid's columns (marked) and along the faces of a 16-cell
+    # grid's cells (not marked), whose 2x2 sub-pixel rays pass through cell centres again
+    top = [c for c in cams if c.name == "top"]
+    assert _carved(scene, top, img, img, (8, 8, 8), 0.02)[:, :, 4].all()
+    assert not _carved(scene, top, img, img, (16, 16, 16), 0.02).any()
+    assert _carved(scene, top, img, img, (16, 16, 16), 0.02, rays=2)[:, :, 8].all()
+
+    rng = np.random.default_rng(3)
+    fine = rng.random((8, 6, 4)) < 0.8
+    fine[:2, :3, :2] = True
+    coarse = coarsen_carved(fine, (4, 3, 2))
+    want = fine.reshape(4, 2, 3, 2, 2, 2).all(axis=(1, 3, 5))
+    np.testing.assert_array_equal(coarse, want)
+    assert coarse[0, 0, 0] and not coarse.all()
+
+
 @pytest.fixture(scope="module")
 def tiny_fit_case():
     """float64 (restored after the module): the tiny cloud, its two views, and a start: a
@@ -172,6 +207,8 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
     losses = [h["loss"] for h in res.history if "loss" in h]
     assert len(losses) <= 8 and min(losses) < 0.2 * losses[0]
     assert res.levels[0]["carved_cells"] > 0
+    # the carving emptied no cell where the truth has fog
+    assert truth[(res.density == 0) & (box > 0)].sum() == 0
     assert np.all(res.density[box == 0] == 0)
     res.save(tmp_path / "out")
     with np.load(tmp_path / "out" / "density.npz") as z:
