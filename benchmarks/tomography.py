@@ -8,6 +8,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
         [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
         [--steps 15,15,10] [--supersample 2] [--targets mitsuba|sweep] [--cloud shared|b]
+        [--scheme auto|step|linear]
         [--out benchmarks/results/tomography]
 """
 
@@ -59,6 +60,10 @@ def main(argv=None):
     ap.add_argument("--cloud", default="shared", choices=["shared", "b"],
                     help="shared: cloud-tomo and its Mitsuba references; b: the second cloud "
                          "of data_synthetic/cloud-tomo-b (benchmarks/cloud_b.py)")
+    ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
+                    help="the light solve's transport scheme (default: the sweep's auto, "
+                         "linear where a step through the level's start's densest cell is "
+                         "optically thicker than 1)")
     ap.add_argument("--out", default="benchmarks/results/tomography")
     args = ap.parse_args(argv)
     info = C.machine()
@@ -83,6 +88,8 @@ def main(argv=None):
         kw["prior"] = args.prior_kind
     if args.supersample is not None:
         kw["supersample"] = args.supersample
+    if args.scheme is not None:
+        kw["settings"] = {"scheme": args.scheme}
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.ThickStepWarning)

@@ -8,6 +8,7 @@ the truth's own misfit (the forward model's error plus the targets' noise) canno
 from the truth by the images: only the prior can.
 
     python benchmarks/tomography_truth.py [--cloud shared|b] [--settings 32:2:1,32:2:2,48:2:2]
+        [--scheme auto|step|linear]
 
 (``N:downsample:supersample``).
 """
@@ -34,6 +35,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cloud", default="shared", choices=["shared", "b"])
     ap.add_argument("--settings", default="32:2:1,32:2:2,48:2:2")
+    ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
+                    help="the light solve's scheme (default auto: judged at the start box's "
+                         "density, 0.25, which is the step scheme at N >= 32; the fits' finer "
+                         "levels start denser and take the linear one)")
     args = ap.parse_args(argv)
     C.print_machine(C.machine())
     name, refdir, start, truth_scene = load_case(args.cloud)
@@ -49,7 +54,9 @@ def main(argv=None):
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", df.ThickStepWarning)
-            loss, x0, _, _ = D.level_loss(start, targets, seed, n, ds, 0.0, 3, ss)
+            loss, x0, _, _ = D.level_loss(start, targets, seed, n, ds, 0.0, 3, ss,
+                                          None if args.scheme is None
+                                          else {"scheme": args.scheme})
         idx = np.asarray(loss.support)
         out = []
         for g in alts.values():
