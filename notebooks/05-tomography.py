@@ -248,17 +248,17 @@ print(f"residual RMS {rms / bright:.1%} of the targets' RMS")
 # %% [markdown]
 # ## 5. Where this stands
 #
-# (The outputs above are from the full-size run before the carving changed on 2026-11-28,
-# stop 37: it then carved with one view at 5%; the benchmark gives 0.189 and −0.6% with the
-# new carving, docs/tomography.md.)
+# (The full-size outputs above are from a run before stop 37 changed two defaults: the
+# carving, which then used one view at 5%, and the light solve's scheme, then the sweep's
+# "auto", linear for this cloud. With today's defaults the benchmark reaches **0.144 with the
+# mass right to 0.9%, in 406 s** (`python benchmarks/tomography.py`, docs/tomography.md).)
 #
-# At the full size this fit reaches a relative L2 error of about 0.19 with the total mass
+# In that earlier run this fit reached a relative L2 error of about 0.19 with the total mass
 # right to 0.2% (docs/tomography.md: from a uniform start at 1.46 and +349%; the total-variation
 # prior reached 0.30, its weight trading a flattened core, −20%, against hot spots). The
 # issue's aim is 15% and 2%; on a second cloud of our own (`data_synthetic/cloud-tomo-b`) the
-# same defaults reach 0.29 and −13% (0.33 and −14% before the carving kept its cloud),
-# short of it, with the images fitted less closely than
-# the truth fits them: a weight chosen per fit from the misfit it should reach (the
-# discrepancy principle) is the next step (docs/tomography.md). A fit stopped early keeps a checkpoint:
+# defaults reach 0.277 and −12.6% (0.33 and −14% before the carving kept its cloud and the
+# step scheme), short of it: its dense towers come out thinner than the truth, and no one
+# prior weight serves both clouds yet (docs/tomography.md). A fit stopped early keeps a checkpoint:
 # `fit_density(..., checkpoint=PATH)` and `resume=True` (or `difffog fit ... --resume`) go on
 # from it.

@@ -153,6 +153,22 @@ def test_carving_needs_two_views_and_a_coarse_cell_all_of_its_fine_cells():
     assert coarse[0, 0, 0] and not coarse.all()
 
 
+def test_a_density_fit_takes_the_step_scheme_unless_told():
+    """The density fit's levels use the step scheme (``DENSITY_SCHEME``: closer to Mitsuba on
+    both clouds than the linear scheme that "auto" picks for a cloud's thick steps); settings
+    that name a scheme win, and "auto" still resolves to linear for the tiny cloud (step
+    depth 6.6)."""
+    from difffog.fit._density import DENSITY_SCHEME, level_loss
+
+    scene = tiny_cloud()
+    g = np.asarray(scene.fog.density)
+    t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
+    _, _, model, lev = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1)
+    assert DENSITY_SCHEME == "step" and model.solver.scheme == "step"
+    _, _, model, lev = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1, {"scheme": "auto"})
+    assert model.solver.resolved_scheme(lev, model.lattice) == "linear"
+
+
 @pytest.fixture(scope="module")
 def tiny_fit_case():
     """float64 (restored after the module): the tiny cloud, its two views, and a start: a

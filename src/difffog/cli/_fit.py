@@ -368,6 +368,8 @@ def _run_density(args, scene, targets) -> int:
         kw["resolution"] = args.resolution
     if args.downsample is not None:
         kw["downsample"] = positive_int("--downsample", args.downsample)
+    if getattr(args, "scheme", None) is not None:  # else fit_density's (DENSITY_SCHEME)
+        kw["settings"] = {"scheme": args.scheme}
     result = fit_density(scene, images, start=start, grid=grid, prior=kind, prior_weight=weight,
                          M=args.directions or 3, progress=progress, checkpoint=ckpt,
                          resume=args.resume, **kw)

@@ -51,6 +51,13 @@ DEFAULT_PRIOR = "smooth"
 #: a target pixel within this relative difference of the fog-free image sees clear sky or
 #: ground: its ray carves the cells it crosses out of the support
 DEFAULT_CARVE_TOL = 0.02
+#: the light solve's scheme a density fit uses unless ``settings`` names one: the step scheme.
+#: scheme="auto" would judge each level by its start's densest cell and take the linear
+#: scheme for clouds (step depth 3.75 at N = 32 on cloud-tomo), which is the further one from
+#: Mitsuba 3 there (the true cloud's own misfit at N = 32: step 3.44e-4, linear 4.66e-4;
+#: cloud-tomo-b 3.85e-4 against 4.72e-4); fits: cloud-tomo 0.189 → 0.144, in half the time
+#: (docs/tomography.md)
+DENSITY_SCHEME = "step"
 #: the smallest density a support cell starts from, relative to the start's largest (its log
 #: must be finite)
 _FLOOR = 1e-3
@@ -296,7 +303,8 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
     lev_scene = reduced_scene(scene, list(targets), downsample)
     lev_scene = lev_scene.replace(fog=dataclasses.replace(scene.fog, density=seed))
     model = forward_model(lev_scene, "sweep", resolution=resolution, M=M,
-                          supersample=supersample, accuracy=None, **dict(settings or {}))
+                          supersample=supersample, accuracy=None,
+                          **{"scheme": DENSITY_SCHEME, **dict(settings or {})})
     p = model.params()
     dt = p.scattering.dtype
     T = {c: jnp.asarray(_block_mean(np.asarray(targets[c], np.float64), downsample)
@@ -364,7 +372,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     M, supersample: the sweep solver's direction half-width and the cameras' rays per pixel
         side (default 2: one ray per pixel misses the targets' box filter at the cloud's
         edges, and its images prefer a cloud 10% too thin on cloud-tomo; docs/tomography.md).
-    settings: further forward-model settings (e.g. ``{"scheme": "step"}``).
+    settings: further forward-model settings (the light solve's scheme is ``DENSITY_SCHEME``,
+        "step", unless they name one: ``{"scheme": "auto"}`` restores the sweep's choice).
     checkpoint: a file (.npz) written atomically after every evaluation: the finished levels'
         estimate and records, the current level's best point and its evaluations.
     resume: continue from ``checkpoint`` (a killed fit's, or one that ran out of
