@@ -55,7 +55,7 @@ def main(argv=None):
                     help="the cameras' rays per reduced pixel side (default: fit_density's)")
     ap.add_argument("--targets", default="mitsuba", choices=["mitsuba", "sweep"],
                     help="mitsuba: the shared references; sweep: rendered by the sweep at "
-                         "--target-N from the truth (no noise)")
+                         "--target-N from the truth (no noise), with the fit's scheme")
     ap.add_argument("--target-N", type=int, default=48)
     ap.add_argument("--cloud", default="shared", choices=["shared", "b"],
                     help="shared: cloud-tomo and its Mitsuba references; b: the second cloud "
@@ -74,8 +74,11 @@ def main(argv=None):
     if args.targets == "mitsuba":
         targets = {v: np.asarray(C.reference(name, v, refdir)[0], np.float64) for v in views}
     else:
+        # the fit's own scheme (its default, or --scheme), a finer lattice
+        from difffog.fit._density import DENSITY_SCHEME
         m = df.forward_model(truth_scene, "sweep", resolution=args.target_N, M=3,
-                             supersample=2, accuracy=None, cameras=views)
+                             supersample=2, accuracy=None, cameras=views,
+                             scheme=args.scheme or DENSITY_SCHEME)
         targets = {v: np.asarray(img, np.float64) for v, img in m().items()}
     kw = {}
     for key, val in (("resolutions", ints(args.resolutions)),
