@@ -24,6 +24,7 @@ import numpy as np
 
 import _common as C
 import difffog as df
+from difffog.fit._density import DENSITY_SCHEME
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -61,9 +62,10 @@ def main(argv=None):
                     help="shared: cloud-tomo and its Mitsuba references; b: the second cloud "
                          "of data_synthetic/cloud-tomo-b (benchmarks/cloud_b.py)")
     ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
-                    help="the light solve's transport scheme (default: the sweep's auto, "
-                         "linear where a step through the level's start's densest cell is "
-                         "optically thicker than 1)")
+                    help="the light solve's transport scheme (default: fit_density's, "
+                         "DENSITY_SCHEME; auto: the sweep's choice, linear where a step "
+                         "through the level's start's densest cell is optically thicker "
+                         "than 1)")
     ap.add_argument("--out", default="benchmarks/results/tomography")
     args = ap.parse_args(argv)
     info = C.machine()
@@ -75,7 +77,6 @@ def main(argv=None):
         targets = {v: np.asarray(C.reference(name, v, refdir)[0], np.float64) for v in views}
     else:
         # the fit's own scheme (its default, or --scheme), a finer lattice
-        from difffog.fit._density import DENSITY_SCHEME
         m = df.forward_model(truth_scene, "sweep", resolution=args.target_N, M=3,
                              supersample=2, accuracy=None, cameras=views,
                              scheme=args.scheme or DENSITY_SCHEME)

@@ -36,9 +36,10 @@ def main(argv=None):
     ap.add_argument("--cloud", default="shared", choices=["shared", "b"])
     ap.add_argument("--settings", default="32:2:1,32:2:2,48:2:2")
     ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
-                    help="the light solve's scheme (default auto: judged at the start box's "
-                         "density, 0.25, which is the step scheme at N >= 32; the fits' finer "
-                         "levels start denser and take the linear one)")
+                    help="the light solve's scheme (default: the density fit's, "
+                         "DENSITY_SCHEME; auto is judged at the start box's density, 0.25, "
+                         "which is the step scheme at N >= 32, where the fit's finer levels "
+                         "would start denser and take the linear one)")
     args = ap.parse_args(argv)
     C.print_machine(C.machine())
     name, refdir, start, truth_scene = load_case(args.cloud)
