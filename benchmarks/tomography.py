@@ -7,7 +7,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
 
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
         [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
-        [--steps 15,15,10] [--supersample 2] [--targets mitsuba|sweep] [--cloud shared|b]
+        [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep] [--cloud shared|b]
         [--scheme auto|step|linear]
         [--out benchmarks/results/tomography]
 """
@@ -52,6 +52,11 @@ def main(argv=None):
     ap.add_argument("--resolutions", default=None)
     ap.add_argument("--downsample", default=None)
     ap.add_argument("--steps", default=None)
+    ap.add_argument("--rtol", type=float, default=None,
+                    help="a level stops when an iteration gains less than this share of its "
+                         "start loss (default: fit_density's)")
+    ap.add_argument("--M", type=int, default=None,
+                    help="the sweep's direction half-width (default: fit_density's)")
     ap.add_argument("--supersample", type=int, default=None,
                     help="the cameras' rays per reduced pixel side (default: fit_density's)")
     ap.add_argument("--targets", default="mitsuba", choices=["mitsuba", "sweep"],
@@ -92,6 +97,10 @@ def main(argv=None):
         kw["prior"] = args.prior_kind
     if args.supersample is not None:
         kw["supersample"] = args.supersample
+    if args.M is not None:
+        kw["M"] = args.M
+    if args.rtol is not None:
+        kw["rtol"] = args.rtol
     if args.scheme is not None:
         kw["settings"] = {"scheme": args.scheme}
     t0 = time.perf_counter()

@@ -136,8 +136,9 @@ slices([truth, start], ["truth", "start"], "the truth and the start")
 if SMALL:
     settings = dict(grids=None, resolutions=(10,), downsample=(1,), max_steps=4, M=2,
                     supersample=1, settings={"scheme": "step"})
-else:  # the defaults: grids 8³, 16³, 32³ at N = 16, 24, 32, images 1/4, 1/2, 1/2, 2² rays
-    settings = dict()  # per pixel, the smooth prior at 3e-5, 20 / 20 / 40 evaluations at most
+else:  # the defaults: grids 8³, 16³, 32³ at N = 16, 24, 32, images 1/4, 1/2, 1/2, 4² rays
+    # per reduced pixel (two per target pixel side), the smooth prior at 3e-5, 20 / 20 / 40
+    settings = dict()  # evaluations at most
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", df.ThickStepWarning)
     fit = df.fit_density(scene, targets, start=start, progress=False, **settings)

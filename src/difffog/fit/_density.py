@@ -325,6 +325,13 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
     return loss, jnp.asarray(np.log(seed.reshape(-1)[idx]), dt), model, lev_scene
 
 
+def rays_per_pixel_side(downsample: int) -> int:
+    """A level's default supersampling: two rays per target pixel side (the targets' box
+    filter sampled as finely as their own pixels), at most 4 per reduced pixel side, at least
+    2."""
+    return max(2, min(4, 2 * int(downsample)))
+
+
 def _ladder(final: tuple, grids) -> list[tuple]:
     """The grid shapes of the levels: each of ``grids`` (cells along the longest axis) below
     the final grid's, the final grid's shape last."""
@@ -344,7 +351,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 prior_weight: float | None = None, prior: str = DEFAULT_PRIOR,
                 carve: bool = True, carve_tol: float = DEFAULT_CARVE_TOL,
                 max_steps: Sequence[int] | int | None = None, rtol: float = 1e-3, M: int = 3,
-                supersample: int = 2,
+                supersample: Sequence[int] | int | None = None,
                 settings: Mapping | None = None, progress=True, checkpoint=None,
                 resume: bool = False) -> DensityFit:
     """The fog's density grid from images (density tomography).
@@ -369,9 +376,12 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         default 20 per coarser level and 40 for the final one).
     rtol: a level stops when an iteration lowers its loss by less than ``rtol`` of the level's
         start loss (or after ``max_steps`` evaluations).
-    M, supersample: the sweep solver's direction half-width and the cameras' rays per pixel
-        side (default 2: one ray per pixel misses the targets' box filter at the cloud's
-        edges, and its images prefer a cloud 10% too thin on cloud-tomo; docs/tomography.md).
+    M: the sweep solver's direction half-width.
+    supersample: the cameras' rays per (reduced) pixel side, one number or one per level
+        (default: two per target pixel side, ``min(4, 2·downsample)``, at least 2: a level's
+        images then sample the targets' box filter as finely as the targets' pixels; with one
+        ray per target pixel the truth's own misfit to the Mitsuba images of cloud-tomo was
+        3.44e-4 at the final level, with two per side 2.01e-4: docs/tomography.md).
     settings: further forward-model settings (the light solve's scheme is ``DENSITY_SCHEME``,
         "step", unless they name one: ``{"scheme": "auto"}`` restores the sweep's choice).
     checkpoint: a file (.npz) written atomically after every evaluation: the finished levels'
@@ -432,13 +442,15 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     ds = per(downsample) if downsample is not None else [
         _divisor(scene, tgt, max(1, longest // n)) for n in res]
     steps = per(max_steps) if max_steps is not None else [20] * (L - 1) + [40]
-    if not (len(res) == len(ds) == len(steps) == L):
-        raise DifffogError(f"resolutions, downsample and max_steps need one value per level "
-                           f"({L} levels: grids {[max(s) for s in shapes]})")
+    rays = per(supersample) if supersample is not None else [
+        rays_per_pixel_side(k) for k in ds]
+    if not (len(res) == len(ds) == len(steps) == len(rays) == L):
+        raise DifffogError(f"resolutions, downsample, max_steps and supersample need one value "
+                           f"per level ({L} levels: grids {[max(s) for s in shapes]})")
     settings_json = {"grids": [list(s) for s in shapes], "resolutions": res, "downsample": ds,
                      "prior": prior, "prior_weight": prior_weight, "carve": carve,
                      "carve_tol": carve_tol,
-                     "max_steps": steps, "rtol": rtol, "M": M, "supersample": supersample}
+                     "max_steps": steps, "rtol": rtol, "M": M, "supersample": rays}
     history, levels = [], []
     g_prev, result = None, "max_steps"
     ckpt = None if checkpoint is None else Path(checkpoint)
@@ -459,7 +471,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     support_start = start > 0
     fine_support = resample(support_start.astype(float), final) > 0.5
     try:
-        for lev, (shape, n_res, k_ds, n_steps) in enumerate(zip(shapes, res, ds, steps)):
+        for lev, (shape, n_res, k_ds, n_steps, n_rays) in enumerate(zip(shapes, res, ds, steps,
+                                                                        rays)):
             if lev < lev0:  # finished before the resume
                 continue
             t_lev = time.perf_counter()
@@ -467,7 +480,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             seed = resample(start if g_prev is None else g_prev, shape)
             seed = np.where(sup, np.maximum(seed, _FLOOR * max(float(seed.max()), 1e-12)), 0.0)
             loss, x, model, lev_scene = level_loss(scene, tgt, seed, n_res, k_ds,
-                                                   prior_weight, M, supersample, settings,
+                                                   prior_weight, M, n_rays, settings,
                                                    prior)
             dt = x.dtype
             T = loss.targets
