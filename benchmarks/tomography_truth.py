@@ -7,7 +7,7 @@ fit evaluates) at the truth and at altered truths.  An alteration whose data ter
 the truth's own misfit (the forward model's error plus the targets' noise) cannot be told
 from the truth by the images: only the prior can.
 
-    python benchmarks/tomography_truth.py [--cloud shared|b] [--settings 32:2:1,32:2:2,48:2:2]
+    python benchmarks/tomography_truth.py [--cloud shared|b] [--settings 32:2:2,32:2:4,48:2:4]
         [--scheme auto|step|linear]
 
 (``N:downsample:supersample``).
@@ -34,7 +34,7 @@ VIEWS = ["top", "view0", "view1", "view2", "view3", "view4"]
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cloud", default="shared", choices=["shared", "b"])
-    ap.add_argument("--settings", default="32:2:1,32:2:2,48:2:2")
+    ap.add_argument("--settings", default="32:2:2,32:2:4,48:2:4")
     ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
                     help="the light solve's scheme (default: the density fit's, "
                          "DENSITY_SCHEME; auto is judged at the start box's density, 0.25, "
