@@ -249,17 +249,15 @@ print(f"residual RMS {rms / bright:.1%} of the targets' RMS")
 # %% [markdown]
 # ## 5. Where this stands
 #
-# (The full-size outputs above are from a run before stop 37 changed two defaults: the
-# carving, which then used one view at 5%, and the light solve's scheme, then the sweep's
-# "auto", linear for this cloud. With today's defaults the benchmark reaches **0.144 with the
-# mass right to 0.9%, in 406 s** (`python benchmarks/tomography.py`, docs/tomography.md).)
-#
-# In that earlier run this fit reached a relative L2 error of about 0.19 with the total mass
-# right to 0.2% (docs/tomography.md: from a uniform start at 1.46 and +349%; the total-variation
-# prior reached 0.30, its weight trading a flattened core, −20%, against hot spots). The
-# issue's aim is 15% and 2%; on a second cloud of our own (`data_synthetic/cloud-tomo-b`) the
-# defaults reach 0.277 and −12.6% (0.33 and −14% before the carving kept its cloud and the
-# step scheme), short of it: its dense towers come out thinner than the truth, and no one
-# prior weight serves both clouds yet (docs/tomography.md). A fit stopped early keeps a checkpoint:
-# `fit_density(..., checkpoint=PATH)` and `resume=True` (or `difffog fit ... --resume`) go on
-# from it.
+# The run above uses today's defaults (stop 38: the step scheme, the carving that keeps the
+# cloud, two rays per side of a target pixel). The benchmark (`python benchmarks/tomography.py`,
+# the same settings) reached a relative L2 error of 0.142 with the total mass right to 0.6% in
+# 445 s (docs/tomography.md: from a uniform start at 1.46 and +349%); the issue's aim is 15% and
+# 2%. On a second cloud of our own (`data_synthetic/cloud-tomo-b`) the defaults reach 0.267 and
+# −11.9%, short of it: its rougher towers come out thinner than the truth. A third of the
+# prior's weight (1e-5) gives that cloud 0.227 with its mass to 0.6%, but this one 0.289 and
+# +12.5%: no one weight serves both yet. From the sweep's own images at N = 48 the fit reaches
+# 0.142, not the issue's 10%: the prior's pull and the lattice's own error in the cloud's outer
+# shell limit it (docs/tomography.md, "What limits the fit now"). A fit stopped early keeps a
+# checkpoint: `fit_density(..., checkpoint=PATH)` and `resume=True` (or
+# `difffog fit ... --resume`) go on from it.
