@@ -7,8 +7,8 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
 
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
         [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
-        [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep] [--cloud shared|b]
-        [--scheme auto|step|linear]
+        [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep]
+        [--cloud shared|b] [--scheme auto|step|linear]
         [--out benchmarks/results/tomography]
 """
 

@@ -9,7 +9,8 @@ the settings; then the collided fluence Λ of the light solve at the cloud's cel
 interpolated to the cell centres) against the finest setting's, by depth below the cloud's
 surface.
 
-    python benchmarks/tomography_model.py [--cloud shared|b] [--settings 32:3,48:3,64:3,96:3,32:2,48:2]
+    python benchmarks/tomography_model.py [--cloud shared|b]
+        [--settings 32:3,48:3,64:3,96:3,32:2,48:2]
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from scipy.ndimage import distance_transform_edt, map_coordinates
 
 import _common as C
 import difffog as df
+from difffog.fit._targets import _block_mean
 from tomography import load_case
 
 VIEWS = ["top", "view0", "view1", "view2", "view3", "view4"]
@@ -37,12 +39,7 @@ def main(argv=None):
     name, refdir, _, truth_scene = load_case(args.cloud)
     rho = np.asarray(truth_scene.fog.density, np.float64)
     n = rho.shape[0]
-
-    def half(a):
-        H, W = a.shape
-        return a.reshape(H // 2, 2, W // 2, 2).mean(axis=(1, 3))
-
-    T = {v: half(C.reference(name, v, refdir)[0]) for v in VIEWS}
+    T = {v: _block_mean(C.reference(name, v, refdir)[0], 2) for v in VIEWS}
     bright = np.sqrt(np.mean(np.concatenate([T[v].ravel() for v in VIEWS]) ** 2))
     cells = np.argwhere(rho > 0.02)
     depth = distance_transform_edt(rho > 0.05)[tuple(cells.T)]
@@ -57,7 +54,7 @@ def main(argv=None):
                                  accuracy=None, cameras=VIEWS, scheme="step")
             p = m.params()
             light = m.light(p)
-            imgs[spec] = {v: half(np.asarray(i, np.float64))
+            imgs[spec] = {v: _block_mean(np.asarray(i, np.float64), 2)
                           for v, i in m.images_from(light, p).items()}
         u = (centres - np.asarray(light.origin)) / float(light.h) - 0.5
         flu[spec] = map_coordinates(np.asarray(light.fluence, np.float64), u.T, order=1)
@@ -73,12 +70,11 @@ def main(argv=None):
     ref = max(specs, key=lambda s: int(s.split(":")[0]) / int(s.split(":")[1]))
     print(f"\ncollided fluence Λ at the cloud's cells against {ref}'s, by depth in cells below "
           f"the cloud's surface (density > 0.05):")
-    bands = [(0, 1.5), (1.5, 2.5), (2.5, np.inf)]
+    bands = [(depth >= lo) & (depth < hi) for lo, hi in ((0, 1.5), (1.5, 2.5), (2.5, np.inf))]
     for s in specs:
         if s == ref:
             continue
-        parts = [f"{flu[s][(depth >= lo) & (depth < hi)].mean() / flu[ref][(depth >= lo) & (depth < hi)].mean():.3f}"
-                 for lo, hi in bands]
+        parts = [f"{flu[s][b].mean() / flu[ref][b].mean():.3f}" for b in bands]
         print(f"  {s}: depth < 1.5: {parts[0]}, 1.5-2.5: {parts[1]}, > 2.5: {parts[2]}")
     print(f"\n(the targets' noise at this size: about "
           f"{np.sqrt(np.mean([C.reference(name, v, refdir)[1] ** 2 for v in VIEWS])) / 2 / bright:.2%})")
