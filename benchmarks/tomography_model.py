@@ -39,7 +39,8 @@ def main(argv=None):
     name, refdir, _, truth_scene = load_case(args.cloud)
     rho = np.asarray(truth_scene.fog.density, np.float64)
     n = rho.shape[0]
-    T = {v: _block_mean(C.reference(name, v, refdir)[0], 2) for v in VIEWS}
+    refs = {v: C.reference(name, v, refdir) for v in VIEWS}  # (image, noise RMSE)
+    T = {v: _block_mean(refs[v][0], 2) for v in VIEWS}
     bright = np.sqrt(np.mean(np.concatenate([T[v].ravel() for v in VIEWS]) ** 2))
     cells = np.argwhere(rho > 0.02)
     depth = distance_transform_edt(rho > 0.05)[tuple(cells.T)]
@@ -77,7 +78,7 @@ def main(argv=None):
         parts = [f"{flu[s][b].mean() / flu[ref][b].mean():.3f}" for b in bands]
         print(f"  {s}: depth < 1.5: {parts[0]}, 1.5-2.5: {parts[1]}, > 2.5: {parts[2]}")
     print(f"\n(the targets' noise at this size: about "
-          f"{np.sqrt(np.mean([C.reference(name, v, refdir)[1] ** 2 for v in VIEWS])) / 2 / bright:.2%})")
+          f"{np.sqrt(np.mean([refs[v][1] ** 2 for v in VIEWS])) / 2 / bright:.2%})")
 
 
 if __name__ == "__main__":
