@@ -8,7 +8,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
         [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
         [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep]
-        [--cloud shared|b] [--scheme auto|step|linear]
+        [--cloud shared|b|c] [--balance 0.8|off] [--scheme auto|step|linear]
         [--out benchmarks/results/tomography]
 """
 
@@ -31,10 +31,10 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def load_case(cloud: str):
     """(name, references' folder or None for the shipped ones, start scene, true scene) of
-    the shared cloud-tomo ("shared") or the second cloud ("b")."""
+    the shared cloud-tomo ("shared"), the second cloud ("b") or the third ("c")."""
     if cloud == "shared":
         return "cloud-tomo", None, df.load_scene("cloud-tomo-start"), df.load_scene("cloud-tomo")
-    name, refdir = "cloud-tomo-b", ROOT / "data_synthetic"
+    name, refdir = f"cloud-tomo-{cloud}", ROOT / "data_synthetic"
     return (name, refdir, df.load_scene(refdir / name / f"{name}-start.toml"),
             df.load_scene(refdir / name / f"{name}.toml"))
 
@@ -63,9 +63,12 @@ def main(argv=None):
                     help="mitsuba: the shared references; sweep: rendered by the sweep at "
                          "--target-N from the truth (no noise), with the fit's scheme")
     ap.add_argument("--target-N", type=int, default=48)
-    ap.add_argument("--cloud", default="shared", choices=["shared", "b"],
-                    help="shared: cloud-tomo and its Mitsuba references; b: the second cloud "
-                         "of data_synthetic/cloud-tomo-b (benchmarks/cloud_b.py)")
+    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c"],
+                    help="shared: cloud-tomo and its Mitsuba references; b, c: the clouds of "
+                         "data_synthetic/cloud-tomo-b, -c (benchmarks/cloud_b.py)")
+    ap.add_argument("--balance", default=None,
+                    help="the balancing principle's prior/data share (a number), or off "
+                         "(default: fit_density's: on unless --prior fixes the weight)")
     ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
                     help="the light solve's transport scheme (default: fit_density's, "
                          "DENSITY_SCHEME; auto: the sweep's choice, linear where a step "
@@ -93,6 +96,8 @@ def main(argv=None):
             kw[key] = val
     if args.prior is not None:
         kw["prior_weight"] = args.prior
+    if args.balance is not None:
+        kw["balance"] = False if args.balance == "off" else float(args.balance)
     if args.prior_kind is not None:
         kw["prior"] = args.prior_kind
     if args.supersample is not None:
@@ -122,6 +127,13 @@ def main(argv=None):
              f" → estimate {res.relative_error(truth):.3f}",
              f"- total-mass bias: start {start.sum() / truth.sum() - 1:+.3f} → estimate "
              f"{res.mass_bias(truth):+.3f}",
+             *([f"- prior weight {' → '.join(f'{w:.3g}' for w in b['prior_weights'])} "
+                f"(prior/data at each pass's end {', '.join(f'{r:.2f}' for r in b['shares'])};"
+                f" aim {b['target']:g})"] if (b := res.levels[-1].get("balance")) else []),
+             *([f"- each pass's estimate: relative L2 error "
+                f"{', '.join(f'{np.linalg.norm(g - truth) / np.linalg.norm(truth):.3f}' for g in res.passes)},"
+                f" mass bias {', '.join(f'{g.sum() / truth.sum() - 1:+.3f}' for g in res.passes)}"]
+               if len(res.passes) > 1 else []),
              f"- result {res.result}; wall time {wall:.0f} s",
              f"- settings: {json.dumps(res.settings)}"]
     print("\n".join(lines))

@@ -227,12 +227,13 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
     written.  Then the fit's gradient at its estimate (the images' relative misfit + the TV
     prior, in the log of every support cell; reverse mode through the implicit light solve:
     one adjoint solve for all the cells) against central differences on the densest, a
-    middling and the thinnest cell (the fit's own compiled program)."""
+    middling and the thinnest cell (the fit's own compiled program).  A fixed weight
+    (balance=False): the balancing test is its own."""
     from difffog.fit._density import _value_and_grad
 
     scene, targets, truth, box = tiny_fit_case
     res = df.fit_density(scene, targets, start=box, grids=None, max_steps=8, progress=False,
-                         **LEVEL)
+                         balance=False, **LEVEL)
     start_err = np.linalg.norm(box - truth) / np.linalg.norm(truth)
     assert res.density.shape == truth.shape
     assert res.relative_error(truth) < 0.5 * start_err
@@ -284,13 +285,14 @@ def test_a_density_fit_resumes_from_its_checkpoint(tiny_fit_case, tmp_path):
     prior weight) is refused with one line."""
     scene, targets, truth, box = tiny_fit_case
     ck = tmp_path / "density-checkpoint.npz"
-    kw = dict(start=box, grids=None, progress=False, checkpoint=ck, **LEVEL)
+    kw = dict(start=box, grids=None, progress=False, checkpoint=ck, balance=False, **LEVEL)
     part = df.fit_density(scene, targets, max_steps=3, **kw)
     assert part.result == "max_steps" and ck.exists()
     before = [h["loss"] for h in part.history if "loss" in h]
     assert len(before) == 3
     with pytest.raises(df.DifffogError, match="different fit"):
-        df.fit_density(scene, targets, max_steps=6, resume=True, prior_weight=2e-3, **kw)
+        df.fit_density(scene, targets, max_steps=6, resume=True, prior_weight=2e-3,
+                       **{**kw, "balance": 0.8})
     full = df.fit_density(scene, targets, max_steps=6, resume=True, **kw)
     losses = [h["loss"] for h in full.history if "loss" in h]
     assert losses[:3] == before and len(losses) == 6
@@ -298,3 +300,74 @@ def test_a_density_fit_resumes_from_its_checkpoint(tiny_fit_case, tmp_path):
     assert min(losses[3:]) < min(before)
     assert full.levels[-1]["steps"] == 6
     assert full.relative_error(truth) < part.relative_error(truth)
+
+
+def test_the_balancing_rule_moves_the_weight_by_the_measured_power():
+    """The balancing principle's next weight: unchanged (None) within BALANCE_TOL of the
+    aimed share, else W · (aim / share)^(1 / BALANCE_POWER), by at most 10 either way; a
+    share that is not a finite positive number leaves the weight alone."""
+    from difffog.fit._density import BALANCE_POWER, BALANCE_TOL, balanced_weight
+
+    assert balanced_weight(3e-5, 0.8 * BALANCE_TOL * 0.999, 0.8) is None
+    assert balanced_weight(3e-5, 0.8 / BALANCE_TOL * 1.001, 0.8) is None
+    w = balanced_weight(3e-5, 1.10, 0.8)  # cloud-tomo-b's share at the default weight
+    assert w == pytest.approx(3e-5 * (0.8 / 1.10) ** (1 / BALANCE_POWER), rel=1e-12)
+    assert 1.5e-5 < w < 1.8e-5  # the weight the hand check gave (docs/tomography.md)
+    assert balanced_weight(1e-5, 0.01, 0.8) == pytest.approx(1e-4, rel=1e-12)
+    assert balanced_weight(1e-5, 100.0, 0.8) == pytest.approx(1e-6, rel=1e-12)
+    assert balanced_weight(1e-5, 0.0, 0.8) is None and balanced_weight(1e-5, np.inf, 0.8) is None
+
+
+def test_a_balanced_density_fit_moves_its_share_toward_the_aim_and_resumes(tiny_fit_case,
+                                                                          tmp_path):
+    """balance=0.8 on the tiny cloud (its own images: the prior's share after the first pass
+    is far below 0.8): the final level runs a second pass at the rule's weight, from the first
+    pass's estimate, and its share ends closer to 0.8; each pass's estimate is kept, the last
+    is the result, and the record (weights, shares, history) says what happened.  A fit
+    stopped in its second pass resumes there at the second weight (its first evaluation
+    gives the pass's best loss again).  Balancing is on by default and off when a weight is
+    given; bad balance settings are refused with one line."""
+    from difffog.fit._density import balanced_weight
+
+    scene, targets, truth, box = tiny_fit_case
+    kw = dict(start=box, grids=None, progress=False, **LEVEL)
+    res = df.fit_density(scene, targets, max_steps=6, balance=0.8, **kw)
+    bal = res.levels[-1]["balance"]
+    assert bal["target"] == 0.8 and len(bal["prior_weights"]) == len(bal["shares"]) == 2
+    w0, w1 = bal["prior_weights"]
+    assert w1 == pytest.approx(balanced_weight(w0, bal["shares"][0], 0.8), rel=1e-12) and w1 > w0
+    assert abs(np.log(bal["shares"][1] / 0.8)) < abs(np.log(bal["shares"][0] / 0.8))
+    evals = [h for h in res.history if "loss" in h]
+    assert [h.get("pass", 0) for h in evals] == [0] * 6 + [1] * 6
+    assert res.levels[-1]["steps"] == 12
+    # the second pass starts where the first ended: the same cells, the weight alone differs
+    second, best0 = evals[6], min(evals[:6], key=lambda h: h["loss"])
+    assert second["data"] == pytest.approx(best0["data"], rel=1e-9)
+    assert second["prior"] == pytest.approx(best0["prior"] * w1 / w0, rel=1e-9)
+    assert len(res.passes) == 2 and np.array_equal(res.passes[-1], res.density)
+    assert not np.array_equal(res.passes[0], res.passes[1])
+    # stopped in the second pass, resumed there
+    ck = tmp_path / "ck.npz"
+    part = df.fit_density(scene, targets, max_steps=3, balance=0.8, checkpoint=ck, **kw)
+    pw = part.levels[-1]["balance"]["prior_weights"]
+    assert part.result == "max_steps" and len(pw) == 2
+    p_evals = [h for h in part.history if "loss" in h]
+    best1 = min(p_evals[3:], key=lambda h: h["loss"])
+    full = df.fit_density(scene, targets, max_steps=5, balance=0.8, checkpoint=ck, resume=True,
+                          **kw)
+    f_evals = [h for h in full.history if "loss" in h]
+    assert full.levels[-1]["balance"]["prior_weights"] == pw
+    assert f_evals[6].get("pass") == 1 and f_evals[6]["loss"] == pytest.approx(best1["loss"],
+                                                                             rel=1e-12)
+    assert len(f_evals) == 3 + 5  # the second pass spends the 2 evaluations it has left
+    # on by default, off when the weight is given
+    assert df.fit_density(scene, targets, max_steps=1, **kw).settings["balance"] == 0.8
+    fixed = df.fit_density(scene, targets, max_steps=1, prior_weight=1e-3, **kw)
+    assert fixed.settings["balance"] is None and "balance" not in fixed.levels[-1]
+    for bad, match in ((dict(balance=-1.0), "balance: a share > 0"),
+                       (dict(balance="x"), "balance: a share > 0"),
+                       (dict(balance=True, prior="tv"), "has no default share"),
+                       (dict(balance=0.8, prior_weight=0.0), "0 cannot be balanced"),
+                       (dict(balance_rounds=-1), "balance_rounds")):
+        with pytest.raises(df.DifffogError, match=match):
+            df.fit_density(scene, targets, max_steps=1, **{**kw, **bad})

@@ -92,7 +92,9 @@ def add_parser(sub) -> None:
     p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
                    help="--unknown fog.density: the prior and its weight relative to the "
                         "images' mean squared misfit: tv=W (total variation) or smooth=W "
-                        "(squared gradient) (default " + _default_prior() + ")")
+                        "(squared gradient), a fixed weight; smooth=balance: start at the "
+                        "default weight and choose it per fit by the balancing principle "
+                        "(default " + _default_prior() + ", balanced)")
     p.add_argument("--grid", type=int, default=None, metavar="N",
                    help="--unknown fog.density: the estimate's grid, N cells along each axis "
                         "(default: the scene's density grid, or 32)")
@@ -321,7 +323,7 @@ def _run_density(args, scene, targets) -> int:
     """``difffog fit SCENE --unknown fog.density``: density tomography (``fit_density``)."""
     from .._output import atomic_folder, check_out_dir
     from .._progress import NoProgress, TqdmProgress
-    from ..fit._density import DEFAULT_PRIOR, PRIORS, fit_density
+    from ..fit._density import BALANCE, DEFAULT_PRIOR, PRIORS, fit_density
     from ..fit._images import load_target
 
     others = [u for u in args.unknown if u.partition("=")[0].strip() != "fog.density"]
@@ -332,16 +334,23 @@ def _run_density(args, scene, targets) -> int:
         able = [n for n, e in SOLVERS.items() if e.traces_density]
         raise DifffogError(f"--unknown fog.density: --solver {args.solver} does not trace the "
                            f"density; use --solver {' or '.join(able)}")
-    kind, weight = DEFAULT_PRIOR, None
+    kind, weight, balance = DEFAULT_PRIOR, None, None
     if args.prior is not None:
         kind, _, val = args.prior.partition("=")
         kind = kind.strip()
         if kind not in PRIORS or not val:
             raise DifffogError(f"--prior {args.prior}: use KIND=WEIGHT with KIND one of "
                                f"{', '.join(PRIORS)}, e.g. --prior {_default_prior()}")
-        weight = _float("--prior", kind, val)
-        if weight < 0:
-            raise DifffogError(f"--prior {kind}={val}: the weight must be >= 0")
+        if val.strip() == "balance":
+            if kind not in BALANCE:
+                raise DifffogError(f"--prior {kind}=balance: only {', '.join(BALANCE)} has a "
+                                   f"balancing share; give {kind} a weight, e.g. --prior "
+                                   f"{kind}={PRIORS[kind]:g}")
+            balance = True
+        else:
+            weight = _float("--prior", kind, val)
+            if weight < 0:
+                raise DifffogError(f"--prior {kind}={val}: the weight must be >= 0")
     grid = None if args.grid is None else positive_int("--grid", args.grid)
     if scene.fog is None:
         raise DifffogError("--unknown fog.density: the scene has no [fog]; add one")
@@ -371,7 +380,7 @@ def _run_density(args, scene, targets) -> int:
     if getattr(args, "scheme", None) is not None:  # else fit_density's (DENSITY_SCHEME)
         kw["settings"] = {"scheme": args.scheme}
     result = fit_density(scene, images, start=start, grid=grid, prior=kind, prior_weight=weight,
-                         M=args.directions or 3, progress=progress, checkpoint=ckpt,
+                         balance=balance, M=args.directions or 3, progress=progress, checkpoint=ckpt,
                          resume=args.resume, **kw)
     with atomic_folder(out) as tmp:
         result.save(tmp)
@@ -390,6 +399,11 @@ def _run_density(args, scene, targets) -> int:
         print(f"density {'x'.join(map(str, result.density.shape))}: {result.result}, loss "
               f"{lv['loss']:.3g} after {sum(x['steps'] for x in result.levels)} evaluations, "
               f"{result.time_s:.1f} s; {out / 'density.npz'}")
+        bal = lv.get("balance")
+        if bal:
+            print(f"prior weight {' -> '.join(f'{w:.3g}' for w in bal['prior_weights'])} "
+                  f"(prior/data {', '.join(f'{r:.2f}' for r in bal['shares'])}; aim "
+                  f"{bal['target']:g})")
         if not ok and ckpt.exists():
             print(f"the checkpoint {ckpt} is kept: add --resume (and a larger --max-steps) to "
                   f"continue")

@@ -48,6 +48,19 @@ PRIORS = {"tv": 1e-3, "smooth": 3e-5}
 #: the prior a density fit uses unless told (chosen on cloud-tomo and a second cloud of our
 #: own against Mitsuba images: docs/tomography.md)
 DEFAULT_PRIOR = "smooth"
+#: the balancing principle's share of the prior in the loss at the final level: after the
+#: final level's L-BFGS run, a fit whose prior term over data term, at its best point, lies
+#: outside [BALANCE / BALANCE_TOL, BALANCE · BALANCE_TOL] takes a new weight that would bring
+#: it there and runs the final level again from its estimate (``balance``).  0.8 is the share
+#: cloud-tomo's fit holds at its good fixed weight (0.82 at W = 3e-5; 0.46 at 1e-5 overfits,
+#: and cloud-tomo-b's fit has its mass right at 0.62–0.81 and is too thin at 1.10):
+#: docs/tomography.md.  Per prior: "tv" has none measured, so it balances only when told.
+BALANCE = {"smooth": 0.8}
+BALANCE_TOL = 1.2
+#: how the share grows with the weight, share ∝ W^BALANCE_POWER (measured at the final level:
+#: 0.53 on cloud-tomo, 0.52 on cloud-tomo-b between W = 1e-5 and 3e-5); the new weight is
+#: W · (BALANCE / share)^(1 / BALANCE_POWER), by at most a factor of 10 either way
+BALANCE_POWER = 0.5
 #: a target pixel within this relative difference of the fog-free image sees clear sky or
 #: ground: its ray carves the cells it crosses out of the support
 DEFAULT_CARVE_TOL = 0.02
@@ -77,6 +90,9 @@ class DensityFit:
         budget ran out) or "light_failed" (the light solve at the estimate did not converge).
     time_s: the whole fit's wall time.
     settings: the fit's options (JSON-able).
+    passes: the final level's estimate after each of its passes (one unless the balancing
+        principle changed the weight: ``levels[-1]["balance"]``), float32 like ``density``;
+        the last is ``density``.
     """
 
     density: np.ndarray
@@ -86,6 +102,7 @@ class DensityFit:
     result: str
     time_s: float
     settings: dict
+    passes: list = dataclasses.field(default_factory=list, repr=False)
     # the last level's loss and its estimate's coordinates (not serialized): what a caller
     # differentiates further (``_value_and_grad(x, loss)``, compiled already)
     final_level: Any = dataclasses.field(default=None, repr=False, compare=False)
@@ -325,6 +342,17 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
     return loss, jnp.asarray(np.log(seed.reshape(-1)[idx]), dt), model, lev_scene
 
 
+def balanced_weight(weight: float, share: float, target: float) -> float | None:
+    """The balancing principle's next prior weight, or None when ``share`` (the prior term
+    over the data term at a fit's best point) is within ``BALANCE_TOL`` times of ``target``
+    (or is not a finite positive number): ``weight · (target / share)^(1 / BALANCE_POWER)``,
+    by at most a factor of 10 either way."""
+    if not (np.isfinite(share) and share > 0) or \
+            abs(math.log(share / target)) <= math.log(BALANCE_TOL):
+        return None
+    return weight * float(np.clip((target / share) ** (1.0 / BALANCE_POWER), 0.1, 10.0))
+
+
 def rays_per_pixel_side(downsample: int) -> int:
     """A level's default supersampling: two rays per target pixel side (the targets' box
     filter sampled as finely as their own pixels), at most 4 per reduced pixel side, at least
@@ -349,6 +377,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 resolutions: Sequence[int] | None = None,
                 downsample: Sequence[int] | int | None = None,
                 prior_weight: float | None = None, prior: str = DEFAULT_PRIOR,
+                balance: float | bool | None = None, balance_rounds: int = 1,
                 carve: bool = True, carve_tol: float = DEFAULT_CARVE_TOL,
                 max_steps: Sequence[int] | int | None = None, rtol: float = 1e-3, M: int = 3,
                 supersample: Sequence[int] | int | None = None,
@@ -369,8 +398,16 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         level ``resolution``).
     downsample: the images' reduction per level (default: to about one pixel per lattice
         node along the longest axis, at least 1).
-    prior, prior_weight: the prior ("tv" or "smooth", see ``PRIORS``) and its weight (default:
-        the prior's in ``PRIORS``).
+    prior, prior_weight: the prior ("tv" or "smooth", see ``PRIORS``) and its (start) weight
+        (default: the prior's in ``PRIORS``).
+    balance: the weight chosen per fit by the balancing principle: the prior term's share of
+        the data term at the final level's best point that the fit aims for (``True``: the
+        prior's in ``BALANCE``; ``False``: the weight stays ``prior_weight``).  Default: on,
+        at ``BALANCE``, when ``prior_weight`` is not given and the prior has one; off when a
+        weight is given.  When the share is off by more than ``BALANCE_TOL`` times, the final
+        level runs again from its estimate at the weight that brings it there
+        (``BALANCE_POWER``), up to ``balance_rounds`` times (each with ``max_steps``' final
+        budget).  ``levels[-1]["balance"]`` records the weights and shares.
     carve, carve_tol: space carving of the support (see the module's docstring).
     max_steps: L-BFGS evaluations per level (one number for all levels, or one per level;
         default 20 per coarser level and 40 for the final one).
@@ -395,9 +432,33 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
     t_start = time.perf_counter()
     if prior not in PRIORS:
         raise DifffogError(f"prior: {prior!r} is not one of {', '.join(PRIORS)}")
+    if balance is None:
+        balance = prior_weight is None and prior in BALANCE
+    if balance is True:
+        if prior not in BALANCE:
+            raise DifffogError(f"balance: the {prior!r} prior has no default share; give one "
+                               f"(balance=0.8: the prior term at 0.8 of the data term)")
+        balance = BALANCE[prior]
+    elif balance is False:
+        balance = None
+    else:
+        try:
+            balance = float(balance)
+        except (TypeError, ValueError):
+            balance = -1.0
+        if not (np.isfinite(balance) and balance > 0):
+            raise DifffogError(f"balance: a share > 0 (the prior term over the data term), "
+                               f"True or False is needed, got {balance!r}")
+    if isinstance(balance_rounds, bool) or not isinstance(balance_rounds, (int, np.integer)) \
+            or balance_rounds < 0:
+        raise DifffogError(f"balance_rounds: a whole number >= 0 is needed, got "
+                           f"{balance_rounds!r}")
     prior_weight = PRIORS[prior] if prior_weight is None else float(prior_weight)
     if not (np.isfinite(prior_weight) and prior_weight >= 0):
         raise DifffogError(f"prior_weight: a finite weight >= 0 is needed, got {prior_weight!r}")
+    if balance is not None and prior_weight == 0:
+        raise DifffogError("prior_weight: 0 cannot be balanced (no prior term); give a weight "
+                           "> 0 or balance=False")
     if scene.fog is None:
         raise SceneError("fit_density: the scene has no [fog]; add one (its ζ and γ multiply "
                          "the density grid the fit estimates)")
@@ -448,7 +509,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         raise DifffogError(f"resolutions, downsample, max_steps and supersample need one value "
                            f"per level ({L} levels: grids {[max(s) for s in shapes]})")
     settings_json = {"grids": [list(s) for s in shapes], "resolutions": res, "downsample": ds,
-                     "prior": prior, "prior_weight": prior_weight, "carve": carve,
+                     "prior": prior, "prior_weight": prior_weight, "balance": balance,
+                     "balance_rounds": int(balance_rounds), "carve": carve,
                      "carve_tol": carve_tol,
                      "max_steps": steps, "rtol": rtol, "M": M, "supersample": rays}
     history, levels = [], []
@@ -510,67 +572,56 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 # that the compiled program stays the one it is
                 loss = eqx.tree_at(lambda lo: lo.keep, loss, jnp.asarray(keep, dt))
             # L-BFGS-B (SciPy) on the host, one compiled value-and-gradient per evaluation
-            # (one light solve, one adjoint solve, the cameras' march and its reverse)
-            best = [np.inf, np.asarray(x)]
-            count = [0]
-            # SciPy's ftol is relative to max(|f|, 1): the loss is scaled to 1 at the start,
-            # so that rtol is the decrease per iteration relative to the start's loss
-            unit = [None]
-            if resumed is not None and lev == lev0:  # go on from the level's best point
-                if resumed["x"].shape != x.shape:
-                    raise DifffogError(f"resume: the checkpoint {ckpt} does not match this "
-                                       f"fit's level {lev}; delete it or run without resume")
-                best[0], best[1] = resumed["best"], resumed["x"]
-                count[0], unit[0] = resumed["count"], resumed["unit"]
-                x = jnp.asarray(resumed["x"], dt)
+            # (one light solve, one adjoint solve, the cameras' march and its reverse); the
+            # final level may run again at a balanced weight (a pass each)
+            weights, shares = [prior_weight], []
+            pass_ = 0
+            if resumed is not None and lev == lev0 and resumed.get("pass", 0) > 0:
+                pass_ = int(resumed["pass"])
+                weights = list(resumed["weights"])
+                shares = list(resumed["shares"])
+                loss = eqx.tree_at(lambda lo: lo.prior_weight, loss,
+                                   jnp.asarray(weights[-1], dt))
+            spent_all = 0
+            passes = []
+            while True:
+                best, count, spent = _lbfgs_pass(
+                    loss, x, lev, pass_, n_steps, rtol, history, first_call, meter,
+                    sum(steps[:lev]) + spent_all, sum(steps) + spent_all,
+                    resumed if (resumed is not None and lev == lev0) else None,
+                    lambda best, count, unit, lev=lev, w=weights, sh=shares, p=pass_: _save(
+                        ckpt, print_, lev, g_prev, best, count, unit, history, levels,
+                        {"pass": p, "weights": w, "shares": sh}) if ckpt is not None else None)
                 resumed = None
-
-            def save(lev=lev, best=best, count=count, unit=unit):
-                if ckpt is not None:
-                    _save(ckpt, print_, lev, g_prev, best, count[0], unit[0], history, levels)
-
-            def fun(xn, lev=lev, loss=loss, best=best, count=count, unit=unit,
-                    n_steps=n_steps, first_call=first_call):
-                if count[0] >= n_steps:  # SciPy's maxfun is checked per iteration only
-                    raise _Budget
-                t_s = time.perf_counter()
-                (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
-                val = float(val)
-                history.append({"level": lev, "step": count[0], "loss": val,
-                                "data": float(data), "prior": float(prior),
-                                "light_result": int(code),
-                                "seconds": time.perf_counter() - t_s})
-                if first_call[0] is None:
-                    first_call[0] = history[-1]["seconds"]
-                count[0] += 1
-                if val < best[0] and int(code) == 0:
-                    best[0], best[1] = val, np.array(xn)
-                save()
-                meter.update(sum(steps[:lev]) + count[0], sum(steps), level=lev, loss=val)
-                if unit[0] is None:
-                    unit[0] = val if val > 0 else 1.0
-                return val / unit[0], np.asarray(grad, np.float64) / unit[0]
-
-            spent = count[0] >= n_steps
-            try:
-                if not spent:
-                    scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
-                                            method="L-BFGS-B",
-                                            options={"maxfun": n_steps, "maxiter": n_steps,
-                                                     "ftol": rtol, "gtol": 0.0, "maxcor": 10})
-            except _Budget:
-                spent = True
-            spent = spent or count[0] >= n_steps
-            k = count[0] - 1
-            failed = not np.isfinite(best[0])  # no evaluation's light solve converged
-            best = (best[0], jnp.asarray(best[1], dt))
-            x = best[1]
+                spent_all += count
+                failed = not np.isfinite(best[0])  # no evaluation's light solve converged
+                x = jnp.asarray(best[1], dt)
+                passes.append(np.asarray(loss.grid(x), np.float32))
+                if failed or balance is None or lev < L - 1:
+                    break
+                terms = best[2]
+                if terms is None:  # a checkpoint from before the terms were kept
+                    break
+                share = terms["prior"] / terms["data"] if terms["data"] > 0 else np.inf
+                shares.append(share)
+                new = balanced_weight(weights[-1], share, balance)
+                if pass_ >= balance_rounds or new is None:
+                    break
+                weights.append(new)
+                history.append({"level": lev, "step": -1, "what": "balance",
+                                "share": share, "prior_weight": weights[-1]})
+                loss = eqx.tree_at(lambda lo: lo.prior_weight, loss,
+                                   jnp.asarray(weights[-1], dt))
+                pass_ += 1
             g_prev = np.asarray(loss.grid(x), np.float64)
             levels.append({"grid": list(shape), "resolution": n_res, "downsample": k_ds,
-                           "steps": k + 1, "loss": best[0],
+                           "steps": spent_all, "loss": best[0],
                            "support_cells": int(np.sum(np.asarray(loss.keep) > 0)),
                            "carved_cells": carved, "compile_s": first_call[0],
                            "seconds": time.perf_counter() - t_lev})
+            if lev == L - 1 and balance is not None:
+                levels[-1]["balance"] = {"target": balance, "prior_weights": weights,
+                                         "shares": shares}
             if failed:
                 result = "light_failed"
                 warnings.warn(f"fit_density: no light solve of level {lev} (grid "
@@ -582,14 +633,68 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             if ckpt is not None and (lev < L - 1 or not spent):
                 # the level is done: a resume starts at the next (a final level that ran out
                 # of evaluations keeps its own checkpoint, so that more of them continue it)
-                _save(ckpt, print_, lev + 1, g_prev, [np.inf, None], 0, None, history, levels)
+                _save(ckpt, print_, lev + 1, g_prev, [np.inf, None, None], 0, None, history,
+                      levels)
     finally:
         meter.close()
     est = g_prev.astype(np.float32)
     return DensityFit(density=est, support=est > 0, history=history, levels=levels,
                       result=result, time_s=time.perf_counter() - t_start,
-                      settings=settings_json, final_level=(loss, x))
+                      settings=settings_json, passes=passes, final_level=(loss, x))
 
+
+
+def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, done, total,
+                resumed, save):
+    """One L-BFGS-B run (SciPy) of a level's loss from ``x``, at most ``n_steps`` evaluations:
+    ([best loss, its x, its data and prior terms], evaluations, whether the budget ran out).
+    ``resumed``: a checkpoint's state of this pass ({x, best, count, unit}) to go on from."""
+    dt = x.dtype
+    best = [np.inf, np.asarray(x), None]
+    count = [0]
+    # SciPy's ftol is relative to max(|f|, 1): the loss is scaled to 1 at the start, so that
+    # rtol is the decrease per iteration relative to the start's loss
+    unit = [None]
+    if resumed is not None:  # go on from the pass's best point
+        if resumed["x"].shape != x.shape:
+            raise DifffogError("resume: the checkpoint does not match this fit's level "
+                               f"{lev}; delete it or run without resume")
+        best[0], best[1], best[2] = resumed["best"], resumed["x"], resumed.get("terms")
+        count[0], unit[0] = resumed["count"], resumed["unit"]
+        x = jnp.asarray(resumed["x"], dt)
+
+    def fun(xn):
+        if count[0] >= n_steps:  # SciPy's maxfun is checked per iteration only
+            raise _Budget
+        t_s = time.perf_counter()
+        (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
+        val = float(val)
+        history.append({"level": lev, "step": count[0], "loss": val, "data": float(data),
+                        "prior": float(prior), "light_result": int(code),
+                        "seconds": time.perf_counter() - t_s, **({"pass": pass_} if pass_
+                                                                 else {})})
+        if first_call[0] is None:
+            first_call[0] = history[-1]["seconds"]
+        count[0] += 1
+        if val < best[0] and int(code) == 0:
+            best[0], best[1] = val, np.array(xn)
+            best[2] = {"data": float(data), "prior": float(prior)}
+        save(best, count[0], unit[0])
+        meter.update(done + count[0], total, level=lev, loss=val)
+        if unit[0] is None:
+            unit[0] = val if val > 0 else 1.0
+        return val / unit[0], np.asarray(grad, np.float64) / unit[0]
+
+    spent = count[0] >= n_steps
+    try:
+        if not spent:
+            scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
+                                    method="L-BFGS-B",
+                                    options={"maxfun": n_steps, "maxiter": n_steps,
+                                             "ftol": rtol, "gtol": 0.0, "maxcor": 10})
+    except _Budget:
+        spent = True
+    return best, count[0], spent or count[0] >= n_steps
 
 def _fingerprint(scene: Scene, tgt, start, settings, fit_settings) -> str:
     """What a checkpoint must match: the scene, targets, start and settings."""
@@ -601,13 +706,15 @@ def _fingerprint(scene: Scene, tgt, start, settings, fit_settings) -> str:
 
 
 def _save(path: Path, fp: str, lev: int, g_prev, best, count: int, unit, history,
-          levels) -> None:
-    """The checkpoint, written atomically (a kill leaves the previous one intact)."""
+          levels, passes: dict | None = None) -> None:
+    """The checkpoint, written atomically (a kill leaves the previous one intact).
+    ``passes``: the final level's balancing state ({pass, weights, shares})."""
     from ._checkpoint import savez_atomic
 
     meta = json.dumps({"fingerprint": fp, "level": lev, "count": count, "unit": unit,
                        "best": None if not np.isfinite(best[0]) else best[0],
-                       "history": history, "levels": levels})
+                       "terms": best[2] if len(best) > 2 else None,
+                       **(passes or {}), "history": history, "levels": levels})
     arrays = {"meta": np.array(meta)}
     if g_prev is not None:
         arrays["g_prev"] = np.asarray(g_prev, np.float64)
@@ -636,7 +743,9 @@ def _load(path: Path, fp: str, n_levels: int):
     state = None
     if x is not None and lev < n_levels:
         state = {"x": x, "count": int(meta["count"]), "unit": meta["unit"],
-                 "best": np.inf if meta["best"] is None else float(meta["best"])}
+                 "best": np.inf if meta["best"] is None else float(meta["best"]),
+                 "terms": meta.get("terms"), "pass": int(meta.get("pass", 0)),
+                 "weights": meta.get("weights"), "shares": meta.get("shares")}
     return lev, g_prev, state, meta["history"], meta["levels"]
 
 
