@@ -643,7 +643,6 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                       settings=settings_json, passes=passes, final_level=(loss, x))
 
 
-
 def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, done, total,
                 resumed, save):
     """One L-BFGS-B run (SciPy) of a level's loss from ``x``, at most ``n_steps`` evaluations:
