@@ -371,3 +371,40 @@ def test_a_balanced_density_fit_moves_its_share_toward_the_aim_and_resumes(tiny_
                        (dict(balance_rounds=-1), "balance_rounds")):
         with pytest.raises(df.DifffogError, match=match):
             df.fit_density(scene, targets, max_steps=1, **{**kw, **bad})
+
+
+def test_a_density_fit_stops_at_its_best_point_when_an_adjoint_solve_fails(tiny_fit_case,
+                                                                           tmp_path,
+                                                                           monkeypatch):
+    """An evaluation whose gradient's adjoint light solve does not converge (the sweep raises
+    it from inside the compiled program, as a thick cloud's fit once did at its 29th final
+    evaluation) ends the level at its best point so far: an AdjointWarning of one line, the
+    result "adjoint_failed" (not "successful"), the failure in the history, no traceback, and
+    the checkpoint kept, from which a resume goes on at that best point."""
+    import equinox as eqx
+
+    from difffog.fit import _density as dens
+
+    scene, targets, truth, box = tiny_fit_case
+    real, calls = dens._value_and_grad, [0]
+
+    def flaky(x, loss):  # the carving's call, 3 evaluations, then the adjoint fails
+        calls[0] += 1
+        if calls[0] == 5:
+            raise eqx.EquinoxRuntimeError("difffog: a tangent/adjoint light solve (the "
+                                          "derivative of the light field) did not converge")
+        return real(x, loss)
+
+    monkeypatch.setattr(dens, "_value_and_grad", flaky)
+    ck = tmp_path / "ck.npz"
+    kw = dict(start=box, grids=None, progress=False, balance=False, checkpoint=ck, **LEVEL)
+    with pytest.warns(df.AdjointWarning, match="did not converge at evaluation 4 of level 0"):
+        res = df.fit_density(scene, targets, max_steps=8, **kw)
+    assert res.result == "adjoint_failed" and ck.exists()
+    losses = [h["loss"] for h in res.history if "loss" in h]
+    assert len(losses) == 3 and res.history[-1]["what"] == "adjoint_failed"
+    assert res.levels[0]["loss"] == min(losses) and res.levels[0]["steps"] == 4
+    monkeypatch.setattr(dens, "_value_and_grad", real)
+    full = df.fit_density(scene, targets, max_steps=8, resume=True, **kw)
+    after = [h["loss"] for h in full.history if "loss" in h]
+    assert after[3] == pytest.approx(min(losses), rel=1e-12) and full.result != "adjoint_failed"

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from .._errors import DifffogError, SceneError
+from .._errors import AdjointWarning, DifffogError, SceneError
 from .._progress import as_meter
 from ..scene._description import Scene
 from ..scene._params import with_density
@@ -87,7 +87,9 @@ class DensityFit:
         steps, final loss, carved cells, seconds (compile included) and ``compile_s``, the
         time of its first call (the compile and one evaluation).
     result: "successful" (the loss stopped falling), "max_steps" (the last level's step
-        budget ran out) or "light_failed" (the light solve at the estimate did not converge).
+        budget ran out), "light_failed" (the light solve at the estimate did not converge) or
+        "adjoint_failed" (an evaluation's gradient, its adjoint light solve, did not converge:
+        the last level stopped there at its best point so far, with an ``AdjointWarning``).
     time_s: the whole fit's wall time.
     settings: the fit's options (JSON-able).
     passes: the final level's estimate after each of its passes (one unless the balancing
@@ -170,6 +172,10 @@ class DensityFit:
 
 class _Budget(Exception):
     """A level's evaluations are spent."""
+
+
+class _AdjointFailed(Exception):
+    """An evaluation's tangent/adjoint light solve (its gradient) did not converge."""
 
 
 def resample(g: np.ndarray, shape) -> np.ndarray:
@@ -585,7 +591,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             spent_all = 0
             passes = []
             while True:
-                best, count, spent = _lbfgs_pass(
+                best, count, spent, stopped = _lbfgs_pass(
                     loss, x, lev, pass_, n_steps, rtol, history, first_call, meter,
                     sum(steps[:lev]) + spent_all, sum(steps) + spent_all,
                     resumed if (resumed is not None and lev == lev0) else None,
@@ -595,6 +601,12 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 resumed = None
                 spent_all += count
                 failed = not np.isfinite(best[0])  # no evaluation's light solve converged
+                if stopped and not failed:
+                    warnings.warn(f"fit_density: the gradient's adjoint light solve did not "
+                                  f"converge at evaluation {count} of level {lev} (grid "
+                                  f"{'x'.join(map(str, shape))}); the level stopped at its "
+                                  f"best point so far; raise settings' max_iterations or "
+                                  f"adjoint_rtol", AdjointWarning, stacklevel=2)
                 x = jnp.asarray(best[1], dt)
                 passes.append(np.asarray(loss.grid(x), np.float32))
                 if failed or balance is None or lev < L - 1:
@@ -623,14 +635,19 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 levels[-1]["balance"] = {"target": balance, "prior_weights": weights,
                                          "shares": shares}
             if failed:
-                result = "light_failed"
-                warnings.warn(f"fit_density: no light solve of level {lev} (grid "
-                              f"{'x'.join(map(str, shape))}) converged; the estimate is its "
-                              f"start; raise the solver's max_iterations", stacklevel=2)
+                result = "adjoint_failed" if stopped else "light_failed"
+                what = ("the first evaluation's adjoint light solve (its gradient) did not "
+                        "converge" if stopped else "no light solve converged")
+                warnings.warn(f"fit_density: {what} at level {lev} (grid "
+                              f"{'x'.join(map(str, shape))}); the estimate is its start; "
+                              f"raise the solver's max_iterations",
+                              AdjointWarning if stopped else UserWarning, stacklevel=2)
                 break
-            if lev == L - 1 and not spent:
+            if lev == L - 1 and stopped:
+                result = "adjoint_failed"
+            elif lev == L - 1 and not spent:
                 result = "successful"
-            if ckpt is not None and (lev < L - 1 or not spent):
+            if ckpt is not None and (lev < L - 1 or not (spent or stopped)):
                 # the level is done: a resume starts at the next (a final level that ran out
                 # of evaluations keeps its own checkpoint, so that more of them continue it)
                 _save(ckpt, print_, lev + 1, g_prev, [np.inf, None, None], 0, None, history,
@@ -646,7 +663,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
 def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, done, total,
                 resumed, save):
     """One L-BFGS-B run (SciPy) of a level's loss from ``x``, at most ``n_steps`` evaluations:
-    ([best loss, its x, its data and prior terms], evaluations, whether the budget ran out).
+    ([best loss, its x, its data and prior terms], evaluations, whether the budget ran out,
+    whether it stopped because an evaluation's adjoint solve did not converge).
     ``resumed``: a checkpoint's state of this pass ({x, best, count, unit}) to go on from."""
     dt = x.dtype
     best = [np.inf, np.asarray(x), None]
@@ -666,8 +684,17 @@ def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, 
         if count[0] >= n_steps:  # SciPy's maxfun is checked per iteration only
             raise _Budget
         t_s = time.perf_counter()
-        (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
-        val = float(val)
+        try:
+            (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
+            val, grad = float(val), np.asarray(grad, np.float64)
+        except eqx.EquinoxRuntimeError as e:  # the adjoint's check (SweepSolver throw=True)
+            if "did not converge" not in str(e):
+                raise
+            history.append({"level": lev, "step": count[0], "what": "adjoint_failed",
+                            "seconds": time.perf_counter() - t_s,
+                            **({"pass": pass_} if pass_ else {})})
+            count[0] += 1
+            raise _AdjointFailed from None
         history.append({"level": lev, "step": count[0], "loss": val, "data": float(data),
                         "prior": float(prior), "light_result": int(code),
                         "seconds": time.perf_counter() - t_s, **({"pass": pass_} if pass_
@@ -682,9 +709,9 @@ def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, 
         meter.update(done + count[0], total, level=lev, loss=val)
         if unit[0] is None:
             unit[0] = val if val > 0 else 1.0
-        return val / unit[0], np.asarray(grad, np.float64) / unit[0]
+        return val / unit[0], grad / unit[0]
 
-    spent = count[0] >= n_steps
+    spent, stopped = count[0] >= n_steps, False
     try:
         if not spent:
             scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
@@ -693,7 +720,9 @@ def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, 
                                              "ftol": rtol, "gtol": 0.0, "maxcor": 10})
     except _Budget:
         spent = True
-    return best, count[0], spent or count[0] >= n_steps
+    except _AdjointFailed:
+        stopped = True
+    return best, count[0], spent or count[0] >= n_steps, stopped
 
 def _fingerprint(scene: Scene, tgt, start, settings, fit_settings) -> str:
     """What a checkpoint must match: the scene, targets, start and settings."""
