@@ -128,7 +128,7 @@ def main(argv=None):
              f"- total-mass bias: start {start.sum() / truth.sum() - 1:+.3f} → estimate "
              f"{res.mass_bias(truth):+.3f}",
              *([f"- prior weight {' → '.join(f'{w:.3g}' for w in b['prior_weights'])} "
-                f"(prior/data at each pass's end {', '.join(f'{r:.2f}' for r in b['shares'])};"
+                f"(prior/data at each pass's end {', '.join(f'{r:.2g}' for r in b['shares'])};"
                 f" aim {b['target']:g})"] if (b := res.levels[-1].get("balance")) else []),
              *([f"- each pass's estimate: relative L2 error "
                 f"{', '.join(f'{np.linalg.norm(g - truth) / np.linalg.norm(truth):.3f}' for g in res.passes)},"

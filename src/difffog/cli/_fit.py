@@ -402,7 +402,7 @@ def _run_density(args, scene, targets) -> int:
         bal = lv.get("balance")
         if bal:
             print(f"prior weight {' -> '.join(f'{w:.3g}' for w in bal['prior_weights'])} "
-                  f"(prior/data {', '.join(f'{r:.2f}' for r in bal['shares'])}; aim "
+                  f"(prior/data {', '.join(f'{r:.2g}' for r in bal['shares'])}; aim "
                   f"{bal['target']:g})")
         if not ok and ckpt.exists():
             print(f"the checkpoint {ckpt} is kept: add --resume (and a larger --max-steps) to "
