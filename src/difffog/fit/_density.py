@@ -582,19 +582,22 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             # final level may run again at a balanced weight (a pass each)
             weights, shares = [prior_weight], []
             pass_ = 0
-            if resumed is not None and lev == lev0 and resumed.get("pass", 0) > 0:
-                pass_ = int(resumed["pass"])
-                weights = list(resumed["weights"])
-                shares = list(resumed["shares"])
-                loss = eqx.tree_at(lambda lo: lo.prior_weight, loss,
-                                   jnp.asarray(weights[-1], dt))
+            if resumed is not None:  # this is lev0: go on from its pass's best point
+                if resumed["x"].shape != x.shape:
+                    raise DifffogError(f"resume: the checkpoint {ckpt} does not match this "
+                                       f"fit's level {lev}; delete it or run without resume")
+                if resumed["pass"] > 0:
+                    pass_ = resumed["pass"]
+                    weights = list(resumed["weights"])
+                    shares = list(resumed["shares"])
+                    loss = eqx.tree_at(lambda lo: lo.prior_weight, loss,
+                                       jnp.asarray(weights[-1], dt))
             spent_all = 0
             passes = []
             while True:
                 best, count, spent, stopped = _lbfgs_pass(
                     loss, x, lev, pass_, n_steps, rtol, history, first_call, meter,
-                    sum(steps[:lev]) + spent_all, sum(steps) + spent_all,
-                    resumed if (resumed is not None and lev == lev0) else None,
+                    sum(steps[:lev]) + spent_all, sum(steps) + spent_all, resumed,
                     lambda best, count, unit, lev=lev, w=weights, sh=shares, p=pass_: _save(
                         ckpt, print_, lev, g_prev, best, count, unit, history, levels,
                         {"pass": p, "weights": w, "shares": sh}) if ckpt is not None else None)
@@ -608,7 +611,10 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                                   f"best point so far; raise settings' max_iterations or "
                                   f"adjoint_rtol", AdjointWarning, stacklevel=2)
                 x = jnp.asarray(best[1], dt)
-                passes.append(np.asarray(loss.grid(x), np.float32))
+                # (not g_prev yet: the checkpoints of a second pass seed a resumed level
+                # from the level before)
+                est = np.asarray(loss.grid(x), np.float64)
+                passes.append(est.astype(np.float32))
                 if failed or balance is None or lev < L - 1:
                     break
                 terms = best[2]
@@ -625,7 +631,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                 loss = eqx.tree_at(lambda lo: lo.prior_weight, loss,
                                    jnp.asarray(weights[-1], dt))
                 pass_ += 1
-            g_prev = np.asarray(loss.grid(x), np.float64)
+            g_prev = est
             levels.append({"grid": list(shape), "resolution": n_res, "downsample": k_ds,
                            "steps": spent_all, "loss": best[0],
                            "support_cells": int(np.sum(np.asarray(loss.keep) > 0)),
@@ -673,9 +679,6 @@ def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, 
     # rtol is the decrease per iteration relative to the start's loss
     unit = [None]
     if resumed is not None:  # go on from the pass's best point
-        if resumed["x"].shape != x.shape:
-            raise DifffogError("resume: the checkpoint does not match this fit's level "
-                               f"{lev}; delete it or run without resume")
         best[0], best[1], best[2] = resumed["best"], resumed["x"], resumed.get("terms")
         count[0], unit[0] = resumed["count"], resumed["unit"]
         x = jnp.asarray(resumed["x"], dt)
@@ -724,6 +727,7 @@ def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, 
         stopped = True
     return best, count[0], spent or count[0] >= n_steps, stopped
 
+
 def _fingerprint(scene: Scene, tgt, start, settings, fit_settings) -> str:
     """What a checkpoint must match: the scene, targets, start and settings."""
     from ._checkpoint import digest, fingerprint
@@ -741,7 +745,7 @@ def _save(path: Path, fp: str, lev: int, g_prev, best, count: int, unit, history
 
     meta = json.dumps({"fingerprint": fp, "level": lev, "count": count, "unit": unit,
                        "best": None if not np.isfinite(best[0]) else best[0],
-                       "terms": best[2] if len(best) > 2 else None,
+                       "terms": best[2],
                        **(passes or {}), "history": history, "levels": levels})
     arrays = {"meta": np.array(meta)}
     if g_prev is not None:
