@@ -29,7 +29,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 # the shared scenes and references as the package ships them
 SHARED = ROOT / "src" / "difffog" / "data"
-OUT = ROOT / "data_synthetic" / "cloud-tomo-b"   # --cloud c: cloud-tomo-c
 N = 32
 START_BOX = ((4, 28), (4, 28), (8, 26))       # cells of the shared start box, [lo, hi) per axis
 
@@ -51,38 +50,49 @@ def value_noise(rng, n, octaves=(4, 8, 16)):
     return total
 
 
-#: cloud-tomo-c's blobs: a third cloud, made after the density fit's balancing weight was
-#: written (so that it checks that rule, not chooses it): one broad, flat-bottomed cumulus
-#: elongated along x with a dense core and two small detached puffs, peak 1.0
-BLOBS_C = [((0.47, 0.50, 0.50), (0.24, 0.15, 0.15), 1.0),    # the main body, long along x
-           ((0.42, 0.52, 0.60), (0.10, 0.09, 0.12), 1.3),    #   its dense core, high
-           ((0.58, 0.45, 0.63), (0.09, 0.08, 0.09), 1.0),    #   a turret
-           ((0.26, 0.72, 0.46), (0.06, 0.06, 0.06), 0.8),    # a small puff, apart
-           ((0.74, 0.30, 0.44), (0.07, 0.05, 0.05), 0.8)]    # another
+#: each cloud: its noise seed, its ellipsoid blobs ((centre), (radii), weight), its peak
+#: density and its flat base (z below which it is empty, or None)
+CLOUDS = {
+    # b: two separated towers over a thin shared base, thinner than cloud-tomo
+    "b": dict(seed=7, peak=0.75, base=None, blobs=[
+        ((0.34, 0.36, 0.52), (0.13, 0.12, 0.22), 1.0),     # tower A, tall and narrow
+        ((0.36, 0.33, 0.68), (0.08, 0.08, 0.08), 1.0),     #   its cap
+        ((0.67, 0.64, 0.52), (0.15, 0.14, 0.15), 1.0),     # tower B, broader and lower
+        ((0.62, 0.70, 0.60), (0.09, 0.08, 0.08), 1.0),     #   a bulge on its flank
+        ((0.50, 0.50, 0.38), (0.26, 0.22, 0.035), 0.5)]),  # thin, faint base joining them
+    # c: made after the density fit's balancing weight was written (so that it checks that
+    # rule, not chooses it): one broad, flat-bottomed cumulus elongated along x with a dense
+    # core and two small detached puffs
+    "c": dict(seed=11, peak=1.0, base=0.38, blobs=[
+        ((0.47, 0.50, 0.50), (0.24, 0.15, 0.15), 1.0),     # the main body, long along x
+        ((0.42, 0.52, 0.60), (0.10, 0.09, 0.12), 1.3),     #   its dense core, high
+        ((0.58, 0.45, 0.63), (0.09, 0.08, 0.09), 1.0),     #   a turret
+        ((0.26, 0.72, 0.46), (0.06, 0.06, 0.06), 0.8),     # a small puff, apart
+        ((0.74, 0.30, 0.44), (0.07, 0.05, 0.05), 0.8)]),   # another
+}
 
 
-def make_cloud(seed=7, kind="b"):
-    """b: two separated towers over a thin shared base, peak 0.75; c (seed 11): ``BLOBS_C``,
-    peak 1.0, a flat base at z = 0.38.  Fractal noise; values in [0, peak]."""
-    rng = np.random.default_rng(seed)
+def out_dir(kind: str) -> Path:
+    return ROOT / "data_synthetic" / f"cloud-tomo-{kind}"
+
+
+def make_cloud(kind="b"):
+    """``CLOUDS[kind]``: its blobs plus fractal noise, cut to the start box (and its flat
+    base), scaled to its peak; values in [0, peak]."""
+    spec = CLOUDS[kind]
+    rng = np.random.default_rng(spec["seed"])
     c = (np.arange(N) + 0.5) / N
     X, Y, Z = np.meshgrid(c, c, c, indexing="ij")
-    blobs = BLOBS_C if kind == "c" else [((0.34, 0.36, 0.52), (0.13, 0.12, 0.22), 1.0),    # tower A, tall and narrow
-             ((0.36, 0.33, 0.68), (0.08, 0.08, 0.08), 1.0),    #   its cap
-             ((0.67, 0.64, 0.52), (0.15, 0.14, 0.15), 1.0),    # tower B, broader and lower
-             ((0.62, 0.70, 0.60), (0.09, 0.08, 0.08), 1.0),    #   a bulge on its flank
-             ((0.50, 0.50, 0.38), (0.26, 0.22, 0.035), 0.5)]   # thin, faint base joining them
     f = np.full_like(X, -10.0)
-    for (cx, cy, cz), (rx, ry, rz), w in blobs:
+    for (cx, cy, cz), (rx, ry, rz), w in spec["blobs"]:
         f = np.maximum(f, w * (1 - ((X - cx) / rx) ** 2 - ((Y - cy) / ry) ** 2 - ((Z - cz) / rz) ** 2))
     d = np.clip(f + 0.45 * value_noise(rng, N), 0.0, None)
-    if kind == "c":
-        d = np.where(Z < 0.38, 0.0, d)            # a flat cloud base
+    if spec["base"] is not None:
+        d = np.where(Z < spec["base"], 0.0, d)    # a flat cloud base
     box = np.zeros_like(d, bool)
     box[tuple(slice(lo, hi) for lo, hi in START_BOX)] = True
     d = np.where(box, d, 0.0)                     # the shared start box covers the support
-    peak = 1.0 if kind == "c" else 0.75           # b: thinner than cloud-tomo
-    d = peak * np.clip(d / np.percentile(d[d > 0], 99), 0.0, 1.0)
+    d = spec["peak"] * np.clip(d / np.percentile(d[d > 0], 99), 0.0, 1.0)
     d[d < 0.015] = 0.0                            # no faint haze around the cloud
     return d.astype(np.float32)
 
@@ -97,12 +107,13 @@ def cloud_stats(d):
 
 
 def make(kind="b"):
-    OUT.mkdir(parents=True, exist_ok=True)
-    d = make_cloud(11, "c") if kind == "c" else make_cloud()
-    np.savez_compressed(OUT / "density32.npz", density=d)
+    out = out_dir(kind)
+    out.mkdir(parents=True, exist_ok=True)
+    d = make_cloud(kind)
+    np.savez_compressed(out / "density32.npz", density=d)
     start = np.zeros((N, N, N), np.float32)
     start[tuple(slice(lo, hi) for lo, hi in START_BOX)] = 0.25
-    np.savez_compressed(OUT / "start32.npz", density=start)
+    np.savez_compressed(out / "start32.npz", density=start)
     for src, dst, npz in (("cloud-tomo.toml", f"cloud-tomo-{kind}.toml", "density32.npz"),
                           ("cloud-tomo-start.toml", f"cloud-tomo-{kind}-start.toml", "start32.npz")):
         text = (SHARED / "scenes" / src).read_text()
@@ -111,10 +122,10 @@ def make(kind="b"):
         assert k1 == k2 == 1, src
         text = text.replace("# Density tomography case:", f"# Density tomography case "
                             f"{kind.upper()} (benchmarks/cloud_b.py), another cloud:", 1)
-        (OUT / dst).write_text(text)
+        (out / dst).write_text(text)
     import difffog                                # relative density paths resolve from the toml
     for name in (f"cloud-tomo-{kind}.toml", f"cloud-tomo-{kind}-start.toml"):
-        difffog.load_scene(OUT / name)
+        difffog.load_scene(out / name)
     print(json.dumps(cloud_stats(d), indent=1))
 
 
@@ -245,15 +256,13 @@ def main():
     ap.add_argument("--make", action="store_true", help="write the density grids and scene files")
     ap.add_argument("--validate", action="store_true", help="render shared cloud-tomo top, view1")
     ap.add_argument("--render", action="store_true", help="render the cloud's six cameras")
-    ap.add_argument("--cloud", default="b", choices=["b", "c"],
+    ap.add_argument("--cloud", default="b", choices=list(CLOUDS),
                     help="which cloud: cloud-tomo-b (default) or cloud-tomo-c")
     ap.add_argument("--spp", type=int, help="samples per pixel (validate 256, render 4096)")
     ap.add_argument("--cameras", nargs="+", default=["top", "view1"], help="cameras to validate")
     ap.add_argument("--chunks", type=int, default=4, help="independent renders averaged (noise)")
     ap.add_argument("--variant", default="llvm_ad_mono")
     args = ap.parse_args()
-    global OUT
-    OUT = ROOT / "data_synthetic" / f"cloud-tomo-{args.cloud}"
     if not (args.make or args.validate or args.render):
         ap.error("give --make, --validate and/or --render")
     if args.make:
@@ -262,11 +271,12 @@ def main():
         validate(mitsuba(args.variant), args.spp or 256, args.cameras)
     if args.render:
         mi = mitsuba(args.variant)
-        path = OUT / f"cloud-tomo-{args.cloud}.toml"
+        out = out_dir(args.cloud)
+        path = out / f"cloud-tomo-{args.cloud}.toml"
         cams = [c["name"] for c in tomllib.loads(path.read_text())["camera"]]
         for name, (img, st) in render(mi, path, cams, args.spp or 4096, args.chunks).items():
-            np.save(OUT / f"{name}.npy", img)
-            (OUT / f"{name}_stats.json").write_text(json.dumps(st, indent=1) + "\n")
+            np.save(out / f"{name}.npy", img)
+            (out / f"{name}_stats.json").write_text(json.dumps(st, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 import warnings
@@ -114,6 +115,8 @@ def main(argv=None):
         res = df.fit_density(start_scene, targets, grids=ints(args.grids), progress=True, **kw)
     wall = time.perf_counter() - t0
     start = np.asarray(start_scene.fog.density, np.float64)
+    # each pass's estimate judged by DensityFit's own measures
+    per_pass = [dataclasses.replace(res, density=g) for g in res.passes]
     rows = []
     for lv in res.levels:
         rows.append([f"{lv['grid'][0]}³", lv["resolution"], f"1/{lv['downsample']}",
@@ -131,9 +134,9 @@ def main(argv=None):
                 f"(prior/data at each pass's end {', '.join(f'{r:.2g}' for r in b['shares'])};"
                 f" aim {b['target']:g})"] if (b := res.levels[-1].get("balance")) else []),
              *([f"- each pass's estimate: relative L2 error "
-                f"{', '.join(f'{np.linalg.norm(g - truth) / np.linalg.norm(truth):.3f}' for g in res.passes)},"
-                f" mass bias {', '.join(f'{g.sum() / truth.sum() - 1:+.3f}' for g in res.passes)}"]
-               if len(res.passes) > 1 else []),
+                f"{', '.join(f'{p.relative_error(truth):.3f}' for p in per_pass)}, mass bias "
+                f"{', '.join(f'{p.mass_bias(truth):+.3f}' for p in per_pass)}"]
+               if len(per_pass) > 1 else []),
              f"- result {res.result}; wall time {wall:.0f} s",
              f"- settings: {json.dumps(res.settings)}"]
     print("\n".join(lines))
