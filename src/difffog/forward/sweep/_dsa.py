@@ -42,12 +42,16 @@ The inner solve is Jacobi-preconditioned conjugate gradients to a relative resid
 
 from __future__ import annotations
 
+import dataclasses
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..._numerics import safe_div
 from ...geometry._directions import direction_set
+from ._implicit import Preconditioner
 
 #: relative residual of the inner diffusion solve: the preconditioner need not be exact or even
 #: linear (flexible GMRES keeps the outer residual exact whatever it returns); on issue 14's cube
@@ -146,3 +150,37 @@ class DiffusionOperator:
     def precondition(self, lam):
         """(I + A⁻¹σ_s) applied to the fluence part ``lam``."""
         return lam + self.solve(self.sigma_s * lam)
+
+    def precondition_transposed(self, lam):
+        """(I + A⁻¹σ_s)ᵀ = I + σ_s A⁻¹ (A is symmetric) applied to the fluence part ``lam``:
+        the adjoint light solve's preconditioner."""
+        return lam + self.sigma_s * self.solve(jnp.where(self.fog, lam, 0.0))
+
+
+class DiffusionPreconditioner(Preconditioner):
+    """``DiffusionOperator``'s I + A⁻¹σ_s (or its transpose) on the light state (Λ, E) of the
+    tangent and adjoint solves (``_implicit.fixed_point``): the state's fluence (channel 0
+    with moments) is preconditioned, the moments and the surfaces' irradiance pass through,
+    as in the forward solve's GMRES.  Without it a gradient's adjoint solve in thick fog took
+    the forward's unpreconditioned step count (benchmarks/bench_dsa.py --adjoint)."""
+
+    sigma_t: jax.Array
+    ssa: jax.Array
+    solid: jax.Array
+    mu_bar: jax.Array | float
+    h: float = eqx.field(static=True)
+    periodic_xy: bool = eqx.field(static=True)
+    M: int = eqx.field(static=True)
+    channels: bool = eqx.field(static=True)
+    transposed: bool = eqx.field(static=True, default=False)
+
+    def apply(self, tree):
+        lam, irr = tree
+        dsa = DiffusionOperator(self.sigma_t, self.ssa, self.solid, self.h, self.periodic_xy,
+                                self.M, mu_bar=self.mu_bar)
+        fn = dsa.precondition_transposed if self.transposed else dsa.precondition
+        lam = lam.at[..., 0].set(fn(lam[..., 0])) if self.channels else fn(lam)
+        return lam, irr
+
+    def transpose(self):
+        return dataclasses.replace(self, transposed=not self.transposed)

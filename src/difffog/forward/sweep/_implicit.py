@@ -37,7 +37,8 @@ from ..._errors import AdjointWarning
 from ._krylov import gmres
 
 
-def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver):
+def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
+                precondition: Callable | None = None):
     """``solve(inputs) -> (root, aux)``, differentiated implicitly through ``rewrite``.
 
     solve: inputs → (root, aux); root is the fixed point, aux anything (no gradient flows
@@ -46,14 +47,29 @@ def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.Ab
         structure.
     inputs: a pytree; its floating-point arrays get tangents.
     linear_solver: solves the tangent system (and its transpose, for reverse mode).
+    precondition: inputs → a :class:`Preconditioner` for ∂G/∂x (or None): handed to the
+        tangent solve as lineax's ``options["preconditioner"]``, and its transpose to the
+        adjoint solve.  Must not close over JAX arrays either.
     """
-    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver)
+    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver, precondition)
     return root, jax.tree.map(jax.lax.stop_gradient, aux)
 
 
+class Preconditioner(eqx.Module):
+    """An approximate inverse P ≈ (∂G/∂x)⁻¹ on the root's pytree, for the tangent and adjoint
+    solves: ``apply(tree)`` is P·tree, ``transpose()`` the preconditioner Pᵀ of the transposed
+    system (the adjoint's).  P need not be exactly linear (flexible GMRES, ``_krylov.py``)."""
+
+    def apply(self, tree):
+        raise NotImplementedError
+
+    def transpose(self) -> "Preconditioner":
+        raise NotImplementedError
+
+
 @eqx.filter_custom_jvp
-def _fixed_point(solve, rewrite, inputs, linear_solver):
-    del rewrite, linear_solver
+def _fixed_point(solve, rewrite, inputs, linear_solver, precondition):
+    del rewrite, linear_solver, precondition
     return jax.tree.map(jnp.asarray, solve(inputs))
 
 
@@ -64,9 +80,9 @@ def _for_operator(root, args):
 
 @_fixed_point.def_jvp
 def _fixed_point_jvp(primals, tangents):
-    solve, rewrite, inputs, linear_solver = primals
-    _, _, t_inputs, _ = tangents
-    root, aux = fixed_point(solve, rewrite, inputs, linear_solver)
+    solve, rewrite, inputs, linear_solver, precondition = primals
+    _, _, t_inputs, _, _ = tangents
+    root, aux = fixed_point(solve, rewrite, inputs, linear_solver, precondition)
     # inputs without a tangent (integer masks, static geometry) are held fixed
     no_tangent = jax.tree.map(lambda t: t is None, t_inputs, is_leaf=lambda t: t is None)
     fixed, moving = eqx.partition(inputs, no_tangent, is_leaf=lambda t: t is None)
@@ -76,7 +92,9 @@ def _fixed_point_jvp(primals, tangents):
 
     _, g_dot = jax.jvp(g_of_inputs, (moving,), (t_inputs,))
     operator = lx.JacobianLinearOperator(_for_operator, root, (rewrite, inputs))
-    x_dot = lx.linear_solve(operator, g_dot, linear_solver).value
+    pre = None if precondition is None else precondition(inputs)
+    options = {} if pre is None else {"preconditioner": pre}
+    x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
     t_root = jax.tree.map(jnp.negative, x_dot)
     t_aux = jax.tree.map(_zero_tangent, aux)
     return (root, aux), (t_root, t_aux)
@@ -106,6 +124,9 @@ class KrylovSolver(lx.AbstractLinearSolver):
     restart: Krylov steps per cycle (memory: restart + 1 vectors).
     max_matvecs: the products allowed; a solve that has not reached ``rtol`` by then returns
         ``RESULTS.max_steps_reached`` (and a non-finite one too).
+
+    A :class:`Preconditioner` in the solve's options (``options["preconditioner"]``) makes it
+    flexible GMRES with that right preconditioner; the transposed solve gets its transpose.
     """
 
     rtol: float = eqx.field(static=True)
@@ -113,33 +134,39 @@ class KrylovSolver(lx.AbstractLinearSolver):
     max_matvecs: int = eqx.field(static=True, default=400)
 
     def init(self, operator, options):
-        if "preconditioner" in options:
-            raise ValueError("KrylovSolver takes no preconditioner")
+        pre = options.get("preconditioner")
+        if pre is not None and not isinstance(pre, Preconditioner):
+            raise ValueError("KrylovSolver's preconditioner must be a Preconditioner")
         if not eqx.tree_equal(operator.in_structure(), operator.out_structure()):
             raise ValueError("KrylovSolver needs a square operator")
         return lx.linearise(operator)
 
     def compute(self, state, vector, options):
-        del options
         operator = state
         b, unravel = jax.flatten_util.ravel_pytree(vector)
+        pre = options.get("preconditioner")
 
         def apply_k(u, with_sources):  # K = I − A, so that (I − K)x = Ax = b
             au, _ = jax.flatten_util.ravel_pytree(operator.mv(unravel(u)))
             return u - au + jnp.where(with_sources, b, jnp.zeros_like(b))
 
+        def precondition(u):
+            return jax.flatten_util.ravel_pytree(pre.apply(unravel(u)))[0]
+
         x, _, k, err = gmres(apply_k, b.shape, b.dtype, restart=self.restart,
-                             max_matvecs=self.max_matvecs, tol=self.rtol)
+                             max_matvecs=self.max_matvecs, tol=self.rtol,
+                             precondition=None if pre is None else precondition)
         ok = (err <= self.rtol) & jnp.all(jnp.isfinite(x))
         result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
         return unravel(x), result, {"num_steps": k}
 
     def transpose(self, state, options):
-        del options
-        return state.transpose(), {}
+        pre = options.get("preconditioner")
+        return state.transpose(), ({} if pre is None else {"preconditioner": pre.transpose()})
 
     def conj(self, state, options):
-        del options
+        if options.get("preconditioner") is not None:
+            raise NotImplementedError("KrylovSolver: a preconditioned complex solve")
         return lx.conj(state), {}
 
     def assume_full_rank(self):
