@@ -74,6 +74,12 @@ DENSITY_SCHEME = "step"
 #: the smallest density a support cell starts from, relative to the start's largest (its log
 #: must be finite)
 _FLOOR = 1e-3
+#: the largest optical depth of one grid cell, (ζ + γ)·density·(cell width), that a fit's
+#: L-BFGS-B may try: the log-densities are bounded there (``log_density_cap``).  Unbounded, a
+#: line-search trial of cloud-tomo-c's cold fit (final level, evaluation 30) reached log
+#: densities of 105: an infinite density, a NaN light field, and an adjoint solve that failed on
+#: it, which ended the level.  A cell 100 mean free paths thick is opaque to every camera.
+MAX_CELL_DEPTH = 100.0
 
 
 @dataclasses.dataclass
@@ -359,6 +365,16 @@ def balanced_weight(weight: float, share: float, target: float) -> float | None:
     return weight * float(np.clip((target / share) ** (1.0 / BALANCE_POWER), 0.1, 10.0))
 
 
+def log_density_cap(scene: Scene, shape, x0) -> float:
+    """The upper bound of a level's log-densities: ``MAX_CELL_DEPTH`` mean free paths per
+    cell of ``shape`` over ``scene``'s domain, and at least 10× the start's densest cell."""
+    ext = float(scene.fog.scattering) + float(scene.fog.absorption)
+    size = np.asarray(scene.domain.max, float) - np.asarray(scene.domain.min, float)
+    width = float(np.min(size / np.asarray(shape, float)))
+    cap = math.log(MAX_CELL_DEPTH / max(ext * width, 1e-30))
+    return max(cap, float(np.max(np.asarray(x0))) + math.log(10.0))
+
+
 def rays_per_pixel_side(downsample: int) -> int:
     """A level's default supersampling: two rays per target pixel side (the targets' box
     filter sampled as finely as their own pixels), at most 4 per reduced pixel side, at least
@@ -551,6 +567,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                                                    prior_weight, M, n_rays, settings,
                                                    prior)
             dt = x.dtype
+            x_cap = log_density_cap(scene, shape, x)
             T = loss.targets
             idx = np.asarray(loss.support)
             carved = 0
@@ -596,7 +613,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
             passes = []
             while True:
                 best, count, spent, stopped = _lbfgs_pass(
-                    loss, x, lev, pass_, n_steps, rtol, history, first_call, meter,
+                    loss, x, x_cap, lev, pass_, n_steps, rtol, history, first_call, meter,
                     sum(steps[:lev]) + spent_all, sum(steps) + spent_all, resumed,
                     lambda best, count, unit, lev=lev, w=weights, sh=shares, p=pass_: _save(
                         ckpt, print_, lev, g_prev, best, count, unit, history, levels,
@@ -666,9 +683,10 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
                       settings=settings_json, passes=passes, final_level=(loss, x))
 
 
-def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, done, total,
-                resumed, save):
-    """One L-BFGS-B run (SciPy) of a level's loss from ``x``, at most ``n_steps`` evaluations:
+def _lbfgs_pass(loss, x, x_cap, lev, pass_, n_steps, rtol, history, first_call, meter, done,
+                total, resumed, save):
+    """One L-BFGS-B run (SciPy) of a level's loss from ``x`` (log-densities, each at most
+    ``x_cap``: ``log_density_cap``), at most ``n_steps`` evaluations:
     ([best loss, its x, its data and prior terms], evaluations, whether the budget ran out,
     whether it stopped because an evaluation's adjoint solve did not converge).
     ``resumed``: a checkpoint's state of this pass ({x, best, count, unit}) to go on from."""
@@ -717,8 +735,9 @@ def _lbfgs_pass(loss, x, lev, pass_, n_steps, rtol, history, first_call, meter, 
     spent, stopped = count[0] >= n_steps, False
     try:
         if not spent:
-            scipy.optimize.minimize(fun, np.asarray(x, np.float64), jac=True,
-                                    method="L-BFGS-B",
+            x0 = np.asarray(x, np.float64)
+            scipy.optimize.minimize(fun, x0, jac=True, method="L-BFGS-B",
+                                    bounds=scipy.optimize.Bounds(-np.inf, np.full(x0.shape, x_cap)),
                                     options={"maxfun": n_steps, "maxiter": n_steps,
                                              "ftol": rtol, "gtol": 0.0, "maxcor": 10})
     except _Budget:
