@@ -209,8 +209,8 @@ def test_the_adjoint_preconditioner_is_the_transpose_of_the_forward_one(x64, mon
     irr = jnp.asarray(rng.normal(size=shape))
 
     def dense(p):
-        cols = [p.apply((jnp.eye(n)[k].reshape(shape), irr))[0].ravel() for k in range(n)]
-        return np.stack([np.asarray(c) for c in cols], axis=1)
+        cols = jax.jit(jax.vmap(lambda e: p.apply((e.reshape(shape), irr))[0].ravel()))
+        return np.asarray(cols(jnp.eye(n))).T
 
     P, PT = dense(pre), dense(pre.transpose())
     assert np.max(np.abs(P - np.eye(n))) > 0.1  # it does something
@@ -241,16 +241,17 @@ def test_a_gradient_through_the_preconditioned_adjoint_matches_finite_difference
             light = s.solve(g, eqx.tree_at(lambda q: q.scattering, p0, zeta))
             return (jnp.sum(light.fluence ** 2) ** 0.5 + jnp.sum(light.irradiance ** 2) ** 0.5,
                     light.result)
-        return jax.jit(jax.value_and_grad(f, has_aux=True)), jax.jit(f), p0.scattering
+        return jax.jit(jax.value_and_grad(f, has_aux=True)), p0.scattering
 
-    vg, f, zeta = value("diffusion")
+    vg, zeta = value("diffusion")
     (_, code), grad = vg(zeta)
     assert int(code) == df.RESULTS.successful
-    eps = 1e-3
-    fd = (f(zeta + eps)[0] - f(zeta - eps)[0]) / (2 * eps)
+    eps = 1e-3  # the differences from the same compiled program's values
+    fd = (vg(zeta + eps)[0][0] - vg(zeta - eps)[0][0]) / (2 * eps)
     assert abs(float(grad) - float(fd)) <= 1e-6 * abs(float(fd)), (float(grad), float(fd))
 
 
+@pytest.mark.slow
 def test_a_float32_gradient_in_thick_fog_is_finite_and_right():
     """Deep in a thick cloud (τ = 100, N = 16: ~12 mean free paths per step, the linear
     scheme) the uncollided sun underflows in float32, and the limiter of its slope divided by
