@@ -256,17 +256,19 @@ print(f"residual RMS {rms / bright:.1%} of the targets' RMS")
 # %% [markdown]
 # ## 5. Where this stands
 #
-# The run above uses today's defaults (stop 39: the step scheme, the carving that keeps the
-# cloud, two rays per side of a target pixel, the prior's weight balanced). The benchmark
-# (`python benchmarks/tomography.py`, the same settings) reached a relative L2 error of 0.142
-# with the total mass right to 0.6% in 445 s (docs/tomography.md: from a uniform start at 1.46
-# and +349%); the issue's aim is 15% and 2%. Here the prior's share of the loss ends at 0.82,
+# The run above uses today's defaults (stop 40: the step scheme, the carving that keeps the
+# cloud, two rays per side of a target pixel, the prior's weight balanced, the line search
+# bounded at 100 mean free paths per cell). The benchmark (`python benchmarks/tomography.py`,
+# the same settings) reached a relative L2 error of 0.142 with the total mass right to 0.7% in
+# 519 s (docs/tomography.md: from a uniform start at 1.46 and +349%); the issue's aim is 15% and
+# 2%. Here the prior's share of the loss ends at 0.84,
 # within the balancing rule's band around 0.8, so the weight stays 3e-5. On two clouds of our
 # own with Mitsuba images the rule lowers the weight and runs the final level again:
 # `cloud-tomo-b` 0.267 → 0.215 and −11.9% → −6.6% (676 s), `cloud-tomo-c` (made after the rule
 # was written, to check it) 0.285 → 0.238 and −16.2% → −10.7% (595 s). Both still come out
-# thinner than the truth. From the sweep's own images at N = 48 the fit reaches 0.132 (0.142 at
-# the fixed weight), not the issue's 10%: the prior's pull and the lattice's own error in the
-# cloud's outer shell limit it (docs/tomography.md). A fit stopped early keeps a
+# thinner than the truth, and the missing mass sits in their skin (cells less than a mean
+# free path from outside, `python benchmarks/tomography_bands.py`), where the lattice's light
+# is too bright. From the sweep's own images at N = 48 the fit reaches 0.132 (0.142 at the
+# fixed weight), not the issue's 10% (docs/tomography.md). A fit stopped early keeps a
 # checkpoint: `fit_density(..., checkpoint=PATH)` and `resume=True` (or
 # `difffog fit ... --resume`) go on from it.
