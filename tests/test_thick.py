@@ -224,27 +224,24 @@ def test_a_gradient_through_the_preconditioned_adjoint_matches_finite_difference
     """Thick, nearly conservative fog (τ = 100, albedo 0.999) with the diffusion preconditioner:
     the tangent and adjoint solves are preconditioned too (as the forward GMRES is), and the
     gradient in ζ through them agrees with central differences (the unpreconditioned adjoint's
-    agrees with it to 1e-10, measured).  At N = 8 a lattice step spans ~25 mean free paths: the linear scheme's fixed
-    point dips below 0 at a quarter of the fog nodes and the light is projected onto Λ, E ≥ 0;
-    the gradient is the projected light's (it was the unprojected one's, taken at the projected
-    point: 0.5% from the differences)."""
+    agrees with it to 1e-10, measured).  At N = 8 a lattice step spans ~25 mean free paths:
+    the linear scheme's fixed point dips below 0 at a quarter of the fog nodes and the light is
+    projected onto Λ, E ≥ 0; the gradient is the projected light's (it was the unprojected
+    one's, taken at the projected point: 0.5% from the differences)."""
     scene = _thick_cube(1.0).replace(fog=df.Fog(scattering=99.9, absorption=0.1))
     lat = df.voxelize(scene, 8, 2)
+    s = SweepSolver(M=2, tol=1e-10, max_iterations=2000, precondition="diffusion",
+                    adjoint_rtol=1e-10)
+    assert s.resolved_scheme(scene, lat) == "linear"
+    g = s.prepare(scene, lat)
+    p0 = Params.from_scene(scene, jnp.float64)
 
-    def value(precondition):
-        s = SweepSolver(M=2, tol=1e-10, max_iterations=2000, precondition=precondition,
-                        adjoint_rtol=1e-10)
-        assert s.resolved_scheme(scene, lat) == "linear"
-        g = s.prepare(scene, lat)
-        p0 = Params.from_scene(scene, jnp.float64)
+    def f(zeta):
+        light = s.solve(g, eqx.tree_at(lambda q: q.scattering, p0, zeta))
+        return (jnp.sum(light.fluence ** 2) ** 0.5 + jnp.sum(light.irradiance ** 2) ** 0.5,
+                light.result)
 
-        def f(zeta):
-            light = s.solve(g, eqx.tree_at(lambda q: q.scattering, p0, zeta))
-            return (jnp.sum(light.fluence ** 2) ** 0.5 + jnp.sum(light.irradiance ** 2) ** 0.5,
-                    light.result)
-        return jax.jit(jax.value_and_grad(f, has_aux=True)), p0.scattering
-
-    vg, zeta = value("diffusion")
+    vg, zeta = jax.jit(jax.value_and_grad(f, has_aux=True)), p0.scattering
     (_, code), grad = vg(zeta)
     assert int(code) == df.RESULTS.successful
     eps = 1e-3  # the differences from the same compiled program's values

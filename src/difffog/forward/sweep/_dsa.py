@@ -157,6 +157,12 @@ class DiffusionOperator:
         return lam + self.sigma_s * self.solve(jnp.where(self.fog, lam, 0.0))
 
 
+def on_fluence(fn, lam, channels: bool):
+    """``fn`` applied to Λ, the fluence part of the light state's ``lam`` (channel 0 with an
+    anisotropic phase; the moments pass through)."""
+    return fn(lam) if not channels else lam.at[..., 0].set(fn(lam[..., 0]))
+
+
 class DiffusionPreconditioner(Preconditioner):
     """``DiffusionOperator``'s I + A⁻¹σ_s (or its transpose) on the light state (Λ, E) of the
     tangent and adjoint solves (``_implicit.fixed_point``): the state's fluence (channel 0
@@ -179,8 +185,7 @@ class DiffusionPreconditioner(Preconditioner):
         dsa = DiffusionOperator(self.sigma_t, self.ssa, self.solid, self.h, self.periodic_xy,
                                 self.M, mu_bar=self.mu_bar)
         fn = dsa.precondition_transposed if self.transposed else dsa.precondition
-        lam = lam.at[..., 0].set(fn(lam[..., 0])) if self.channels else fn(lam)
-        return lam, irr
+        return on_fluence(fn, lam, self.channels), irr
 
     def transpose(self):
         return dataclasses.replace(self, transposed=not self.transposed)
