@@ -70,6 +70,16 @@ CPU_COST_PER_MOMENT = 0.22
 LINEAR_COST = 0.256 / 0.216
 LINEAR_BYTES_PER_NODE = (171 - 144) * 2**20 / 72**3
 CPU_SECONDS_PER_NODE = 6.5e-7
+#: a gradient's or a fit Jacobian's tangent/adjoint Krylov solves work on the Jacobi step
+#: linearised once (``lx.linearise`` in ``KrylovSolver.init``), which keeps the sweeps'
+#: residuals: XLA temporaries per lattice node and direction (float32, cloud-plane, the light
+#: field's Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py``, stop 41):
+#: ~820-950 B with the step scheme, ~1700 B with the linear one, ~1% more per moment (L = 3:
+#: ~1980 B).  Before they were counted the estimate said 0.96 GiB for a fit that peaked at
+#: 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
+LINEARISED_BYTES_STEP = 950
+LINEARISED_BYTES_LINEAR = 1700
+LINEARISED_PER_MOMENT = 0.011
 #: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
 #: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
 GPU_SECONDS_PER_BODY = 18e-6
@@ -223,7 +233,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
-    gradient: add the implicit adjoint's Krylov vectors (a fit's gradient or Jacobian);
+    gradient: add the implicit adjoint's Krylov vectors and the linearised sweeps they work on
+        (a fit's gradient or Jacobian);
     phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``);
     scheme: the transport scheme ("auto": the solver's rule, judged from the scene)."""
     backend = backend or _backend()
@@ -261,8 +272,11 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         "face carries": CARRY_COPIES * M * D * nu * nv * f,
         "cameras": rays * RAY_BYTES,
     }
+    linear = _linear(scene, resolution, M, phase_order, scheme)
     if gradient:
         mem["adjoint"] = 41 * state * f  # lineax GMRES, restart 40
+        per = LINEARISED_BYTES_LINEAR if linear else LINEARISED_BYTES_STEP
+        mem["linearised sweeps"] = int(n * D * per * (1.0 + LINEARISED_PER_MOMENT * K))
     if backend == "gpu" and kernel == "batched":
         per_iter = 6 * D * n / GPU_BATCHED_UPDATES_PER_S
     elif backend == "gpu":
@@ -275,7 +289,7 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
             per_iter *= CPU_BATCHED_SLOWDOWN
     # (the GPU's programs are assumed to grow alike: not measured there)
     per_iter *= 1.0 + CPU_COST_PER_MOMENT * K
-    if _linear(scene, resolution, M, phase_order, scheme):
+    if linear:
         per_iter *= LINEAR_COST
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
     from .geometry._hits import shadows_exactly
