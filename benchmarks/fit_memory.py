@@ -9,6 +9,12 @@ transposed VJP, vmapped over the unknowns or one after another (``lax.map``), wi
 time against the fit's route (both compiled; one warm run each).
 
     python benchmarks/fit_memory.py [--N 24] [--downsample 4] [--out FILE.md]
+    python benchmarks/fit_memory.py --scaling [L:N:M:scheme ...]
+
+``--scaling``: only the light field's Jacobian (the fit's route) for each setting, in bytes per
+lattice node and direction, the figure ``difffog._cost`` charges a gradient for (stop 41:
+step scheme ~820-950 B, linear ~1700 B, L = 3 ~1980 B); default settings
+0:24:2:auto 0:24:3:step 0:24:3:linear 0:32:3:linear 3:16:3:auto 3:24:3:auto 3:32:3:auto.
 
 (measured by compiling, not by running: ``compiled.memory_analysis()``; the run times need the
 memory, so keep N small.)
@@ -30,8 +36,11 @@ def main(argv=None):
     ap.add_argument("--M", type=int, default=3)
     ap.add_argument("--downsample", type=int, default=4)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--scaling", nargs="*", default=None, metavar="L:N:M:SCHEME")
     a = ap.parse_args(argv)
     info = C.machine()
+    if a.scaling is not None:
+        return scaling(a.scaling or SCALING, a.downsample, info)
 
     import equinox as eqx
     import jax
@@ -131,6 +140,53 @@ def main(argv=None):
     print(text)
     if a.out:
         C.write_text(a.out, text + "\n")
+
+
+SCALING = ["0:24:2:auto", "0:24:3:step", "0:24:3:linear", "0:32:3:linear", "3:16:3:auto",
+           "3:24:3:auto", "3:32:3:auto"]
+
+
+def scaling(settings, downsample: int, info):
+    """The light field's Jacobian alone (3 unknowns, the fit's route) per setting."""
+    import math
+
+    import jax
+    import jax.numpy as jnp
+
+    import difffog as df
+    from difffog.fit._driver import make_model
+
+    scene = df.load_scene("cloud-plane")
+    rows = []
+    for s in settings:
+        L, N, M, scheme = s.split(":")
+        L, N, M = int(L), int(N), int(M)
+        model = make_model(scene, "sweep", cameras=["top", "oblique"], downsample=downsample,
+                           resolution=N, model_settings={"M": M, "phase_order": L,
+                                                         "scheme": scheme})
+        base = model.params(jnp.float32)
+
+        def params(u, base=base, model=model):
+            p = base
+            for i, k in enumerate(PATHS):
+                p = df.set_param(p, model.scene, k, u[i])
+            return p
+
+        def light_jacobian(u, model=model, params=params):
+            f = lambda v: model.light(params(v)).fluence.ravel()  # noqa: E731
+            y, vjp = jax.vjp(f, u)
+            jt = jax.linear_transpose(vjp, y)
+            return jax.vmap(lambda e: jt((e,))[0])(jnp.eye(3, dtype=u.dtype))
+
+        u0 = jnp.asarray([60.0, 0.6, 0.85], jnp.float32)
+        mib = C.xla_mib(jax.jit(light_jacobian).lower(u0).compile())
+        n, D = math.prod(model.geometry.shape), (2 * M + 1) ** 2
+        rows.append([str(L), str(N), str(M), "linear" if model.geometry.linear else "step",
+                     str(n), f"{mib:.0f}", f"{mib * 2**20 / (n * D):.0f}"])
+        print(rows[-1], flush=True)
+    print("\n".join([*C.machine_lines(info), "", *C.md_table(
+        ["L", "N", "M", "scheme", "nodes", "light Jacobian MiB", "bytes per node·direction"],
+        rows)]))
 
 
 if __name__ == "__main__":
