@@ -73,10 +73,10 @@ CPU_SECONDS_PER_NODE = 6.5e-7
 #: a gradient's or a fit Jacobian's tangent/adjoint Krylov solves work on the Jacobi step
 #: linearised once (``lx.linearise`` in ``KrylovSolver.init``), which keeps the sweeps'
 #: residuals: XLA temporaries per lattice node and direction (float32, cloud-plane, the light
-#: field's Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py --scaling``, stop 41):
-#: ~820-950 B with the step scheme, ~1700 B with the linear one, ~1% more per moment (L = 3:
-#: ~1980 B).  Before they were counted the estimate said 0.96 GiB for a fit that peaked at
-#: 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
+#: field's Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py
+#: --scaling``, stop 41): ~820-950 B with the step scheme, ~1700 B with the linear one, ~1%
+#: more per moment (L = 3: ~1980 B).  Before they were counted the estimate said 0.96 GiB for
+#: a fit that peaked at 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
 LINEARISED_BYTES_STEP = 950
 LINEARISED_BYTES_LINEAR = 1700
 LINEARISED_PER_MOMENT = 0.011
