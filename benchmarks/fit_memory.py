@@ -30,6 +30,40 @@ import _common as C
 PATHS = ("fog.scattering", "fog.absorption", "fog.g")
 
 
+def setup(N: int, M: int, L: int, downsample: int, scheme: str = "auto"):
+    """cloud-plane's fit model (both cameras / ``downsample``), its ``FitProblem`` for ζ, γ, g,
+    the base parameters and the unknowns at the scene's values."""
+    import jax.numpy as jnp
+
+    import difffog as df
+    from difffog.fit._driver import make_model
+    from difffog.fit._residuals import FitProblem
+    from difffog.fit._unknowns import Coordinate
+
+    names = ("oblique", "top")
+    model = make_model(df.load_scene("cloud-plane"), "sweep", cameras=list(names),
+                       downsample=downsample, resolution=N,
+                       model_settings={"M": M, "phase_order": L, "scheme": scheme})
+    base = model.params(jnp.float32)
+    coords = tuple(Coordinate(p, 0.0, float("inf")) for p in PATHS[:2]) + (
+        Coordinate("fog.g", -0.99, 0.99),)
+    problem = FitProblem(model.scene, coords, names, "linear")
+    u0 = jnp.asarray([c.to_u(float(df.get_param(base, model.scene, c.path))) for c in coords],
+                     jnp.float32)
+    return model, problem, base, u0
+
+
+def transposed_jacobian(f, u):
+    """The columns (n, P) of f's Jacobian at u by the fit's route: the transpose of the VJP,
+    vmapped over the unknowns."""
+    import jax
+    import jax.numpy as jnp
+
+    y, vjp = jax.vjp(f, u)
+    jt = jax.linear_transpose(vjp, y)
+    return jax.vmap(lambda e: jt((e,))[0])(jnp.eye(u.shape[0], dtype=u.dtype))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--N", type=int, default=24)
@@ -46,22 +80,8 @@ def main(argv=None):
     import jax
     import jax.numpy as jnp
 
-    import difffog as df
-    from difffog.fit._driver import make_model
-    from difffog.fit._residuals import FitProblem
-    from difffog.fit._unknowns import Coordinate
-
-    scene = df.load_scene("cloud-plane")
-    names = ("oblique", "top")
-    model = make_model(scene, "sweep", cameras=list(names), downsample=a.downsample,
-                       resolution=a.N, model_settings={"M": a.M, "phase_order": 3})
-    base = model.params(jnp.float32)
-    coords = tuple(Coordinate(p, 0.0, float("inf")) for p in PATHS[:2]) + (
-        Coordinate("fog.g", -0.99, 0.99),)
-    problem = FitProblem(model.scene, coords, names, "linear")
-    u0 = jnp.asarray([c.to_u(float(df.get_param(base, model.scene, c.path))) for c in coords],
-                     jnp.float32)
-    eye = jnp.eye(len(coords), dtype=u0.dtype)
+    model, problem, base, u0 = setup(a.N, a.M, 3, a.downsample)
+    eye = jnp.eye(u0.shape[0], dtype=u0.dtype)
 
     def images(u):
         return problem.model(model, u, base)[0]
@@ -71,10 +91,8 @@ def main(argv=None):
         return y, J
 
     def light_jacobian(u):  # the same route, the light field alone
-        f = lambda v: model.light(problem.params(v, base)).fluence.ravel()  # noqa: E731
-        y, vjp = jax.vjp(f, u)
-        jt = jax.linear_transpose(vjp, y)
-        return jax.vmap(lambda e: jt((e,))[0])(eye)
+        return transposed_jacobian(
+            lambda v: model.light(problem.params(v, base)).fluence.ravel(), u)
 
     light0 = model.light(base)
 
@@ -85,10 +103,7 @@ def main(argv=None):
         return jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in problem.names])
 
     def camera_jacobian(u):  # the same route, the light held fixed
-        f = lambda v: model_from(light0, v)  # noqa: E731
-        y, vjp = jax.vjp(f, u)
-        jt = jax.linear_transpose(vjp, y)
-        return jax.vmap(lambda e: jt((e,))[0])(eye)
+        return transposed_jacobian(lambda v: model_from(light0, v), u)
 
     def forward_light(batch: str):
         def jac(u):
@@ -151,34 +166,17 @@ def scaling(settings, downsample: int, info):
     import math
 
     import jax
-    import jax.numpy as jnp
 
-    import difffog as df
-    from difffog.fit._driver import make_model
-
-    scene = df.load_scene("cloud-plane")
     rows = []
     for s in settings:
         L, N, M, scheme = s.split(":")
         L, N, M = int(L), int(N), int(M)
-        model = make_model(scene, "sweep", cameras=["top", "oblique"], downsample=downsample,
-                           resolution=N, model_settings={"M": M, "phase_order": L,
-                                                         "scheme": scheme})
-        base = model.params(jnp.float32)
+        model, problem, base, u0 = setup(N, M, L, downsample, scheme)
 
-        def params(u, base=base, model=model):
-            p = base
-            for i, k in enumerate(PATHS):
-                p = df.set_param(p, model.scene, k, u[i])
-            return p
+        def light_jacobian(u, model=model, problem=problem, base=base):
+            return transposed_jacobian(
+                lambda v: model.light(problem.params(v, base)).fluence.ravel(), u)
 
-        def light_jacobian(u, model=model, params=params):
-            f = lambda v: model.light(params(v)).fluence.ravel()  # noqa: E731
-            y, vjp = jax.vjp(f, u)
-            jt = jax.linear_transpose(vjp, y)
-            return jax.vmap(lambda e: jt((e,))[0])(jnp.eye(3, dtype=u.dtype))
-
-        u0 = jnp.asarray([60.0, 0.6, 0.85], jnp.float32)
         mib = C.xla_mib(jax.jit(light_jacobian).lower(u0).compile())
         n, D = math.prod(model.geometry.shape), (2 * M + 1) ** 2
         rows.append([str(L), str(N), str(M), "linear" if model.geometry.linear else "step",
