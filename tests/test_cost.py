@@ -2,6 +2,7 @@
 machine or float type can hold."""
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -150,9 +151,7 @@ def test_a_gradient_estimate_counts_the_linearised_sweeps():
     plain = df.estimate(scene, "sweep", resolution=32, M=2, scheme="step")
     grad = df.estimate(scene, "sweep", resolution=32, M=2, scheme="step", gradient=True)
     lin = df.estimate(scene, "sweep", resolution=32, M=2, scheme="linear", gradient=True)
-    n = 1
-    for k in grad.shape:
-        n *= k
+    n = math.prod(grad.shape)
     assert "linearised sweeps" not in plain.memory
     assert grad.memory["linearised sweeps"] == int(n * 25 * LINEARISED_BYTES_STEP)
     assert lin.memory["linearised sweeps"] == int(n * 25 * LINEARISED_BYTES_LINEAR)

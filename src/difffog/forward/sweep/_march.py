@@ -372,9 +372,9 @@ def _weights(uvw, geo, slope_at: int | None, n_chan: int):
     if slope_at is None:
         return [(i, w[:, None]) for i, w in _stencil_at(uvw, shape, periodic_xy)]
     out = []
+    R = uvw.shape[0]
+    one = jnp.ones((R, 1), uvw.dtype)
     for i, w, off in _stencil_at(uvw, shape, periodic_xy, offsets=True):
-        R = uvw.shape[0]
-        one = jnp.ones((R, 1), uvw.dtype)
         mult = jnp.concatenate([jnp.broadcast_to(one, (R, slope_at)),
                                 jnp.maximum(off, 0.0), jnp.minimum(off, 0.0),
                                 jnp.broadcast_to(one, (R, n_chan - slope_at - SLOPE_CHANNELS))],
@@ -383,16 +383,19 @@ def _weights(uvw, geo, slope_at: int | None, n_chan: int):
     return out
 
 
-def _interp(table, p, geo, slope_at: int | None = None, *, uvw=None):
-    """Trilinear samples of a flat node table (``_flat_table``) at points p (R, 3) → (R, C),
-    or at lattice coordinates ``uvw`` (``_coords``; then p is not used).
+def _interp(table, p, geo, slope_at: int | None = None):
+    """Trilinear samples of a flat node table (``_flat_table``) at points p (R, 3) → (R, C).
 
-    ``geo`` = (lo, h, shape, periodic_xy), static.  Eight separate (R, C) gathers: on XLA:CPU
-    this is ~3x faster than one (R, 8, C) gather and a contraction.  ``slope_at``: the first
-    of the slope channels (``_weights``), or None.
+    ``geo`` = (lo, h, shape, periodic_xy), static.  ``slope_at``: the first of the slope
+    channels (``_weights``), or None.
     """
+    return _interp_at(table, _coords(p, geo), geo, slope_at)
+
+
+def _interp_at(table, uvw, geo, slope_at: int | None = None):
+    """``_interp`` at lattice coordinates ``uvw`` (R, 3) (``_coords``).  Eight separate (R, C)
+    gathers: on XLA:CPU this is ~3x faster than one (R, 8, C) gather and a contraction."""
     out = 0.0
-    uvw = _coords(p, geo) if uvw is None else uvw
     for i, w in _weights(uvw, geo, slope_at, table.shape[-1]):
         out = out + w * table.at[i].get(mode="promise_in_bounds")
     return out
@@ -584,7 +587,7 @@ def _unmix_ct(g, c, coef, cfg: _MarchConfig):
 def _sample(table, uvw, geo, slope_at: int | None = None):
     """Raw table samples (R, C) at lattice coordinates ``uvw`` (R, 3), made once (see the note
     inside)."""
-    c = _interp(table, None, geo, slope_at, uvw=uvw)
+    c = _interp_at(table, uvw, geo, slope_at)
     if jax.default_backend() == "cpu":
         # XLA:CPU would otherwise fuse the eight gathers into each consumer of c and do them
         # several times (3x slower); a tiny dot is not fused, so c is materialised once.
