@@ -441,3 +441,61 @@ def test_sky_pass_shift_resampling_equals_the_gathers():
     for a, b in zip(shifted, gathered):
         assert float(jnp.max(b)) > 0.1
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("scheme", [pytest.param("step", marks=pytest.mark.slow), "linear"])
+def test_matrix_free_tangents_equal_the_linearised_and_differences(scheme, x64):
+    """A tangent light solve (forward mode) applies I − K matrix-free by default (one Jacobi
+    step with the sources zeroed, nothing kept between products): the same tangent as with the
+    Jacobi step linearised, and central differences; a slab under sun and sky, float64."""
+    scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0))
+    base = Params.from_scene(scene, jnp.float64)
+    theta = jnp.asarray([3.6, 0.4], jnp.float64)
+    programs = {}
+    for how in ("matrix-free", "linearised"):
+        solver = SweepSolver(M=2, max_iterations=2000, tol=1e-13, adjoint_rtol=1e-12,
+                             scheme=scheme, tangents=how)
+        geom = solver.prepare(scene, lat)
+
+        def fluence(t, solver=solver, geom=geom):
+            p = set_param(set_param(base, scene, "fog.scattering", t[0]), scene,
+                          "fog.absorption", t[1])
+            return solver.solve(geom, p).fluence
+
+        programs[how] = jax.jit(lambda t, f=fluence: jax.vmap(
+            lambda e: jax.jvp(f, (t,), (e,)), out_axes=(None, 0))(jnp.eye(2)))
+    a = np.asarray(programs["matrix-free"](theta)[1])
+    b = np.asarray(programs["linearised"](theta)[1])
+    assert np.abs(a).max() > 0 and np.abs(a - b).max() <= 1e-11 * np.abs(a).max()
+    for i in range(2):
+        e = np.zeros(2)
+        e[i] = 1e-4  # the solves' own error (tol 1e-13) stays far below the difference
+        up, down = (np.asarray(programs["matrix-free"](theta + s * e)[0]) for s in (1, -1))
+        fd = (up - down) / 2e-4
+        assert np.abs(a[i] - fd).max() <= 1e-6 * np.abs(fd).max()
+
+
+def test_recomputed_sweep_residuals_give_the_same_gradient(x64):
+    """``sweep_residuals="recompute"``: a gradient's adjoint works on sweeps that keep only
+    each slab step's inputs and recompute the rest in every product; the same gradient as
+    with every coefficient kept (the linear scheme, sun and sky; float64)."""
+    scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0))
+    base = Params.from_scene(scene, jnp.float64)
+    theta = jnp.asarray([3.6, 0.4], jnp.float64)
+    grads = {}
+    for how in ("keep", "recompute"):
+        solver = SweepSolver(M=2, max_iterations=2000, tol=1e-13, adjoint_rtol=1e-12,
+                             scheme="linear", sweep_residuals=how)
+        geom = solver.prepare(scene, lat)
+
+        def loss(t, solver=solver, geom=geom):
+            p = set_param(set_param(base, scene, "fog.scattering", t[0]), scene,
+                          "fog.absorption", t[1])
+            lam = solver.solve(geom, p).fluence
+            return jnp.sum(lam * jnp.linspace(0.5, 1.5, lam.size).reshape(lam.shape))
+
+        grads[how] = np.asarray(jax.jit(jax.grad(loss))(theta))
+    assert np.all(np.abs(grads["keep"]) > 0)
+    np.testing.assert_allclose(grads["recompute"], grads["keep"], rtol=1e-10)
+    with pytest.raises(df.DifffogError, match="sweep_residuals"):
+        SweepSolver(sweep_residuals="never")

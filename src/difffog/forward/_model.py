@@ -213,6 +213,23 @@ def largest_inputs(params: Params, k: int = 3) -> str:
     return ", ".join(f"{p} = {v:.3g}" for p, v in vals[:k])
 
 
+#: the share of its peak by which a light solve's fixed point may dip below 0 (clipped) before
+#: :func:`render` warns (GMRES's own residual stays near its tol, 1e-4 by default)
+DIP_WARNING = 0.01
+
+
+def dip_warning(light) -> str | None:
+    """A one-line warning when the light's fixed point dipped below 0 by more than
+    ``DIP_WARNING`` of its peak (``LightField.dip``), else None."""
+    dip = getattr(light, "dip", None)
+    if dip is None or not float(dip) > DIP_WARNING:
+        return None
+    return (f"the light solve's fixed point dipped below 0 (down to −{float(dip):.1%} of its "
+            f"peak fluence) and was clipped to 0: the linear scheme does that where one "
+            f"lattice step spans many mean free paths; a finer resolution (or scheme='step', "
+            f"--scheme step) avoids it")
+
+
 def render(model, params: Params | None = None, *, throw: bool = True, **build) -> Rendered:
     """Render every camera of a forward model (or of a scene) once, timing each stage.
 
@@ -257,6 +274,8 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     result = RESULTS(int(light.result))
     if throw:
         check(light.result, "render", failure_details(light, params))
+    if (dip := dip_warning(light)) is not None:
+        warnings.warn(dip, ThickStepWarning, stacklevel=2)
     images = {k: np.asarray(v, np.float32) for k, v in imgs.items()}
     if result == RESULTS.successful:
         for k, v in images.items():

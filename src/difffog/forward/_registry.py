@@ -76,7 +76,8 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  mesh=None, adjoint_rtol: float = 1e-6, terms: str = "auto",
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
-                 phase_order="auto", scheme: str = "auto"):
+                 phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
+                 sweep_residuals: str = "keep"):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 
@@ -84,7 +85,8 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                          devices=devices, mesh=mesh, adjoint_rtol=adjoint_rtol, terms=terms,
                          sky_quadrature=sky_quadrature, restart=restart, progress=progress,
                          throw=throw, precondition=precondition, kernel=kernel,
-                         phase_order=phase_order, scheme=scheme)
+                         phase_order=phase_order, scheme=scheme, tangents=tangents,
+                         sweep_residuals=sweep_residuals)
     return SweepModel(scene, resolution=resolution, solver=solver, supersample=supersample,
                       cameras=cameras)
 

@@ -3,7 +3,8 @@
 With G(x, θ) = x − F(x, θ) = 0 at the root, its tangent is
     ẋ = −(∂G/∂x)⁻¹ (∂G/∂θ) θ̇,
 one linear solve with the operator I − ∂F/∂x (matrix-free: a Jacobian–vector product of one
-Jacobi step), whatever the number of iterations the forward solve took.  Reverse mode
+Jacobi step, or for an F affine in x, as the sweep's is, that step itself with its sources
+zeroed: :class:`AffineJacobian`), whatever the number of iterations the forward solve took.  Reverse mode
 transposes that linear solve (``lineax`` transposes ``linear_solve``), so a gradient costs one
 adjoint solve with (I − ∂F/∂x)ᵀ and its memory does not grow with the iterations.
 
@@ -38,7 +39,7 @@ from ._krylov import gmres
 
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
-                precondition: Callable | None = None):
+                precondition: Callable | None = None, linear: Callable | None = None):
     """``solve(inputs) -> (root, aux)``, differentiated implicitly through ``rewrite``.
 
     solve: inputs → (root, aux); root is the fixed point, aux anything (no gradient flows
@@ -50,8 +51,14 @@ def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.Ab
     precondition: inputs → a :class:`Preconditioner` for ∂G/∂x (or None): handed to the
         tangent solve as lineax's ``options["preconditioner"]``, and its transpose to the
         adjoint solve.  Must not close over JAX arrays either.
+    linear: (v, inputs) → ∂G/∂x·v computed directly (or None), for a ``rewrite`` affine in
+        the root: G(v) − G(0).  The tangent solve (forward mode) then applies it as it is,
+        matrix-free, instead of linearising ``rewrite`` once and keeping every residual of that
+        linearisation for the whole solve (the sweep's: ~1 KB per lattice node and direction);
+        the adjoint solve (reverse mode) still linearises, to transpose.  A module-level
+        function (it is a static field).
     """
-    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver, precondition)
+    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear)
     return root, jax.tree.map(jax.lax.stop_gradient, aux)
 
 
@@ -68,8 +75,8 @@ class Preconditioner(eqx.Module):
 
 
 @eqx.filter_custom_jvp
-def _fixed_point(solve, rewrite, inputs, linear_solver, precondition):
-    del rewrite, linear_solver, precondition
+def _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear):
+    del rewrite, linear_solver, precondition, linear
     return jax.tree.map(jnp.asarray, solve(inputs))
 
 
@@ -80,9 +87,9 @@ def _for_operator(root, args):
 
 @_fixed_point.def_jvp
 def _fixed_point_jvp(primals, tangents):
-    solve, rewrite, inputs, linear_solver, precondition = primals
-    _, _, t_inputs, _, _ = tangents
-    root, aux = fixed_point(solve, rewrite, inputs, linear_solver, precondition)
+    solve, rewrite, inputs, linear_solver, precondition, linear = primals
+    _, _, t_inputs, _, _, _ = tangents
+    root, aux = fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear)
     # inputs without a tangent (integer masks, static geometry) are held fixed
     no_tangent = jax.tree.map(lambda t: t is None, t_inputs, is_leaf=lambda t: t is None)
     fixed, moving = eqx.partition(inputs, no_tangent, is_leaf=lambda t: t is None)
@@ -92,12 +99,62 @@ def _fixed_point_jvp(primals, tangents):
 
     _, g_dot = jax.jvp(g_of_inputs, (moving,), (t_inputs,))
     operator = lx.JacobianLinearOperator(_for_operator, root, (rewrite, inputs))
+    if linear is not None:
+        operator = AffineJacobian(linear, inputs, operator)
     pre = None if precondition is None else precondition(inputs)
     options = {} if pre is None else {"preconditioner": pre}
     x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
     t_root = jax.tree.map(jnp.negative, x_dot)
     t_aux = jax.tree.map(_zero_tangent, aux)
     return (root, aux), (t_root, t_aux)
+
+
+class AffineJacobian(lx.AbstractLinearOperator):
+    """∂G/∂x of a G affine in x, applied matrix-free: ``mv(v) = linear(v, inputs)``, which
+    stores nothing between products (``lx.linearise`` of the ``JacobianLinearOperator`` keeps
+    the residuals of one linearised G for as long as the solve runs).  ``transpose()``
+    linearises that Jacobian operator and transposes it (the adjoint's route, unchanged)."""
+
+    linear: Callable = eqx.field(static=True)
+    inputs: object
+    jacobian: lx.JacobianLinearOperator
+
+    def mv(self, vector):
+        return self.linear(vector, self.inputs)
+
+    def as_matrix(self):
+        return self.jacobian.as_matrix()
+
+    def transpose(self):
+        return lx.linearise(self.jacobian).transpose()
+
+    def in_structure(self):
+        return self.jacobian.in_structure()
+
+    def out_structure(self):
+        return self.jacobian.out_structure()
+
+
+@lx.linearise.register(AffineJacobian)
+def _(operator):
+    return operator  # already a product without a primal pass
+
+
+@lx.materialise.register(AffineJacobian)
+def _(operator):
+    return lx.materialise(operator.jacobian)
+
+
+@lx.conj.register(AffineJacobian)
+def _(operator):
+    return operator  # real
+
+
+# what lineax asks of an operator's structure (and its diagonals): that of the Jacobian
+for _query in (lx.is_symmetric, lx.is_diagonal, lx.is_tridiagonal, lx.has_unit_diagonal,
+               lx.is_lower_triangular, lx.is_upper_triangular, lx.is_positive_semidefinite,
+               lx.is_negative_semidefinite, lx.diagonal, lx.tridiagonal):
+    _query.register(AffineJacobian)(lambda operator, _q=_query: _q(operator.jacobian))
 
 
 def _zero_tangent(x):

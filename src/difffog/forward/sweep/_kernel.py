@@ -269,7 +269,7 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
                periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
                attenuate: bool = True, fluence: bool = True,
                vol_range: tuple[int, int] | None = None, halo: Halo | None = None,
-               kernel: str = "loop"):
+               kernel: str = "loop", recompute: bool = False):
     """One sweep over a face.  All arrays are in the face frame (nw, nu, nv).
 
     Q: source radiance at FREE nodes; B: radiosity at SURFACE nodes; tau_half_unit: σ_t·h/2 (the
@@ -293,17 +293,24 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
 
     halo: inside ``shard_map`` over a device mesh that splits the plane, the border exchange
     (see ``Halo``); the arrays are then this device's block of the plane.
+
+    recompute: the derivatives' batched program keeps only each slab step's inputs (its carry
+    and slab, ``jax.checkpoint``) and recomputes the step's coefficients (e^{−τ}, the linear
+    scheme's φ, ψ, the blocking) wherever its linearization is applied: a linearised sweep
+    then holds ~one number per node and direction instead of ~250-500 (``SweepSolver.
+    sweep_residuals``), at the price of the step's primal work in every product.
     """
     if kernel not in KERNELS[1:]:
         raise SolverError(f"sweep kernel must be one of {', '.join(KERNELS[1:])}, got {kernel!r}")
     vol = (bool(attenuate), bool(fluence), None if vol_range is None else tuple(vol_range))
-    return _sweep_face(M, tuple(periodic), int(warmup), bool(surfaces), vol, halo, kernel, Q, B,
-                       tau_half_unit, bc, geo, consts)
+    return _sweep_face(M, tuple(periodic), int(warmup), bool(surfaces), vol, halo, kernel,
+                       bool(recompute), Q, B, tau_half_unit, bc, geo, consts)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5, 6))
-def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, Q, B, tau_half_unit, bc, geo,
-                consts):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
+def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, B, tau_half_unit,
+                bc, geo, consts):
+    del recompute  # the values' programs keep nothing
     if kernel == "batched":
         return _sweep_face_batched(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
                                    warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo)
@@ -312,10 +319,12 @@ def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, Q, B, tau_half
 
 
 @_sweep_face.defjvp
-def _sweep_face_jvp(M, periodic, warmup, surfaces, vol, halo, kernel, primals, tangents):
-    out = _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, *primals)
+def _sweep_face_jvp(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, primals,
+                    tangents):
+    out = _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, *primals)
     batched = functools.partial(_sweep_face_batched, M=M, periodic=periodic, warmup=warmup,
-                                surfaces=surfaces, fluence=vol[1], halo=halo)
+                                surfaces=surfaces, fluence=vol[1], halo=halo,
+                                recompute=recompute)
     _, t_out = jax.jvp(batched, primals, tangents)
     return out, t_out
 
@@ -560,7 +569,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
 def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                         M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-                        fluence: bool = True, halo: Halo | None = None):
+                        fluence: bool = True, halo: Halo | None = None, recompute: bool = False):
     """``sweep_face`` with every direction of a slab in one batched array: the shift is one
     vmapped ``dynamic_slice`` over the padded carry (M, D, nu, nv).  Slower forward than
     ``_sweep_face_loop`` but its linearization transposes into an equally compact program, so
@@ -648,7 +657,8 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         init = jnp.broadcast_to(source(xs[0][0]), (M, D, nu, nv)).astype(dt)
     else:
         init = jnp.broadcast_to(bc.astype(dt)[None, :, None, None], (M, D, nu, nv))
-    exit_, (lam, irr) = jax.lax.scan(step, init, xs)
+    body = jax.checkpoint(step, prevent_cse=False) if recompute else step
+    exit_, (lam, irr) = jax.lax.scan(body, init, xs)
     lam = lam.reshape((total,) + lam.shape[2:])
     irr = irr.reshape((total,) + irr.shape[2:])
     if per_w:
@@ -712,7 +722,7 @@ def sky_boundary(dirs: DirectionSet, face: int) -> np.ndarray:
 
 def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, bool, bool],
                     warmup: int, surfaces: bool, attenuate: bool = True, fluence: bool = True,
-                    kernel: str = "loop"):
+                    kernel: str = "loop", recompute: bool = False):
     """``sweep_face`` on a ("face", "u", "v") device mesh (``shard_map``).
 
     args: ``(Q, B, tau_half_unit, bc, geo, consts)`` as for ``sweep_face``, each with a leading
@@ -772,7 +782,7 @@ def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, 
                                                       (Q, B, tau, bc, geo, consts))
         out = sweep_face(Q, B, tau, bc, geo, consts, M=M, periodic=periodic, warmup=warmup,
                          surfaces=surfaces, attenuate=attenuate, fluence=fluence, halo=halo,
-                         kernel=kernel)
+                         kernel=kernel, recompute=recompute)
         return jax.tree.map(lambda x: x[None], out) if stacked else out
 
     if not stacked and nfd > 1:

@@ -37,6 +37,10 @@ class LightField(AbstractLight):
         source's change per lattice spacing along x, y, z (nx, ny, nz, 3), else None;
         fluence_slope: h∇(Λ + sky_fluence), the scattered light's (what the cameras' in-scatter
         reads besides the sun's single scattering), likewise.
+    dip: the most negative fluence of the solve's fixed point as a share of its largest
+        (≥ 0; ``fluence`` holds it clipped to 0): the linear scheme's where one lattice step
+        spans many mean free paths (issue 14's cube at N = 8, ζ = 100: 0.11); GMRES's residual
+        elsewhere (~tol).  ``difffog.render`` warns above 1% (``forward._model.DIP_WARNING``).
     origin, h: the lattice's lower corner and spacing (static).
     """
 
@@ -54,6 +58,7 @@ class LightField(AbstractLight):
     sky_moments: Float[Array, "nx ny nz K"] | None = None
     source_slope: Float[Array, "nx ny nz 3"] | None = None
     fluence_slope: Float[Array, "nx ny nz 3"] | None = None
+    dip: Float[Array, ""] | None = None
     origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
     h: float = eqx.field(static=True, default=1.0)
 

@@ -314,6 +314,7 @@ class _Problem(eqx.Module):
     restart: int = eqx.field(static=True, default=30)
     precondition: str = eqx.field(static=True, default="none")  # "none" | "diffusion" (resolved)
     kernel: str = eqx.field(static=True, default="loop")  # "loop" | "batched" (resolved)
+    recompute: bool = eqx.field(static=True, default=False)  # SweepSolver.sweep_residuals
     fog_mask: jax.Array | None = None  # the terms restrict the fog work: nodes whose Λ is kept
     phase_coef: jax.Array | None = None  # (K,) δ-M Legendre coefficient g'_l of each moment
     sky_moments: jax.Array | None = None  # (nx, ny, nz, K) uncollided sky Σ_k w_k T_k Ỹ(ω_k)
@@ -463,6 +464,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
 
     pl = g.terms
     kw = dict(M=g.M, warmup=g.warmup, surfaces=g.has_surfaces, kernel=pb.kernel,
+              recompute=pb.recompute,
               attenuate=True if pl is None else pl.fog,
               fluence=True if pl is None else pl.volume_source)
     nf, npu, npv = pb.mesh_shape
@@ -650,8 +652,11 @@ def _non_negative(root, channels: bool):
     """The light state projected onto Λ ≥ 0, E ≥ 0 (the moments of an anisotropic phase have
     either sign).  GMRES's solution can dip below 0 by its residual, and the linear scheme's
     own fixed point where a lattice step spans many mean free paths (issue 14's cube at N = 8,
-    ζ = 100, ~25 mean free paths per step: Λ down to −11% of its peak at 118 of 504 fog nodes;
-    the step scheme's update is positive).  Applied to the implicit function's output, not inside its solve:
+    ζ = 100, ~25 mean free paths per step: Λ down to −11% of its peak at 118 of 504 fog nodes
+    at stop 40, none since the first collision's slope is limited; a slab τ = 256 over 8
+    nodes at M = 2, −4.5%; the step scheme's update is positive).  How far it dipped is the
+    light's ``dip`` (``_dip``), and ``render`` warns above 1% of the peak.  Applied to the
+    implicit function's output, not inside its solve:
     the projected state is not a fixed point, and differentiating it as one gave gradients
     0.5% from finite differences there (the derivative of the projection is 0 where it
     clips)."""
@@ -659,9 +664,46 @@ def _non_negative(root, channels: bool):
     return on_fluence(lambda a: jnp.maximum(a, 0.0), lam, channels), jnp.maximum(irr, 0.0)
 
 
+def _dip(lam, fog_mask):
+    """−min(Λ)/max(Λ) before the clip of ``_non_negative`` (0 where Λ ≥ 0), over the fog."""
+    lam = jax.lax.stop_gradient(lam if fog_mask is None else jnp.where(fog_mask, lam, 0.0))
+    peak = jnp.max(lam)
+    return jnp.where(peak > 0, jnp.maximum(-jnp.min(lam), 0.0) / jnp.where(peak > 0, peak, 1.0),
+                     0.0)
+
+
 def _rewrite(root, inputs):
     new = _jacobi(root, inputs)
     return jax.tree.map(lambda a, b: a - b, root, new)
+
+
+#: how a tangent solve applies I − K (``SweepSolver.tangents``)
+TANGENTS = ("matrix-free", "linearised")
+#: what a linearised sweep keeps (``SweepSolver.sweep_residuals``)
+SWEEP_RESIDUALS = ("auto", "keep", "recompute")
+#: sweep_residuals="auto" recomputes where the kept residuals would exceed this
+#: (``difffog._cost.linearised_sweep_bytes``)
+RECOMPUTE_ABOVE_BYTES = 2**30
+
+
+def sweep_residuals_for(setting: str, nodes: int, M: int, linear: bool, K: int) -> str:
+    """What ``SweepSolver.sweep_residuals`` = ``setting`` stands for on a lattice of ``nodes``
+    nodes with half-width M, the linear scheme or not and K moments ("auto": "recompute" where
+    the kept residuals of one linearised Jacobi step would take more than
+    ``RECOMPUTE_ABOVE_BYTES``)."""
+    if setting != "auto":
+        return setting
+    from ..._cost import linearised_sweep_bytes
+
+    kept = linearised_sweep_bytes(nodes, M, linear, K, "keep")
+    return "recompute" if kept > RECOMPUTE_ABOVE_BYTES else "keep"
+
+
+def _rewrite_linear(v, inputs):
+    """∂``_rewrite``/∂root·v = (I − K)v: one Jacobi step with the sources zeroed (``_rewrite``
+    is affine in the root, as the forward GMRES relies on too)."""
+    new = _jacobi(v, _with_sources(inputs, False))
+    return jax.tree.map(lambda a, b: a - b, v, new)
 
 
 class SweepSolver(eqx.Module):
@@ -736,6 +778,19 @@ class SweepSolver(eqx.Module):
         (docs/validation.md): equal to "step" in thin fog (τ = 1 slabs: 0.1%), far closer in
         T at τ = 16-64, issue 14's thick cube within 2.7% at step depths of 6 to 625 (step:
         +1.8 to +13.3%); cloud-plane unchanged; +19% per iteration.
+    tangents: how a tangent light solve (forward mode: a fit's Jacobian, ``jax.jvp``) applies
+        I − K.  "matrix-free" (default): one Jacobi step with the sources zeroed per product,
+        on the same face-sweep program as the light solve, keeping nothing between products.
+        "linearised": ``lx.linearise`` of the Jacobi step once, whose residuals (~1-2 KB per
+        lattice node and direction) stay for the whole solve.  A gradient's adjoint solve
+        (reverse mode) always linearises, to transpose.  Same values (to rounding).
+    sweep_residuals: what a linearised sweep (a gradient's adjoint solve, or tangents
+        "linearised") keeps: "keep" every coefficient of its slab steps, ~0.8-2 KB per lattice
+        node and direction, or "recompute" only each slab step's inputs (``jax.checkpoint``),
+        recomputing the step in every product: 4-4.5× less (0.2-0.6 KB), for 0-18% more time
+        per gradient (measured: cloud-plane N = 24, fog-balls and cloud-tomo N = 32).  "auto"
+        (default): "recompute" where the kept residuals would exceed
+        ``RECOMPUTE_ABOVE_BYTES`` (1 GiB), else "keep".  Same values.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -755,6 +810,8 @@ class SweepSolver(eqx.Module):
     kernel: str = eqx.field(static=True, default="auto")
     phase_order: int | str = eqx.field(static=True, default="auto")
     scheme: str = eqx.field(static=True, default="auto")
+    tangents: str = eqx.field(static=True, default="matrix-free")
+    sweep_residuals: str = eqx.field(static=True, default="auto")
 
     def layout(self) -> tuple[int, int, int]:
         """The (faces, u, v) device mesh the sweeps run on."""
@@ -791,6 +848,12 @@ class SweepSolver(eqx.Module):
         if self.kernel not in KERNELS:
             raise SceneError(f"SweepSolver: kernel must be one of {', '.join(KERNELS)}, "
                              f"got {self.kernel!r}")
+        if self.sweep_residuals not in SWEEP_RESIDUALS:
+            raise SceneError(f"SweepSolver: sweep_residuals must be one of "
+                             f"{', '.join(SWEEP_RESIDUALS)}, got {self.sweep_residuals!r}")
+        if self.tangents not in TANGENTS:
+            raise SceneError(f"SweepSolver: tangents must be one of {', '.join(TANGENTS)}, "
+                             f"got {self.tangents!r}")
         po = self.phase_order
         if po != "auto" and (isinstance(po, bool) or not isinstance(po, int)
                              or not 0 <= po <= MAX_ORDER):
@@ -823,6 +886,11 @@ class SweepSolver(eqx.Module):
             return int(self.phase_order)
         g = 0.0 if scene is None or scene.fog is None else float(scene.fog.g or 0.0)
         return 0 if g == 0.0 else DEFAULT_PHASE_ORDER
+
+    def resolved_sweep_residuals(self, geom: "SweepGeometry") -> str:
+        """What ``sweep_residuals`` stands for on ``geom``'s lattice."""
+        return sweep_residuals_for(self.sweep_residuals, math.prod(geom.shape), geom.M,
+                                   geom.linear, geom.n_moments)
 
     def resolved_scheme(self, scene=None, lattice=None) -> str:
         """The transport scheme ``scheme`` stands for in ``scene`` on ``lattice`` ("auto":
@@ -948,6 +1016,7 @@ class SweepSolver(eqx.Module):
             restart=self.restart,
             precondition=self.resolved_precondition(geom),
             kernel=self.resolved_kernel(),
+            recompute=self.resolved_sweep_residuals(geom) == "recompute",
         )
 
     def solve(self, geom: SweepGeometry, params: Params) -> LightField:
@@ -968,8 +1037,10 @@ class SweepSolver(eqx.Module):
         linear_solver = CheckedSolver(KrylovSolver(
             rtol=self.adjoint_rtol, restart=40,
             max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2), throw=self.throw)
-        root, (hist, k, err) = fixed_point(_solve_fixed_point, _rewrite, pb, linear_solver,
-                                           precondition=_preconditioner)
+        root, (hist, k, err) = fixed_point(
+            _solve_fixed_point, _rewrite, pb, linear_solver, precondition=_preconditioner,
+            linear=_rewrite_linear if self.tangents == "matrix-free" else None)
+        dip = _dip(root[0][..., 0] if geom.channels else root[0], pb.fog_mask)
         root = _non_negative(root, geom.channels)
         q, b = _sources(root, pb)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
@@ -999,6 +1070,7 @@ class SweepSolver(eqx.Module):
             iterations=k,
             error_estimate=err,
             result=_result_code(root, k, err, self.tol, self.max_iterations),
+            dip=dip,
             origin=geom.origin,
             h=geom.h,
         )
