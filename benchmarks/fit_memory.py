@@ -1,20 +1,37 @@
-"""Where a fit's memory goes: XLA's temporaries of the compiled images, of their Jacobian as the
-fit computes it (``FitProblem.model_and_jacobian``: the transpose of the VJP, one column per
-unknown), and of its two parts alone (the light field's Jacobian by the same route; the
-cameras' with the light held fixed), for cloud-plane with ζ, γ and g unknown.
+"""Where a fit's memory goes: XLA's temporaries of the compiled images and of their Jacobian as
+the fit computes it (``FitProblem.model_and_jacobian``: the light field's tangents by forward
+mode, one tangent light solve per unknown, all at once, fed to the cameras' transposed VJP),
+for cloud-plane with ζ, γ and g unknown, with the run time of each Jacobian (compiled; one
+warm run each) and how far its columns are from the fit's.
 
-An alternative route is measured beside them: the light's tangents by forward mode
-(``jax.jvp`` through the implicit function: one tangent solve per unknown) fed to the cameras'
-transposed VJP, vmapped over the unknowns or one after another (``lax.map``), with its run
-time against the fit's route (both compiled; one warm run each).
+Beside it: the same with the tangent solves' products linearised (``SweepSolver(tangents=
+"linearised")``: ``lx.linearise`` keeps the linearised sweeps' residuals for the solve), with
+the tangent solves one after another (``lax.map``), the cameras' part alone, and the route the
+fit took before stop 42 (the transpose of the whole VJP, whose light part runs the adjoint's
+linearised operator transposed back) with its light field's part alone.
 
     python benchmarks/fit_memory.py [--N 24] [--downsample 4] [--out FILE.md]
     python benchmarks/fit_memory.py --scaling [L:N:M:scheme ...]
+    python benchmarks/fit_memory.py --tangents [L:N:M:scheme:P ...]
+    python benchmarks/fit_memory.py --cameras [N:downsample:P ...]
 
-``--scaling``: only the light field's Jacobian (the fit's route) for each setting, in bytes per
+``--scaling``: only the light field's Jacobian (the transpose of its VJP, which linearises the
+sweeps as a gradient's adjoint does) for each setting (L:N:M:scheme[:keep|recompute], the
+last ``SweepSolver.sweep_residuals``), in bytes per
 lattice node and direction, the figure ``difffog._cost`` charges a gradient for (stop 41:
 step scheme ~820-950 B, linear ~1700 B, L = 3 ~1980 B); default settings
 0:24:2:auto 0:24:3:step 0:24:3:linear 0:32:3:linear 3:16:3:auto 3:24:3:auto 3:32:3:auto.
+
+``--tangents``: the light field's tangents alone as the fit takes them (``jax.jvp``, P unknowns
+at once, products matrix-free) per setting, in bytes per number of the solve's state (Λ, its K
+moments and E: n·(1 [+ 1] + K)) and tangent, the figure ``difffog._cost`` charges a fit's
+Jacobian for (stop 42: ~500-600 B for 3 tangents, ~880 B for one with its light solve's); default settings
+0:24:3:step:1 0:24:3:step:3 0:24:3:linear:3 0:32:3:linear:3 3:24:3:auto:3 3:16:3:auto:3.
+
+``--cameras``: the cameras' part alone (the light held fixed, L = 3, M = 3) per setting, in
+bytes per ray and march step (2·max(lattice shape) steps), the figure ``difffog._cost``
+charges a gradient or a fit's Jacobian for (stop 42: ~1240-1290 B, once whatever P); default
+settings 16:4:3 24:4:3 32:4:3 24:8:3 24:4:1.
 
 (measured by compiling, not by running: ``compiled.memory_analysis()``; the run times need the
 memory, so keep N small.)
@@ -30,7 +47,8 @@ import _common as C
 PATHS = ("fog.scattering", "fog.absorption", "fog.g")
 
 
-def setup(N: int, M: int, L: int, downsample: int, scheme: str = "auto"):
+def setup(N: int, M: int, L: int, downsample: int, scheme: str = "auto",
+          residuals: str = "keep"):
     """cloud-plane's fit model (both cameras / ``downsample``), its ``FitProblem`` for ζ, γ, g,
     the base parameters and the unknowns at the scene's values."""
     import jax.numpy as jnp
@@ -43,7 +61,8 @@ def setup(N: int, M: int, L: int, downsample: int, scheme: str = "auto"):
     names = ("oblique", "top")
     model = make_model(df.load_scene("cloud-plane"), "sweep", cameras=list(names),
                        downsample=downsample, resolution=N,
-                       model_settings={"M": M, "phase_order": L, "scheme": scheme})
+                       model_settings={"M": M, "phase_order": L, "scheme": scheme,
+                                       "sweep_residuals": residuals})
     base = model.params(jnp.float32)
     coords = tuple(Coordinate(p, 0.0, float("inf")) for p in PATHS[:2]) + (
         Coordinate("fog.g", -0.99, 0.99),)
@@ -71,10 +90,18 @@ def main(argv=None):
     ap.add_argument("--downsample", type=int, default=4)
     ap.add_argument("--out", default=None)
     ap.add_argument("--scaling", nargs="*", default=None, metavar="L:N:M:SCHEME")
+    ap.add_argument("--tangents", nargs="*", default=None, metavar="L:N:M:SCHEME:P")
+    ap.add_argument("--cameras", nargs="*", default=None, metavar="N:DOWNSAMPLE:P")
     a = ap.parse_args(argv)
     info = C.machine()
     if a.scaling is not None:
         return scaling(a.scaling or SCALING, a.downsample, info)
+    if a.tangents is not None:
+        return tangent_scaling(a.tangents or TANGENTS, a.downsample, info)
+    if a.cameras is not None:
+        return camera_scaling(a.cameras or CAMERAS, info)
+
+    import dataclasses
 
     import equinox as eqx
     import jax
@@ -86,11 +113,18 @@ def main(argv=None):
     def images(u):
         return problem.model(model, u, base)[0]
 
-    def jacobian(u):
-        y, J, _ = problem.model_and_jacobian(model, u, base)
+    def jacobian(u, m=model):
+        y, J, _ = problem.model_and_jacobian(m, u, base)
         return y, J
 
-    def light_jacobian(u):  # the same route, the light field alone
+    linearised = eqx.tree_at(lambda m: m.solver, model,
+                             dataclasses.replace(model.solver, tangents="linearised"))
+
+    def reverse_route(u):  # the fit's route before stop 42: the transpose of the whole VJP
+        y = lambda v: problem.model(model, v, base)[0]  # noqa: E731
+        return y(u), transposed_jacobian(y, u).T
+
+    def light_jacobian(u):  # the reverse route, the light field alone
         return transposed_jacobian(
             lambda v: model.light(problem.params(v, base)).fluence.ravel(), u)
 
@@ -102,35 +136,29 @@ def main(argv=None):
         g = problem.gains(u)
         return jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in problem.names])
 
-    def camera_jacobian(u):  # the same route, the light held fixed
+    def camera_jacobian(u):  # the cameras' part, the light held fixed
         return transposed_jacobian(lambda v: model_from(light0, v), u)
 
-    def forward_light(batch: str):
-        def jac(u):
-            f = lambda v: model.light(problem.params(v, base))  # noqa: E731
-            light = f(u)
-            if batch == "vmap":
-                dots = jax.vmap(lambda e: jax.jvp(f, (u,), (e,))[1])(eye)
-            else:
-                dots = jax.lax.map(lambda e: jax.jvp(f, (u,), (e,))[1], eye)
-            floats, rest = eqx.partition(light, eqx.is_inexact_array)
-            d_floats = eqx.filter(dots, eqx.is_inexact_array)
-            g = lambda fl, v: model_from(eqx.combine(fl, rest), v)  # noqa: E731
-            y, vjp = jax.vjp(g, floats, u)
-            jt = jax.linear_transpose(vjp, y)
-            step = lambda de: jt(de)[0]  # noqa: E731
-            cols = (jax.vmap(step)((d_floats, eye)) if batch == "vmap"
-                    else jax.lax.map(step, (d_floats, eye)))
-            return y, cols.T
-        return jac
+    def one_at_a_time(u):  # the fit's route with the tangent solves one after another
+        f = lambda v: model.light(problem.params(v, base))  # noqa: E731
+        light = f(u)
+        dots = jax.lax.map(lambda e: jax.jvp(f, (u,), (e,))[1], eye)
+        floats, rest = eqx.partition(light, eqx.is_inexact_array)
+        d_floats = eqx.filter(dots, eqx.is_inexact_array)
+        g = lambda fl, v: model_from(eqx.combine(fl, rest), v)  # noqa: E731
+        y, vjp = jax.vjp(g, floats, u)
+        jt = jax.linear_transpose(vjp, y)
+        return y, jax.lax.map(lambda de: jt(de)[0], (d_floats, eye)).T
 
     rows, ref = [], None
-    for name, fn, run in (("images (value)", images, False),
-                          ("Jacobian, the fit's route", jacobian, True),
-                          ("  its light field alone", light_jacobian, False),
-                          ("  its cameras alone (light fixed)", camera_jacobian, False),
-                          ("Jacobian, forward-mode light, vmap", forward_light("vmap"), True),
-                          ("Jacobian, forward-mode light, lax.map", forward_light("map"), True)):
+    for name, fn, run in (
+            ("images (value)", images, False),
+            ("Jacobian, the fit's route (tangents matrix-free)", jacobian, True),
+            ("  the same, tangents linearised", lambda u: jacobian(u, linearised), True),
+            ("  the same, tangent solves one at a time (lax.map)", one_at_a_time, True),
+            ("  its cameras alone (light fixed)", camera_jacobian, False),
+            ("Jacobian, transpose of the whole VJP (before stop 42)", reverse_route, True),
+            ("  its light field alone", light_jacobian, False)):
         compiled = jax.jit(fn).lower(u0).compile()
         mib = C.xla_mib(compiled)
         secs = diff = ""
@@ -169,9 +197,10 @@ def scaling(settings, downsample: int, info):
 
     rows = []
     for s in settings:
-        L, N, M, scheme = s.split(":")
+        L, N, M, scheme, *rest = s.split(":")
         L, N, M = int(L), int(N), int(M)
-        model, problem, base, u0 = setup(N, M, L, downsample, scheme)
+        residuals = rest[0] if rest else "keep"
+        model, problem, base, u0 = setup(N, M, L, downsample, scheme, residuals)
 
         def light_jacobian(u, model=model, problem=problem, base=base):
             return transposed_jacobian(
@@ -180,11 +209,79 @@ def scaling(settings, downsample: int, info):
         mib = C.xla_mib(jax.jit(light_jacobian).lower(u0).compile())
         n, D = math.prod(model.geometry.shape), (2 * M + 1) ** 2
         rows.append([str(L), str(N), str(M), "linear" if model.geometry.linear else "step",
-                     str(n), f"{mib:.0f}", f"{mib * 2**20 / (n * D):.0f}"])
+                     residuals, str(n), f"{mib:.0f}", f"{mib * 2**20 / (n * D):.0f}"])
         print(rows[-1], flush=True)
     print("\n".join([*C.machine_lines(info), "", *C.md_table(
-        ["L", "N", "M", "scheme", "nodes", "light Jacobian MiB", "bytes per node·direction"],
+        ["L", "N", "M", "scheme", "sweep residuals", "nodes", "light Jacobian MiB",
+         "bytes per node·direction"],
         rows)]))
+
+
+TANGENTS = ["0:24:3:step:1", "0:24:3:step:3", "0:24:3:linear:3", "0:32:3:linear:3",
+            "3:24:3:auto:3", "3:16:3:auto:3"]
+
+
+def tangent_scaling(settings, downsample: int, info):
+    """The light field's forward-mode tangents alone (the fit's route) per setting."""
+    import math
+
+    import jax
+    import jax.numpy as jnp
+
+    rows = []
+    for s in settings:
+        L, N, M, scheme, P = s.split(":")
+        L, N, M, P = int(L), int(N), int(M), int(P)
+        model, problem, base, u0 = setup(N, M, L, downsample, scheme)
+
+        def light_tangents(u, model=model, problem=problem, base=base, P=P):
+            f = lambda v: model.light(problem.params(  # noqa: E731
+                jnp.concatenate([v, u0[P:]]), base)).fluence
+            return jax.vmap(lambda e: jax.jvp(f, (u,), (e,))[1])(jnp.eye(P, dtype=u.dtype))
+
+        mib = C.xla_mib(jax.jit(light_tangents).lower(u0[:P]).compile())
+        geom = model.geometry
+        n, K = math.prod(geom.shape), (L + 1) ** 2 - 1
+        state = n * ((2 if geom.has_surfaces else 1) + K)
+        rows.append([str(L), str(N), str(M), "linear" if geom.linear else "step", str(P),
+                     str(n), f"{mib:.0f}", f"{mib * 2**20 / (P * state):.0f}"])
+        print(rows[-1], flush=True)
+    print("\n".join([*C.machine_lines(info), "", *C.md_table(
+        ["L", "N", "M", "scheme", "tangents", "nodes", "light tangents MiB",
+         "bytes per state number and tangent"], rows)]))
+
+
+CAMERAS = ["16:4:3", "24:4:3", "32:4:3", "24:8:3", "24:4:1"]
+
+
+def camera_scaling(settings, info):
+    """The cameras' part of the fit's Jacobian alone (the light held fixed) per setting."""
+    import jax
+    import jax.numpy as jnp
+
+    from difffog._cost import camera_rays
+
+    rows = []
+    for s in settings:
+        N, ds, P = (int(x) for x in s.split(":"))
+        model, problem, base, u0 = setup(N, 3, 3, ds)
+        light0 = model.light(base)
+
+        def images(x, model=model, problem=problem, base=base, light0=light0, u0=u0, P=P):
+            p = problem.params(jnp.concatenate([x, u0[P:]]), base)
+            imgs = model.images_from(light0, p)
+            return jnp.concatenate([jnp.ravel(imgs[n]) for n in problem.names])
+
+        mib = C.xla_mib(jax.jit(lambda x, f=images: transposed_jacobian(f, x))
+                        .lower(u0[:P]).compile())
+        rays = camera_rays(model.scene, None, model.supersample)
+        steps = 2 * max(model.geometry.shape)
+        rows.append([str(N), str(ds), str(P), str(rays), str(steps), f"{mib:.0f}",
+                     f"{mib * 2**20 / (rays * steps):.0f}"])
+        print(rows[-1], flush=True)
+    print("\n".join([*C.machine_lines(info), "", *C.md_table(
+        ["N", "downsample", "unknowns", "rays", "steps", "cameras' Jacobian MiB",
+         "bytes per ray and step"], rows)]))
 
 
 if __name__ == "__main__":

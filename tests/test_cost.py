@@ -140,17 +140,19 @@ def test_estimate_follows_the_scheme_the_solver_will_run():
 
 
 def test_a_gradient_estimate_counts_the_linearised_sweeps():
-    """A gradient's or a fit Jacobian's Krylov solves keep the linearised Jacobi step's
-    residuals (stop 41: cloud-plane's fit at N = 48 peaked at 20.8 GB where the estimate said
-    1.9 GiB): per node and direction, more with the linear scheme and per moment."""
+    """A reverse-mode gradient's adjoint solve keeps the linearised Jacobi step's residuals
+    (stop 41: cloud-plane's fit at N = 48, which then took that route, peaked at 20.8 GB where
+    the estimate said 1.9 GiB): per node and direction, more with the linear scheme and per
+    moment."""
     from difffog._cost import (LINEARISED_BYTES_LINEAR, LINEARISED_BYTES_STEP,
                                LINEARISED_PER_MOMENT)
     from difffog.study._semi_infinite import thick_cube
 
     scene = thick_cube(1000.0)
-    plain = df.estimate(scene, "sweep", resolution=32, M=2, scheme="step")
-    grad = df.estimate(scene, "sweep", resolution=32, M=2, scheme="step", gradient=True)
-    lin = df.estimate(scene, "sweep", resolution=32, M=2, scheme="linear", gradient=True)
+    kw = dict(resolution=32, M=2, sweep_residuals="keep")
+    plain = df.estimate(scene, "sweep", scheme="step", **kw)
+    grad = df.estimate(scene, "sweep", scheme="step", gradient=True, **kw)
+    lin = df.estimate(scene, "sweep", scheme="linear", gradient=True, **kw)
     n = math.prod(grad.shape)
     assert "linearised sweeps" not in plain.memory
     assert grad.memory["linearised sweeps"] == int(n * 25 * LINEARISED_BYTES_STEP)
@@ -158,8 +160,61 @@ def test_a_gradient_estimate_counts_the_linearised_sweeps():
     assert grad.peak_bytes - plain.peak_bytes >= grad.memory["linearised sweeps"]
     cloud = df.load_scene("cloud-plane")
     l0 = df.estimate(cloud, "sweep", resolution=24, M=3, phase_order=0, scheme="linear",
-                     gradient=True)
+                     gradient=True, sweep_residuals="keep")
     l3 = df.estimate(cloud, "sweep", resolution=24, M=3, phase_order=3, scheme="linear",
-                     gradient=True)
+                     gradient=True, sweep_residuals="keep")
     assert (l3.memory["linearised sweeps"] / l0.memory["linearised sweeps"]
             == pytest.approx(1 + 15 * LINEARISED_PER_MOMENT, rel=1e-6))
+    # recomputing each slab step keeps ~4x less; "auto" recomputes above 1 GiB of kept ones
+    from difffog._cost import RECOMPUTED_BYTES_STEP
+    from difffog.forward.sweep._solver import RECOMPUTE_ABOVE_BYTES
+
+    re = df.estimate(scene, "sweep", resolution=32, M=2, scheme="step", gradient=True,
+                     sweep_residuals="recompute")
+    assert re.memory["linearised sweeps"] == int(n * 25 * RECOMPUTED_BYTES_STEP)
+    for N in (16, 32):
+        keep, auto = (df.estimate(scene, "sweep", resolution=N, M=2, scheme="step",
+                                  gradient=True, sweep_residuals=r) for r in ("keep", "auto"))
+        big = keep.memory["linearised sweeps"] > RECOMPUTE_ABOVE_BYTES
+        assert big == (N == 32)
+        assert auto.memory["linearised sweeps"] < keep.memory["linearised sweeps"] or not big
+        assert auto.memory["linearised sweeps"] == keep.memory["linearised sweeps"] or big
+
+
+def test_a_fit_jacobian_estimate_counts_one_matrix_free_tangent_solve_per_unknown():
+    """A fit's Jacobian (forward mode, products matrix-free since stop 42) keeps one GMRES's
+    Krylov vectors per unknown and no linearised sweeps; ``make_model`` guards with its
+    unknowns."""
+    from difffog._cost import TANGENT_BYTES_PER_STATE
+    from difffog.fit._driver import make_model
+
+    cloud = df.load_scene("cloud-plane")
+    kw = dict(resolution=24, M=3, phase_order=3)
+    plain = df.estimate(cloud, "sweep", **kw)
+    one, three = (df.estimate(cloud, "sweep", tangent_solves=p, **kw) for p in (1, 3))
+    state = math.prod(one.shape) * (2 + 15)  # Λ, 15 moments, E (cloud-plane has a ground)
+    assert one.memory["tangent solves"] == TANGENT_BYTES_PER_STATE * state
+    assert three.memory["tangent solves"] == 3 * one.memory["tangent solves"]
+    assert "linearised sweeps" not in three.memory and "adjoint" not in three.memory
+    assert (three.peak_bytes - plain.peak_bytes
+            == three.memory["tangent solves"] + three.memory["cameras' VJP"])
+    assert three.memory["cameras' VJP"] == one.memory["cameras' VJP"] > 0  # once, whatever P
+    # the fit's guard estimates with its unknowns' tangent solves
+    import difffog._cost as cost
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(est, **kw):
+        seen.append(est)
+        raise Stop  # before the model is built
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cost, "check_fits", record)
+        with pytest.raises(Stop):
+            make_model(cloud, "sweep", cameras=["top"], resolution=24, downsample=8,
+                       model_settings={"M": 3, "phase_order": 3}, unknowns=3)
+    assert seen[0].memory["tangent solves"] == three.memory["tangent solves"]
+    assert "linearised sweeps" not in seen[0].memory

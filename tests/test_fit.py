@@ -151,6 +151,40 @@ def test_fit_jacobian_matches_finite_differences_for_every_unknown_kind(x64):
         assert np.abs(J[:, i] - fd).max() <= 1e-6 * scale, path
 
 
+@pytest.mark.slow  # ~2 min of float64 compiles; test_sweep.py checks the matrix-free tangent
+# against the linearised one and differences on a slab by default
+def test_fit_jacobian_tangents_matrix_free_equal_the_linearised_and_differences(x64):
+    """The fit's Jacobian takes the light field's tangents by forward mode with the tangent
+    solves' products applied matrix-free (``SweepSolver(tangents="matrix-free")``: (I − K)v by
+    one sourceless Jacobi step, no linearised sweeps kept): the same columns as with the
+    products linearised, and central differences, in float64."""
+    scene = _small_scene()
+    small = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(8, 6))
+                                        for c in scene.cameras))
+    solver = SweepSolver(M=2, max_iterations=2000, tol=1e-12, adjoint_rtol=1e-12)
+    fwd = SweepModel(small, resolution=10, supersample=1, solver=solver)
+    lin = eqx.tree_at(lambda m: m.solver, fwd, dataclasses.replace(solver, tangents="linearised"))
+    coords = (Coordinate("fog.scattering", 0.0, math.inf), Coordinate("fog.absorption", 0.0,
+              math.inf), Coordinate("shape.walls.albedo", 0.0, 1.0))
+    pb = FitProblem(fwd.scene, coords, ("top", "oblique"), "linear")
+    base = fwd.params(jnp.float64)
+    u = jnp.asarray([c.to_u(v) for c, v in zip(coords, TRUTH.values())], jnp.float64)
+    jac = eqx.filter_jit(pb.model_and_jacobian)
+    y, J, code = jac(fwd, u, base)
+    _, J_lin, _ = jac(lin, u, base)
+    assert int(code) == df.RESULTS.successful
+    J, J_lin = np.asarray(J), np.asarray(J_lin)
+    assert np.abs(J).min(axis=0).max() > 0 and np.abs(J - J_lin).max() <= 1e-10 * np.abs(J).max()
+    f = eqx.filter_jit(pb.model)
+    for i in range(len(coords)):
+        du = np.zeros(len(coords))
+        du[i] = 1e-5
+        fd = (np.asarray(f(fwd, u + du, base)[0]) - np.asarray(f(fwd, u - du, base)[0])) / 2e-5
+        assert np.abs(J[:, i] - fd).max() <= 1e-6 * np.abs(fd).max(), coords[i].path
+    with pytest.raises(df.DifffogError, match="tangents"):
+        SweepSolver(tangents="dense")
+
+
 # ------------------------------------------------------------------ sweep fits
 @pytest.mark.slow  # 75-88 s (the suite's 12-minute budget): the default suite recovers the
 # same unknowns from noisy images (test_noisy_fit_standard_errors_cover_the_truth)

@@ -70,16 +70,48 @@ CPU_COST_PER_MOMENT = 0.22
 LINEAR_COST = 0.256 / 0.216
 LINEAR_BYTES_PER_NODE = (171 - 144) * 2**20 / 72**3
 CPU_SECONDS_PER_NODE = 6.5e-7
-#: a gradient's or a fit Jacobian's tangent/adjoint Krylov solves work on the Jacobi step
-#: linearised once (``lx.linearise`` in ``KrylovSolver.init``), which keeps the sweeps'
-#: residuals: XLA temporaries per lattice node and direction (float32, cloud-plane, the light
-#: field's Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py
+#: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
+#: (``lx.linearise`` in ``KrylovSolver.init``; a fit's forward-mode tangents, since stop 42,
+#: apply it matrix-free and keep none of this), which keeps the sweeps' residuals: XLA
+#: temporaries per lattice node and direction (float32, cloud-plane, the light field's Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py
 #: --scaling``, stop 41): ~820-950 B with the step scheme, ~1700 B with the linear one, ~1%
 #: more per moment (L = 3: ~1980 B).  Before they were counted the estimate said 0.96 GiB for
 #: a fit that peaked at 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
+#: a fit's Jacobian: the light field's tangents by forward mode, all unknowns at once, their
+#: products matrix-free (``SweepSolver.tangents``): XLA temporaries per number of the solve's
+#: state (Λ, its K moments, E) and tangent (float32, cloud-plane, 3 tangents at N = 16-32,
+#: M = 3, L = 0 and 3, step and linear: 126-148 floats; ``benchmarks/fit_memory.py
+#: --tangents``, stop 42): the Krylov vectors of each tangent's (flexible) GMRES and the
+#: batched sweeps' temporaries
+TANGENT_BYTES_PER_STATE = 600
+#: a gradient or a fit's Jacobian differentiates the cameras in reverse mode (the march's
+#: hand-written VJP; a fit's columns are its transpose): its residuals, once whatever the
+#: number of unknowns, per ray and march step (2·max(lattice shape) steps): cloud-plane, both
+#: cameras / 4 (12454 rays) at N = 16 / 24 / 32: 714 / 961 / 1222 MiB of XLA temporaries,
+#: ~1240-1290 B per ray and step; 940 MiB with one unknown instead of three (stop 42,
+#: ``benchmarks/fit_memory.py --cameras``)
+CAMERA_VJP_BYTES_PER_RAY_STEP = 1300
 LINEARISED_BYTES_STEP = 950
 LINEARISED_BYTES_LINEAR = 1700
 LINEARISED_PER_MOMENT = 0.011
+#: the same with ``SweepSolver.sweep_residuals="recompute"`` (each slab step's inputs kept, the
+#: rest recomputed per product; ``fit_memory.py --scaling L:N:M:scheme:recompute``, stop 42):
+#: 195 B (0:32:3 step), 384 B (0:24:3 linear), 631 B (3:24:3 linear)
+RECOMPUTED_BYTES_STEP = 200
+RECOMPUTED_BYTES_LINEAR = 390
+RECOMPUTED_PER_MOMENT = 0.043
+
+
+def linearised_sweep_bytes(nodes: int, M: int, linear: bool, K: int, residuals: str) -> int:
+    """What one linearised Jacobi step keeps (a gradient's adjoint works on it): per lattice
+    node and direction, by scheme, moments and ``SweepSolver.sweep_residuals`` ("keep" or
+    "recompute"; resolved)."""
+    D = (2 * int(M) + 1) ** 2
+    if residuals == "recompute":
+        per = RECOMPUTED_BYTES_LINEAR if linear else RECOMPUTED_BYTES_STEP
+        return int(nodes * D * per * (1.0 + RECOMPUTED_PER_MOMENT * K))
+    per = LINEARISED_BYTES_LINEAR if linear else LINEARISED_BYTES_STEP
+    return int(nodes * D * per * (1.0 + LINEARISED_PER_MOMENT * K))
 #: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
 #: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
 GPU_SECONDS_PER_BODY = 18e-6
@@ -228,15 +260,20 @@ def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras
 
 def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int = 2,
                    cameras=None, restart: int = 30, backend: str | None = None,
-                   kernel: str = "auto", gradient: bool = False, phase_order="auto",
-                   scheme: str = "auto", **_ignored) -> CostEstimate:
+                   kernel: str = "auto", gradient: bool = False, tangent_solves: int = 0,
+                   phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
+                   sweep_residuals: str = "auto", **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
-    gradient: add the implicit adjoint's Krylov vectors and the linearised sweeps they work on
-        (a fit's gradient or Jacobian);
+    gradient: add a reverse-mode gradient's adjoint solve: its Krylov vectors and the linearised
+        sweeps it works on (``jax.grad``; the density fit);
+    tangent_solves: add that many tangent solves (forward mode: a fit's Jacobian has one per
+        unknown), each with its Krylov vectors (and the linearised sweeps, with
+        ``tangents="linearised"``);
     phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``);
-    scheme: the transport scheme ("auto": the solver's rule, judged from the scene)."""
+    scheme: the transport scheme ("auto": the solver's rule, judged from the scene);
+    tangents, sweep_residuals: as ``SweepSolver``'s."""
     backend = backend or _backend()
     if kernel == "auto":
         from .forward.sweep._kernel import kernel_for
@@ -273,10 +310,19 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         "cameras": rays * RAY_BYTES,
     }
     linear = _linear(scene, resolution, M, phase_order, scheme)
+    if gradient or tangent_solves:
+        mem["cameras' VJP"] = int(CAMERA_VJP_BYTES_PER_RAY_STEP * rays * 2 * max(shape))
+    if tangent_solves:
+        # each tangent's GMRES and its share of the vmapped sweeps: TANGENT_BYTES_PER_STATE per
+        # number of the solve's state (nothing per direction: the products are matrix-free)
+        mem["tangent solves"] = int(tangent_solves) * TANGENT_BYTES_PER_STATE * state
     if gradient:
         mem["adjoint"] = 41 * state * f  # lineax GMRES, restart 40
-        per = LINEARISED_BYTES_LINEAR if linear else LINEARISED_BYTES_STEP
-        mem["linearised sweeps"] = int(n * D * per * (1.0 + LINEARISED_PER_MOMENT * K))
+    if gradient or (tangent_solves and tangents == "linearised"):
+        from .forward.sweep._solver import sweep_residuals_for
+
+        residuals = sweep_residuals_for(sweep_residuals, n, M, linear, K)
+        mem["linearised sweeps"] = linearised_sweep_bytes(n, M, linear, K, residuals)
     if backend == "gpu" and kernel == "batched":
         per_iter = 6 * D * n / GPU_BATCHED_UPDATES_PER_S
     elif backend == "gpu":

@@ -41,10 +41,12 @@ from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera, wi
 
 
 def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample: int = 1,
-               resolution: int | None = None, model_settings: Mapping | None = None):
+               resolution: int | None = None, model_settings: Mapping | None = None,
+               unknowns: int = 1):
     """The forward model of a fit: ``forward`` as it is if it is a model, else the registry's
     solver of that name at its fit defaults (overridden by ``resolution`` and
-    ``model_settings``), rendering the target cameras reduced by ``downsample``."""
+    ``model_settings``), rendering the target cameras reduced by ``downsample``; its memory is
+    checked for a Jacobian of ``unknowns`` columns."""
     if isinstance(forward, AbstractForwardModel):
         if model_settings or resolution is not None:
             raise DifffogError("fit: resolution and model_settings apply when forward is a "
@@ -61,8 +63,10 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
         settings["resolution"] = resolution
     small = reduced_scene(scene, cameras, downsample)
     full = {**entry.fit_defaults, **settings}
-    # the memory guard: a fit holds the adjoint's Krylov vectors besides the forward solve
-    guard(small, forward, force=force, gradient=True, what=f"the fit's {forward} model", **full)
+    # the memory guard: a fit's Jacobian holds one tangent solve's Krylov vectors per unknown
+    # besides the forward solve
+    guard(small, forward, force=force, tangent_solves=max(1, int(unknowns)),
+          what=f"the fit's {forward} model", **full)
     return entry.build(small, **full)
 
 
@@ -158,7 +162,8 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
                                                             transfer=transfer)
     names = sorted(targets)  # a fixed order: fits of the same views share one compiled step
     model = make_model(scene, forward, cameras=names, downsample=downsample,
-                       resolution=resolution, model_settings=model_settings)
+                       resolution=resolution, model_settings=model_settings,
+                       unknowns=len(unknowns))
     tgt, wts = prepare_targets(scene, model, targets, weights, downsample, files=target_files)
     edge_share = _weigh_edges(model, names, wts, float(edge_weight))
     dtype = dtype or jnp.result_type(float)
@@ -496,7 +501,8 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     n = int(st.model.resolution)
     if isinstance(forward, str):
         fine = make_model(scene, forward, cameras=st.names, downsample=downsample,
-                          resolution=fine_n, model_settings=model_settings)
+                          resolution=fine_n, model_settings=model_settings,
+                          unknowns=len(res.paths))
     else:
         fine = forward.at_resolution(fine_n)
     y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u), (fine, st.data)))

@@ -3,10 +3,14 @@
 The residual is √w·(model − target)/RMS(target) over every target pixel of every view,
 optionally rescaled by a robust loss.  Its Jacobian (pixels × unknowns) is computed once per
 evaluated point by forward mode: each of its n columns costs one tangent light solve (the
-implicit derivative of the fixed point) and one pass of the camera.  The sweep's camera march
-has a hand-written reverse pass (``jax.custom_vjp``), so a column J·t is obtained as the
-transpose of the (linear) vector–Jacobian product, ``jax.linear_transpose(vjp)``; reverse mode
-would need one adjoint solve per *pixel*.  The residual handed to optimistix is a
+implicit derivative of the fixed point, all n at once, their products matrix-free:
+``SweepSolver.tangents``) and one pass of the camera.  The sweep's camera march has a
+hand-written reverse pass (``jax.custom_vjp``) and no JVP rule, so the cameras' part of a
+column is the transpose of their (linear) vector–Jacobian product,
+``jax.linear_transpose(vjp)``, fed with the light's tangent; reverse mode would need one
+adjoint solve per *pixel*.  (Until stop 42 the whole column was the transpose of the whole
+VJP: the light's part then ran the adjoint's linearised operator transposed back, which kept
+the linearised sweeps, 4.0 against 1.8 GiB at N = 24, ``benchmarks/fit_memory.py``.)  The residual handed to optimistix is a
 ``jax.custom_jvp`` function whose tangent is ``J @ t`` with that J, so optimistix materialises
 J once per step and its state stays a small array pytree (what a checkpoint stores).
 
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -92,13 +97,30 @@ class FitProblem:
                 light.result)
 
     def model_and_jacobian(self, model, u, base: Params):
-        """(images (P,), J (P, n), result code) by forward mode: J·e_i as the transpose of
-        the VJP."""
-        y, vjp, code = jax.vjp(lambda x: self.model(model, x, base), u, has_aux=True)
-        jvp = jax.linear_transpose(vjp, y)
+        """(images (P,), J (P, n), result code) by forward mode: the light field's tangents
+        by ``jax.jvp`` (one tangent light solve per unknown, all at once), then each column
+        through the cameras as the transpose of their VJP (the march has a hand-written
+        reverse pass and no JVP rule)."""
         eye = jnp.eye(u.shape[0], dtype=u.dtype)
-        cols = jax.vmap(lambda e: jvp((e,))[0])(eye)
-        return y, cols.T, code
+
+        def light_of(x):
+            return model.light(self.params(x, base))
+
+        light, dots = jax.vmap(lambda e: jax.jvp(light_of, (u,), (e,)),
+                               out_axes=(None, 0))(eye)
+        floats, rest = eqx.partition(light, eqx.is_inexact_array)
+        d_floats = eqx.filter(dots, eqx.is_inexact_array)
+
+        def images(fl, x):
+            p = self.params(x, base)
+            imgs = model.images_from(eqx.combine(fl, rest), p)
+            g = self.gains(x)
+            return jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in self.names])
+
+        y, vjp = jax.vjp(images, floats, u)
+        jvp = jax.linear_transpose(vjp, y)
+        cols = jax.vmap(lambda t, e: jvp((t, e))[0])(d_floats, eye)
+        return y, cols.T, light.result
 
 
 def _model_cj(problem: FitProblem, model, u, base: Params):
