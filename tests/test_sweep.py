@@ -444,17 +444,22 @@ def test_sky_pass_shift_resampling_equals_the_gathers():
 
 
 @pytest.mark.parametrize("scheme", [pytest.param("step", marks=pytest.mark.slow), "linear"])
-def test_matrix_free_tangents_equal_the_linearised_and_differences(scheme, x64):
-    """A tangent light solve (forward mode) applies I − K matrix-free by default (one Jacobi
-    step with the sources zeroed, nothing kept between products): the same tangent as with the
-    Jacobi step linearised, and central differences; a slab under sun and sky, float64."""
+def test_tangents_and_gradients_by_every_route_match_differences(scheme, x64):
+    """A slab under sun and sky, float64.  Forward mode: a tangent light solve applies I − K
+    matrix-free by default (one Jacobi step with the sources zeroed, nothing kept between
+    products), and matches central differences.  Reverse mode with the sweeps' residuals
+    recomputed (``sweep_residuals="recompute"``: each slab step's inputs kept, the rest
+    recomputed per product) gives wᵀ·(the tangents) for the loss Σ w·Λ.  In ``-m slow`` (the
+    step scheme) also the linearised tangent and the gradient with every residual kept."""
     scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0))
     base = Params.from_scene(scene, jnp.float64)
     theta = jnp.asarray([3.6, 0.4], jnp.float64)
-    programs = {}
-    for how in ("matrix-free", "linearised"):
+    routes = [("matrix-free", "recompute")] + ([("linearised", "keep")] if scheme == "step"
+                                                else [])
+    tangents, grads = {}, {}
+    for tangent_route, residuals in routes:
         solver = SweepSolver(M=2, max_iterations=2000, tol=1e-13, adjoint_rtol=1e-12,
-                             scheme=scheme, tangents=how)
+                             scheme=scheme, tangents=tangent_route, sweep_residuals=residuals)
         geom = solver.prepare(scene, lat)
 
         def fluence(t, solver=solver, geom=geom):
@@ -462,40 +467,27 @@ def test_matrix_free_tangents_equal_the_linearised_and_differences(scheme, x64):
                           "fog.absorption", t[1])
             return solver.solve(geom, p).fluence
 
-        programs[how] = jax.jit(lambda t, f=fluence: jax.vmap(
+        jvps = jax.jit(lambda t, f=fluence: jax.vmap(
             lambda e: jax.jvp(f, (t,), (e,)), out_axes=(None, 0))(jnp.eye(2)))
-    a = np.asarray(programs["matrix-free"](theta)[1])
-    b = np.asarray(programs["linearised"](theta)[1])
-    assert np.abs(a).max() > 0 and np.abs(a - b).max() <= 1e-11 * np.abs(a).max()
-    for i in range(2):
-        e = np.zeros(2)
-        e[i] = 1e-4  # the solves' own error (tol 1e-13) stays far below the difference
-        up, down = (np.asarray(programs["matrix-free"](theta + s * e)[0]) for s in (1, -1))
-        fd = (up - down) / 2e-4
-        assert np.abs(a[i] - fd).max() <= 1e-6 * np.abs(fd).max()
-
-
-def test_recomputed_sweep_residuals_give_the_same_gradient(x64):
-    """``sweep_residuals="recompute"``: a gradient's adjoint works on sweeps that keep only
-    each slab step's inputs and recompute the rest in every product; the same gradient as
-    with every coefficient kept (the linear scheme, sun and sky; float64)."""
-    scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0))
-    base = Params.from_scene(scene, jnp.float64)
-    theta = jnp.asarray([3.6, 0.4], jnp.float64)
-    grads = {}
-    for how in ("keep", "recompute"):
-        solver = SweepSolver(M=2, max_iterations=2000, tol=1e-13, adjoint_rtol=1e-12,
-                             scheme="linear", sweep_residuals=how)
-        geom = solver.prepare(scene, lat)
-
-        def loss(t, solver=solver, geom=geom):
-            p = set_param(set_param(base, scene, "fog.scattering", t[0]), scene,
-                          "fog.absorption", t[1])
-            lam = solver.solve(geom, p).fluence
-            return jnp.sum(lam * jnp.linspace(0.5, 1.5, lam.size).reshape(lam.shape))
-
-        grads[how] = np.asarray(jax.jit(jax.grad(loss))(theta))
-    assert np.all(np.abs(grads["keep"]) > 0)
-    np.testing.assert_allclose(grads["recompute"], grads["keep"], rtol=1e-10)
+        lam, tangents[tangent_route] = (np.asarray(a) for a in jvps(theta))
+        w = np.linspace(0.5, 1.5, lam.size).reshape(lam.shape)
+        grads[residuals] = np.asarray(jax.jit(jax.grad(
+            lambda t, f=fluence: jnp.sum(f(t) * w)))(theta))
+        if tangent_route == "matrix-free":
+            a = tangents[tangent_route]
+            for i in range(2):
+                e = np.zeros(2)
+                e[i] = 1e-4  # the solves' own error (tol 1e-13) stays far below the difference
+                up, down = (np.asarray(jvps(theta + s * e)[0]) for s in (1, -1))
+                fd = (up - down) / 2e-4
+                assert np.abs(a[i] - fd).max() <= 1e-6 * np.abs(fd).max()
+            np.testing.assert_allclose(grads[residuals], (a * w).sum(axis=(1, 2, 3)),
+                                       rtol=1e-9)
+    if scheme == "step":
+        a, b = tangents["matrix-free"], tangents["linearised"]
+        assert np.abs(a).max() > 0 and np.abs(a - b).max() <= 1e-11 * np.abs(a).max()
+        np.testing.assert_allclose(grads["recompute"], grads["keep"], rtol=1e-10)
+    with pytest.raises(df.DifffogError, match="tangents"):
+        SweepSolver(tangents="dense")
     with pytest.raises(df.DifffogError, match="sweep_residuals"):
         SweepSolver(sweep_residuals="never")

@@ -274,7 +274,8 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     result = RESULTS(int(light.result))
     if throw:
         check(light.result, "render", failure_details(light, params))
-    if (dip := dip_warning(light)) is not None:
+    if result == RESULTS.successful and (dip := dip_warning(light)) is not None:
+        # (an unconverged iterate's dip says nothing more than its result code)
         warnings.warn(dip, ThickStepWarning, stacklevel=2)
     images = {k: np.asarray(v, np.float32) for k, v in imgs.items()}
     if result == RESULTS.successful:
