@@ -836,24 +836,13 @@ class SweepSolver(eqx.Module):
                     f"SweepSolver: mesh must be (faces, u, v) with faces 1 or 2 and "
                     f"faces*u*v = devices = {self.devices}, got {self.mesh!r}"
                 )
-        if self.method not in METHODS:
-            raise SceneError(f"SweepSolver: method must be one of {', '.join(METHODS)}, "
-                             f"got {self.method!r}")
-        if self.terms not in TERMS:
-            raise SceneError(f"SweepSolver: terms must be one of {', '.join(TERMS)}, "
-                             f"got {self.terms!r}")
-        if self.precondition not in PRECONDITIONERS:
-            raise SceneError(f"SweepSolver: precondition must be one of "
-                             f"{', '.join(PRECONDITIONERS)}, got {self.precondition!r}")
-        if self.kernel not in KERNELS:
-            raise SceneError(f"SweepSolver: kernel must be one of {', '.join(KERNELS)}, "
-                             f"got {self.kernel!r}")
-        if self.sweep_residuals not in SWEEP_RESIDUALS:
-            raise SceneError(f"SweepSolver: sweep_residuals must be one of "
-                             f"{', '.join(SWEEP_RESIDUALS)}, got {self.sweep_residuals!r}")
-        if self.tangents not in TANGENTS:
-            raise SceneError(f"SweepSolver: tangents must be one of {', '.join(TANGENTS)}, "
-                             f"got {self.tangents!r}")
+        for name, allowed in (("method", METHODS), ("terms", TERMS),
+                              ("precondition", PRECONDITIONERS), ("kernel", KERNELS),
+                              ("sweep_residuals", SWEEP_RESIDUALS), ("tangents", TANGENTS)):
+            value = getattr(self, name)
+            if value not in allowed:
+                raise SceneError(f"SweepSolver: {name} must be one of {', '.join(allowed)}, "
+                                 f"got {value!r}")
         po = self.phase_order
         if po != "auto" and (isinstance(po, bool) or not isinstance(po, int)
                              or not 0 <= po <= MAX_ORDER):
