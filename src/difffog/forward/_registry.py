@@ -77,7 +77,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
                  phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
-                 sweep_residuals: str = "keep"):
+                 sweep_residuals: str = "auto"):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 
