@@ -25,8 +25,9 @@ step scheme ~820-950 B, linear ~1700 B, L = 3 ~1980 B); default settings
 ``--tangents``: the light field's tangents alone as the fit takes them (``jax.jvp``, P unknowns
 at once, products matrix-free) per setting, in bytes per number of the solve's state (Λ, its K
 moments and E: n·(1 [+ 1] + K)) and tangent, the figure ``difffog._cost`` charges a fit's
-Jacobian for (stop 42: ~500-600 B for 3 tangents, ~880 B for one with its light solve's); default settings
-0:24:3:step:1 0:24:3:step:3 0:24:3:linear:3 0:32:3:linear:3 3:24:3:auto:3 3:16:3:auto:3.
+Jacobian for (stop 42: ~500-600 B for 3 tangents, ~880 B for one with its light solve's);
+default settings 0:24:3:step:1 0:24:3:step:3 0:24:3:linear:3 0:32:3:linear:3 3:24:3:auto:3
+3:16:3:auto:3.
 
 ``--cameras``: the cameras' part alone (the light held fixed, L = 3, M = 3) per setting, in
 bytes per ray and march step (2·max(lattice shape) steps), the figure ``difffog._cost``
@@ -131,10 +132,7 @@ def main(argv=None):
     light0 = model.light(base)
 
     def model_from(light, u):  # FitProblem.model with the light given
-        p = problem.params(u, base)
-        imgs = model.images_from(light, p)
-        g = problem.gains(u)
-        return jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in problem.names])
+        return problem.images_from(model, light, problem.params(u, base), u)
 
     def camera_jacobian(u):  # the cameras' part, the light held fixed
         return transposed_jacobian(lambda v: model_from(light0, v), u)
@@ -268,9 +266,8 @@ def camera_scaling(settings, info):
         light0 = model.light(base)
 
         def images(x, model=model, problem=problem, base=base, light0=light0, u0=u0, P=P):
-            p = problem.params(jnp.concatenate([x, u0[P:]]), base)
-            imgs = model.images_from(light0, p)
-            return jnp.concatenate([jnp.ravel(imgs[n]) for n in problem.names])
+            w = jnp.concatenate([x, u0[P:]])
+            return problem.images_from(model, light0, problem.params(w, base), w)
 
         mib = C.xla_mib(jax.jit(lambda x, f=images: transposed_jacobian(f, x))
                         .lower(u0[:P]).compile())

@@ -73,10 +73,20 @@ CPU_SECONDS_PER_NODE = 6.5e-7
 #: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
 #: (``lx.linearise`` in ``KrylovSolver.init``; a fit's forward-mode tangents, since stop 42,
 #: apply it matrix-free and keep none of this), which keeps the sweeps' residuals: XLA
-#: temporaries per lattice node and direction (float32, cloud-plane, the light field's Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py
-#: --scaling``, stop 41): ~820-950 B with the step scheme, ~1700 B with the linear one, ~1%
-#: more per moment (L = 3: ~1980 B).  Before they were counted the estimate said 0.96 GiB for
-#: a fit that peaked at 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
+#: temporaries per lattice node and direction (float32, cloud-plane, the light field's
+#: Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py --scaling``,
+#: stop 41): ~820-950 B with the step scheme, ~1700 B with the linear one, ~1% more per
+#: moment (L = 3: ~1980 B).  Before they were counted the estimate said 0.96 GiB for a fit
+#: that peaked at 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
+LINEARISED_BYTES_STEP = 950
+LINEARISED_BYTES_LINEAR = 1700
+LINEARISED_PER_MOMENT = 0.011
+#: the same with ``SweepSolver.sweep_residuals="recompute"`` (each slab step's inputs kept, the
+#: rest recomputed per product; ``fit_memory.py --scaling L:N:M:scheme:recompute``, stop 42):
+#: 195 B (0:32:3 step), 384 B (0:24:3 linear), 631 B (3:24:3 linear)
+RECOMPUTED_BYTES_STEP = 200
+RECOMPUTED_BYTES_LINEAR = 390
+RECOMPUTED_PER_MOMENT = 0.043
 #: a fit's Jacobian: the light field's tangents by forward mode, all unknowns at once, their
 #: products matrix-free (``SweepSolver.tangents``): XLA temporaries per number of the solve's
 #: state (Λ, its K moments, E) and tangent (float32, cloud-plane, 3 tangents at N = 16-32,
@@ -91,27 +101,20 @@ TANGENT_BYTES_PER_STATE = 600
 #: ~1240-1290 B per ray and step; 940 MiB with one unknown instead of three (stop 42,
 #: ``benchmarks/fit_memory.py --cameras``)
 CAMERA_VJP_BYTES_PER_RAY_STEP = 1300
-LINEARISED_BYTES_STEP = 950
-LINEARISED_BYTES_LINEAR = 1700
-LINEARISED_PER_MOMENT = 0.011
-#: the same with ``SweepSolver.sweep_residuals="recompute"`` (each slab step's inputs kept, the
-#: rest recomputed per product; ``fit_memory.py --scaling L:N:M:scheme:recompute``, stop 42):
-#: 195 B (0:32:3 step), 384 B (0:24:3 linear), 631 B (3:24:3 linear)
-RECOMPUTED_BYTES_STEP = 200
-RECOMPUTED_BYTES_LINEAR = 390
-RECOMPUTED_PER_MOMENT = 0.043
 
 
 def linearised_sweep_bytes(nodes: int, M: int, linear: bool, K: int, residuals: str) -> int:
     """What one linearised Jacobi step keeps (a gradient's adjoint works on it): per lattice
     node and direction, by scheme, moments and ``SweepSolver.sweep_residuals`` ("keep" or
     "recompute"; resolved)."""
+    step, lin, per_moment = ((RECOMPUTED_BYTES_STEP, RECOMPUTED_BYTES_LINEAR,
+                              RECOMPUTED_PER_MOMENT) if residuals == "recompute" else
+                             (LINEARISED_BYTES_STEP, LINEARISED_BYTES_LINEAR,
+                              LINEARISED_PER_MOMENT))
     D = (2 * int(M) + 1) ** 2
-    if residuals == "recompute":
-        per = RECOMPUTED_BYTES_LINEAR if linear else RECOMPUTED_BYTES_STEP
-        return int(nodes * D * per * (1.0 + RECOMPUTED_PER_MOMENT * K))
-    per = LINEARISED_BYTES_LINEAR if linear else LINEARISED_BYTES_STEP
-    return int(nodes * D * per * (1.0 + LINEARISED_PER_MOMENT * K))
+    return int(nodes * D * (lin if linear else step) * (1.0 + per_moment * K))
+
+
 #: one loop body of the sweep (a tile of 16 rows × one direction) on a GPU: the loop path is
 #: bound by launch latency, not by bandwidth (H100: 18 µs per body, the GPU issue's figures)
 GPU_SECONDS_PER_BODY = 18e-6

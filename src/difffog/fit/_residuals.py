@@ -10,9 +10,10 @@ column is the transpose of their (linear) vector–Jacobian product,
 ``jax.linear_transpose(vjp)``, fed with the light's tangent; reverse mode would need one
 adjoint solve per *pixel*.  (Until stop 42 the whole column was the transpose of the whole
 VJP: the light's part then ran the adjoint's linearised operator transposed back, which kept
-the linearised sweeps, 4.0 against 1.8 GiB at N = 24, ``benchmarks/fit_memory.py``.)  The residual handed to optimistix is a
-``jax.custom_jvp`` function whose tangent is ``J @ t`` with that J, so optimistix materialises
-J once per step and its state stays a small array pytree (what a checkpoint stores).
+the linearised sweeps, 4.0 against 1.8 GiB at N = 24, ``benchmarks/fit_memory.py``.)  The
+residual handed to optimistix is a ``jax.custom_jvp`` function whose tangent is ``J @ t`` with
+that J, so optimistix materialises J once per step and its state stays a small array pytree
+(what a checkpoint stores).
 
 The forward model travels in the optimizer's ``args`` (its arrays are arguments of the
 compiled step, not constants), beside the per-fit data.
@@ -86,15 +87,19 @@ class FitProblem:
                         out[n] = out[n] * c.to_v(u[i])
         return out
 
+    def images_from(self, model, light, p: Params, u):
+        """The flattened images (P,) from ``light`` at parameters ``p`` (``params(u, ...)``)
+        times the exposures of unknowns u."""
+        imgs = model.images_from(light, p)
+        g = self.gains(u)
+        return jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in self.names])
+
     def model(self, model, u, base: Params):
         """(flattened images (P,) times their exposures, the light solve's result code) at
         unknowns u."""
         p = self.params(u, base)
         light = model.light(p)
-        imgs = model.images_from(light, p)
-        g = self.gains(u)
-        return (jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in self.names]),
-                light.result)
+        return self.images_from(model, light, p, u), light.result
 
     def model_and_jacobian(self, model, u, base: Params):
         """(images (P,), J (P, n), result code) by forward mode: the light field's tangents
@@ -112,10 +117,7 @@ class FitProblem:
         d_floats = eqx.filter(dots, eqx.is_inexact_array)
 
         def images(fl, x):
-            p = self.params(x, base)
-            imgs = model.images_from(eqx.combine(fl, rest), p)
-            g = self.gains(x)
-            return jnp.concatenate([g[n] * jnp.ravel(imgs[n]) for n in self.names])
+            return self.images_from(model, eqx.combine(fl, rest), self.params(x, base), x)
 
         y, vjp = jax.vjp(images, floats, u)
         jvp = jax.linear_transpose(vjp, y)

@@ -4,9 +4,10 @@ With G(x, θ) = x − F(x, θ) = 0 at the root, its tangent is
     ẋ = −(∂G/∂x)⁻¹ (∂G/∂θ) θ̇,
 one linear solve with the operator I − ∂F/∂x (matrix-free: a Jacobian–vector product of one
 Jacobi step, or for an F affine in x, as the sweep's is, that step itself with its sources
-zeroed: :class:`AffineJacobian`), whatever the number of iterations the forward solve took.  Reverse mode
-transposes that linear solve (``lineax`` transposes ``linear_solve``), so a gradient costs one
-adjoint solve with (I − ∂F/∂x)ᵀ and its memory does not grow with the iterations.
+zeroed: :class:`AffineJacobian`), whatever the number of iterations the forward solve took.
+Reverse mode transposes that linear solve (``lineax`` transposes ``linear_solve``), so a
+gradient costs one adjoint solve with (I − ∂F/∂x)ᵀ and its memory does not grow with the
+iterations.
 
 Written on the public APIs of equinox (``filter_custom_jvp``) and lineax (``linear_solve``,
 ``JacobianLinearOperator``), so that difffog does not depend on optimistix' internals.
