@@ -17,8 +17,8 @@ import difffog as df
 from difffog import Params, SweepSolver
 from difffog.study._semi_infinite import semi_infinite_radiance, semi_infinite_value
 from difffog.study._semi_infinite import thick_cube as _thick_cube
-from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import adding_doubling
+from difffog.study._slab import slab_exits, slab_problem, slab_reflectance
+from helpers import adding_doubling, slab_table_reference
 
 # the step scheme's balance, whose formal solution (slab_reflectance) matches its boundary cells;
 # the linear scheme's conservation is tested by its exit flux (test_linear_scheme.py)
@@ -52,6 +52,47 @@ def test_thick_slab_conserves_energy(albedo, tau, x64):
     assert abs(R + T + A - 1) <= balance, (R, T, A)
     R_ad, _ = adding_doubling(albedo, tau)
     assert abs(R / R_ad - 1) <= r_err, (R, R_ad)
+
+
+def _lattice_balance(albedo, tau, zenith, n_fog=16, M=2):
+    """(R, T, R + T + A − 1) of a sunlit slab, R and T as the lattice lets light out."""
+    scene, lat, margin = slab_problem(tau, albedo, n_fog, M, sky=0.0, sun=(1.0, zenith),
+                                      margin=2 * M + 1)
+    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-10, terms="all")
+    geom = solver.prepare(scene, lat)
+    p = Params.from_scene(scene, jnp.float64)
+    light = jax.jit(solver.solve)(geom, p)
+    assert int(light.result) == df.RESULTS.successful
+    R, T = slab_exits(solver, geom, p, light, margin, sky=0.0, sun=(1.0, zenith))
+    sigma = np.asarray(solver.problem(geom, p).sigma_t)[0, 0]
+    fl = np.asarray(light.fluence + light.sun_fluence)[0, 0]
+    A = float(np.sum((1 - albedo) * sigma * fl) * lat.h) / math.cos(math.radians(zenith))
+    return R, T, R + T + A - 1
+
+
+def test_the_lattice_returns_what_a_sunlit_slab_receives(x64):
+    """Where every lattice step is optically thin (τ = 2 over 16 nodes, a sun at 60°), the
+    light the lattice lets out (its own exit flux, ``slab_exits``) and the fog's absorption
+    add up to the sun's within the issue's 0.5% (measured +0.20%; +0.73% over 8 nodes: the
+    box filter's error at the fog's faces, below), and R and T agree with adding-doubling
+    (measured R −0.4%, T +2.1%)."""
+    R, T, balance = _lattice_balance(0.9, 2.0, 60.0)
+    assert abs(balance) < 0.005
+    R_ref, T_ref = slab_table_reference(0.9, 2.0, "collimated", 60.0)
+    assert R == pytest.approx(R_ref, rel=0.01) and T == pytest.approx(T_ref, rel=0.04)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open (issue 14): the box-filtered segment depth "
+                   "creates light where a sunlit node spans mean free paths (docs/validation.md)")
+def test_the_lattice_conserves_a_sunlit_slab_on_thick_steps(x64):
+    """The same on τ = 64 over 32 nodes (2 mean free paths per node): R + T + A − 1 is
+    +18.7% at 60° (and +5.6% at 0°).  The light solve's σ̄ averages σ_t over each node's
+    M-plane segment along every face's axis (``segment_depth``), while its source and A
+    use each node's own σ_t: in the top node the two disagree.  Without the box filter the
+    balance is exact (0.000%) but issue 14's thick cube comes out 15–29% too dark."""
+    _, _, balance = _lattice_balance(0.999, 64.0, 60.0, n_fog=32)
+    assert abs(balance) < 0.005
 
 
 def test_semi_infinite_value():

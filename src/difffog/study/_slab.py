@@ -7,6 +7,8 @@ benchmarks.
 * ``slab_reflectance``: total reflectance and transmittance from a converged light field by the
   formal solution along a fine μ quadrature — what a camera integrating over the hemisphere
   would measure, not a count of lattice directions.
+* ``slab_exits``: R and T as the lattice itself lets light out (the net flux of its own
+  radiance through vacuum planes), the measure of whether the scheme conserves energy.
 """
 
 from __future__ import annotations
@@ -42,13 +44,14 @@ class ColumnLattice:
 
 
 def slab_problem(tau: float, albedo: float, n_fog: int, M: int, *, sky: float = 1.0,
-                 sun: tuple[float, float] | None = None, g: float = 0.0):
+                 sun: tuple[float, float] | None = None, g: float = 0.0,
+                 margin: int | None = None):
     """(scene, lattice, margin) of a unit-thickness slab of optical thickness ``tau``.
 
-    The fog occupies ``n_fog`` nodes (h = 1/n_fog); M+1 vacuum nodes lie above and below.
-    ``sun`` = (irradiance, zenith_deg) adds a sun.
+    The fog occupies ``n_fog`` nodes (h = 1/n_fog); ``margin`` vacuum nodes (default M+1) lie
+    above and below (``slab_exits`` needs 2M+1).  ``sun`` = (irradiance, zenith_deg) adds a sun.
     """
-    margin = M + 1
+    margin = M + 1 if margin is None else int(margin)
     nz = n_fog + 2 * margin
     h = 1.0 / n_fog
     density = np.zeros((1, 1, nz), np.float32)
@@ -75,6 +78,42 @@ def slab_problem(tau: float, albedo: float, n_fog: int, M: int, *, sky: float = 
         sun=Sun(sun[0], sun[1], 0.0) if sun else None,
     )
     return scene, lat, margin
+
+
+def slab_exits(solver, geom, params, light, margin: int, *, sky: float,
+               sun: tuple[float, float] | None = None):
+    """(R, T) of a slab column as the lattice itself lets light out: the net flux of the
+    lattice's own radiance (``net_flux``) through the vacuum planes above and below the fog,
+    averaged over the M interleaved plane chains (a lattice ray steps M planes, so each chain
+    carries its own exit flux), divided by the incident flux (π·sky + F·μ₀).  T includes the
+    unscattered sun.  Where the scheme conserves energy, R + T + A = 1 with these exactly.
+
+    The planes used lie more than M planes from the fog (no segment of theirs reaches it), so
+    the slab needs ``margin`` ≥ 2M + 1 and a solver that keeps Λ in vacuum
+    (``SweepSolver(terms="all")``).
+    """
+    from ..forward.sweep._solver import net_flux
+
+    M = geom.M
+    if margin < 2 * M + 1:
+        raise ValueError(f"slab_exits needs margin >= 2M+1 = {2 * M + 1}, got {margin}")
+    if geom.terms is not None and geom.terms.fog_slabs is not None:
+        raise ValueError('slab_exits needs SweepSolver(terms="all") (Λ kept in vacuum)')
+    pb = solver.problem(geom, params)
+    flux = np.asarray(net_flux(geom, pb, light), np.float64)[0, 0]
+    nz = flux.shape[0]
+    top = flux[nz - margin + M : nz - margin + 2 * M].mean()  # planes M+1..2M above the fog
+    bottom = flux[margin - 2 * M : margin - M].mean()
+    incident = math.pi * sky
+    direct = 0.0
+    if sun is not None:
+        F, zen = sun
+        mu0 = math.cos(math.radians(zen))
+        incident += F * mu0
+        sigma = np.asarray(pb.sigma_t, np.float64)[0, 0]
+        direct = F * mu0 * math.exp(-float(sigma.sum() * geom.h) / mu0)
+    # the lattice carries the sky (periodic default): net = up − π·sky at the top
+    return (top + math.pi * sky) / incident, (direct - bottom) / incident
 
 
 def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky: float,
