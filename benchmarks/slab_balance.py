@@ -97,9 +97,12 @@ def rel(x, ref):
     return x / ref - 1.0 if ref > 1e-12 else float("nan")
 
 
-def markdown(rows, ns, ms, machine) -> str:
+def markdown(rows, ns, ms, machine, segment_depth: str = "box") -> str:
+    title = "# Energy balance R + T + A over the adding-doubling slab table (g = 0)"
+    if segment_depth == "node":
+        title += ", segment depth = each node's own σ_t (`--segment-depth node`, an experiment)"
     lines = [
-        "# Energy balance R + T + A over the adding-doubling slab table (g = 0)",
+        title,
         "",
         "Each cell: R error / T error against adding-doubling in % (R, T as a camera reads "
         "them: the formal solution of the converged source), then R + T + A − 1 in % with "
@@ -199,7 +202,8 @@ def main(argv=None):
         w.writeheader()
         w.writerows(rows)
     tmp.replace(a.out / f"{a.name}.csv")
-    path = C.write_text(a.out / f"{a.name}.md", markdown(rows, a.n, a.m, C.machine()))
+    text = markdown(rows, a.n, a.m, C.machine(), a.segment_depth)
+    path = C.write_text(a.out / f"{a.name}.md", text)
     print("wrote", path)
 
 
