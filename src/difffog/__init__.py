@@ -16,6 +16,7 @@ parameters) → ``geometry`` (lattice, directions, rays) → ``forward`` (the fo
 from ._errors import (
     AdjointWarning as AdjointWarning,
     ThickStepWarning as ThickStepWarning,
+    ThinLayerWarning as ThinLayerWarning,
     DifffogError as DifffogError,
     MemoryWarning as MemoryWarning,
     ResourceError as ResourceError,

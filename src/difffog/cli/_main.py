@@ -10,7 +10,7 @@ import sys
 import warnings
 
 from .._errors import (AdjointWarning, DifffogError, MemoryWarning, ResourceError,
-                       ThickStepWarning)
+                       ThickStepWarning, ThinLayerWarning)
 from ..fit._result import IdentifiabilityWarning
 from ..forward._registry import LEVELS, SOLVERS, preset, solver_entry
 
@@ -122,8 +122,8 @@ def main(argv=None) -> int:
     shown = warnings.showwarning
 
     def one_line(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, (ThickStepWarning, AdjointWarning, IdentifiabilityWarning,
-                                 MemoryWarning)):
+        if issubclass(category, (ThickStepWarning, ThinLayerWarning, AdjointWarning,
+                                 IdentifiabilityWarning, MemoryWarning)):
             print(f"difffog: warning: {message}", file=sys.stderr)
         else:
             shown(message, category, filename, lineno, file, line)
@@ -131,8 +131,8 @@ def main(argv=None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = one_line
-            for category in (ThickStepWarning, AdjointWarning, IdentifiabilityWarning,
-                             MemoryWarning):
+            for category in (ThickStepWarning, ThinLayerWarning, AdjointWarning,
+                             IdentifiabilityWarning, MemoryWarning):
                 warnings.simplefilter("always", category)  # said, never raised
             return args.func(args)
     except ResourceError as e:  # a valid request this machine cannot hold: like a failed solve

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._errors import SolverError, ThickStepWarning
+from .._errors import SolverError, ThickStepWarning, ThinLayerWarning
 from .._results import RESULTS, check, error_if_failed
 from ..scene._description import Camera, Scene
 from ..scene._params import _SCALAR_PATHS, Params
@@ -108,6 +108,11 @@ class AbstractForwardModel(eqx.Module):
     def step_warning(self, params: Params) -> str | None:
         """A one-line warning when these concrete parameters make the model's discretization
         optically coarse (``ThickStepWarning``), else None.  Default: none."""
+        return None
+
+    def layer_warning(self, params: Params) -> str | None:
+        """A one-line warning when the fog is a thin layer the model's directions resolve
+        poorly (``ThinLayerWarning``), else None.  Default: none."""
         return None
 
     def edge_pixels(self) -> dict[str, np.ndarray] | None:
@@ -255,6 +260,8 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     params = model.params() if params is None else params
     model.check(params)
     warn_thick_steps(model, params, stacklevel=3)
+    if layer := model.layer_warning(params):
+        warnings.warn(layer, ThinLayerWarning, stacklevel=2)
     timings = dict(model.settings().get("setup_s", {}))
     t = time.perf_counter()
     light_fn = light_jit.lower(model, params).compile()
