@@ -157,13 +157,18 @@ def test_a_thin_layer_across_a_periodic_domain_is_said_to_be_too_bright():
     """The lattice's horizontal directions never leave a thin layer that spans a periodic
     domain, so its multiply scattered light comes out too large: a haze of optical depth 0.1
     renders +10.3% at M = 2, +6.3% at M = 3, +2.9% at M = 5 against the exact slab (whatever
-    N), 0.3: +4.1%, 0.5: +1.6% (docs/validation.md).  ``render`` says so below 0.5; a thicker
-    layer, or one in an open domain (its horizontal rays leave it), is not warned about."""
+    N), 0.3: +4.1%, 0.5: +1.6% (docs/validation.md).  ``render`` and ``fit`` (at its estimate)
+    say so below 0.5; a thicker layer, or one in an open domain (its horizontal rays leave
+    it), is not warned about."""
     m = df.forward_model(_haze(0.1), "sweep", accuracy=None, resolution=12, M=2, tol=1e-5,
                          supersample=1)
     with pytest.warns(df.ThinLayerWarning, match=r"thin layer .* depth 0\.1 < 0\.5.* \(now 2\)"):
         out = df.render(m)
     assert int(out.result) == df.RESULTS.successful
+    # a fit says it at its estimate (and keeps it in the result's warnings)
+    with pytest.warns(df.ThinLayerWarning, match=r"^at the estimate, the fog is a thin layer"):
+        res = df.fit(_haze(0.1), out.images, {"fog.scattering": 0.22}, forward=m, max_steps=10)
+    assert any(w.startswith("at the estimate, the fog is a thin layer") for w in res.warnings)
     for sc in (_haze(1.0), _haze(0.1, "open")):
         m = df.forward_model(sc, "sweep", accuracy=None, resolution=12, M=2)
         assert m.layer_warning(m.params()) is None

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._errors import AdjointWarning, DifffogError, ThickStepWarning
+from .._errors import AdjointWarning, DifffogError, ThickStepWarning, ThinLayerWarning
 from .._progress import as_meter
 from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
@@ -300,10 +300,13 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
     for msg in msgs:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
     msgs = list(msgs) + [str(w) for w in extra_warnings]
-    thick = _step_warning(st, u)
-    if thick:
-        warnings.warn(f"at the estimate, {thick}", ThickStepWarning, stacklevel=3)
-        msgs.append(f"at the estimate, {thick}")
+    p_est = _params_at(st, u)
+    for check, category in (("step_warning", ThickStepWarning),
+                            ("layer_warning", ThinLayerWarning)):
+        said = None if p_est is None else getattr(st.model, check)(p_est)
+        if said:
+            warnings.warn(f"at the estimate, {said}", category, stacklevel=3)
+            msgs.append(f"at the estimate, {said}")
     raw = (y - st.flat_t) * np.sqrt(np.asarray(st.data[1], np.float64) ** 2)
     images, off = {}, 0
     for n in st.names:
@@ -337,8 +340,9 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
     return res
 
 
-def _step_warning(st: _Setup, u) -> str | None:
-    """The model's step warning (``ThickStepWarning``) at the estimate ``u``."""
+def _params_at(st: _Setup, u):
+    """The model's parameters at the estimate ``u`` (for its step and layer warnings), or None
+    where an unknown is not one the parameters hold (e.g. a density grid)."""
     from ..scene._params import set_param
 
     p = st.model.params()
@@ -346,9 +350,9 @@ def _step_warning(st: _Setup, u) -> str | None:
         for path, v in st.values(u).items():
             if exposure_camera(path) is None:
                 p = set_param(p, st.model.scene, path, v)
-    except DifffogError:  # an unknown the parameters do not hold (e.g. a density grid)
+    except DifffogError:
         return None
-    return st.model.step_warning(p)
+    return p
 
 
 def _postfix(entry: dict) -> dict:
