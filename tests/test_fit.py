@@ -635,12 +635,11 @@ def test_ladder_levels_and_model_error_arithmetic():
     assert math.isnan(failed.model_error["fog.scattering"]) and failed.warnings
 
 
-# Known to fail (strict: when a better estimator makes it pass, drop the mark): ζ fitted at
-# N = 10 / 12 / 14 / 16 to these targets is 2.077 / 2.074 / 1.933 / 2.232 (truth 2.0): the
-# estimates jump between neighbouring resolutions, and the 10 → 12 change (0.0025, × 5) misses
-# the error (0.074).
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="two-level ladder underestimates erratic lattice error")
+# Was a strict expected failure (ζ at N = 10 / 12 was 2.077 / 2.074, the ladder's 0.0025 × 5
+# missing the error 0.074); it passed at stop 43 (at 4092148 too; since when is not known: not
+# every slow test ran at every stop), so the mark is dropped.  Not a better estimator: the estimates still jump between resolutions, now the other way (ζ 2.189 /
+# 2.102, uncertainty 0.436 against an error of 0.102; γ 0.551 / 0.542, 0.047 against 0.042;
+# walls 0.7004 / 0.6999, 0.0024 against 0.0001).
 @pytest.mark.slow  # two fits and two compiled models (~2 min on 2 cores)
 def test_ladder_uncertainty_covers_the_truth_of_finer_targets():
     """Targets rendered on a finer lattice (N = 20) than the fit's (12, ladder from 10): the
