@@ -637,9 +637,10 @@ def test_ladder_levels_and_model_error_arithmetic():
 
 # Was a strict expected failure (ζ at N = 10 / 12 was 2.077 / 2.074, the ladder's 0.0025 × 5
 # missing the error 0.074); it passed at stop 43 (at 4092148 too; since when is not known: not
-# every slow test ran at every stop), so the mark is dropped.  Not a better estimator: the estimates still jump between resolutions, now the other way (ζ 2.189 /
-# 2.102, uncertainty 0.436 against an error of 0.102; γ 0.551 / 0.542, 0.047 against 0.042;
-# walls 0.7004 / 0.6999, 0.0024 against 0.0001).
+# every slow test ran at every stop), so the mark is dropped.  Not a better estimator: the
+# estimates still jump between resolutions, now the other way (ζ 2.189 / 2.102, uncertainty
+# 0.436 against an error of 0.102; γ 0.551 / 0.542, 0.047 against 0.042; walls 0.7004 /
+# 0.6999, 0.0024 against 0.0001).
 @pytest.mark.slow  # two fits and two compiled models (~2 min on 2 cores)
 def test_ladder_uncertainty_covers_the_truth_of_finer_targets():
     """Targets rendered on a finer lattice (N = 20) than the fit's (12, ladder from 10): the
