@@ -140,17 +140,14 @@ def test_collimated_slab_first_collision_sun(albedo, tau, zenith, x64):
 
 
 def _haze(tau, boundary="periodic-xy"):
-    """A layer of fog z ∈ [0.25, 0.75] of vertical optical depth τ, albedo 0.999, under an
-    overhead sun, seen from above."""
-    from difffog.scene._description import Camera, Domain, Fog, Scene, Sun
+    """``benchmarks/thin_layer.py``'s haze layer: albedo 0.999, an overhead sun."""
+    import sys
+    from pathlib import Path
 
-    return Scene(
-        title="haze", domain=Domain((0, 0, 0), (1, 1, 1), boundary),
-        fog=Fog(scattering=0.999 * tau / 0.5, absorption=0.001 * tau / 0.5,
-                region=((0, 0, 0.25), (1, 1, 0.75))),
-        sun=Sun(1.0, 0.0, 0.0),
-        cameras=(Camera("top", "orthographic", (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), up=(0, 1, 0),
-                        resolution=(4, 4), extent=(0.5, 0.5)),))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from thin_layer import haze
+
+    return haze(tau, 0.999, 0.0, boundary)
 
 
 def test_a_thin_layer_across_a_periodic_domain_is_said_to_be_too_bright():

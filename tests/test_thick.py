@@ -92,7 +92,7 @@ def test_the_lattice_conserves_a_sunlit_slab_on_thick_steps(x64):
     +18.7% at 60° (and +5.6% at 0°).  The light solve's σ̄ averages σ_t over each node's
     M-plane segment along every face's axis (``segment_depth``), while its source and A
     use each node's own σ_t: in the top node the two disagree.  Without the box filter the
-    balance is exact (0.000%) but issue 14's thick cube comes out 15–29% too dark."""
+    balance is exact (0.000%) but issue 14's thick cube comes out 14–29% too dark."""
     _, _, balance = _lattice_balance(0.999, 64.0, 60.0, n_fog=32)
     assert abs(balance) < 0.005
 
