@@ -42,6 +42,11 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                         "right diffusion limit where a lattice step is optically thick) or auto "
                         "(default: linear where one lattice step is thicker than a mean free "
                         "path; see docs/validation.md)")
+    p.add_argument("--first-collision", choices=("beam", "deposit"), default=None,
+                   help="sweep: what the fog's first collision scatters: beam (default: the "
+                        "uncollided sun and sky at each node) or deposit (what the beams lose, "
+                        "box-filtered as the lattice's steps are: conserves energy where a step "
+                        "is optically thick; see docs/validation.md)")
 
 
 def positive_int(name: str, value: int | None) -> int | None:
@@ -63,7 +68,8 @@ def model_settings(args, solver: str, *, accuracy: str | None) -> dict:
              "supersample": ("--supersample", getattr(args, "supersample", None)),
              "devices": ("--devices", getattr(args, "devices", None)),
              "phase_order": ("--phase-order", getattr(args, "phase_order", None)),
-             "scheme": ("--scheme", getattr(args, "scheme", None))}
+             "scheme": ("--scheme", getattr(args, "scheme", None)),
+             "first_collision": ("--first-collision", getattr(args, "first_collision", None))}
     if getattr(args, "iterations", None) is not None:
         flags["max_iterations"] = ("--iterations", args.iterations)
         flags["tol"] = ("--iterations", 0.0)  # exactly K iterations

@@ -77,7 +77,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
                  phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
-                 sweep_residuals: str = "auto"):
+                 sweep_residuals: str = "auto", first_collision: str = "beam"):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 
@@ -86,7 +86,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                          sky_quadrature=sky_quadrature, restart=restart, progress=progress,
                          throw=throw, precondition=precondition, kernel=kernel,
                          phase_order=phase_order, scheme=scheme, tangents=tangents,
-                         sweep_residuals=sweep_residuals)
+                         sweep_residuals=sweep_residuals, first_collision=first_collision)
     return SweepModel(scene, resolution=resolution, solver=solver, supersample=supersample,
                       cameras=cameras)
 

@@ -594,6 +594,7 @@ class SweepModel(AbstractForwardModel):
                                "precondition": s.resolved_precondition(self.geometry),
                                "phase_order": self.geometry.order,
                                "scheme": "linear" if self.geometry.linear else "step",
+                               "first_collision": s.first_collision,
                                "kernel": s.resolved_kernel()},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides
