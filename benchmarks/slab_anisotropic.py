@@ -7,7 +7,7 @@ scattered light from its moments, plus the sun's single scattering with the exac
 relative to the table (``difffog/data/references/slab_adding_doubling.csv``), float64.
 
     python benchmarks/slab_anisotropic.py [--n 32] [--m 3] [--orders 0 1 2 3 4]
-        [--out benchmarks/results/slab_anisotropic.md]
+        [--first-collision beam|deposit] [--out benchmarks/results/slab_anisotropic.md]
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import _common as C
 CASES = [("diffuse", None), ("collimated", 0.0), ("collimated", 60.0)]
 
 
-def slab(tau, albedo, g, N, M, L, illumination, zenith):
+def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam"):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -33,7 +33,8 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith):
 
     sun = None if illumination == "diffuse" else (1.0, zenith)
     scene, lat, margin = slab_problem(tau, albedo, N, M, sun=sun, sky=0.0 if sun else 1.0, g=g)
-    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-8, phase_order=L)
+    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-8, phase_order=L,
+                         first_collision=first_collision)
     geom = solver.prepare(scene, lat)
 
     @jax.jit
@@ -45,13 +46,16 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith):
 
     light, sigma, q = run(Params.from_scene(scene, jnp.float64))
     dens = np.asarray(lat.density)[0, 0]
+    q, slope = np.asarray(q)[0, 0], None
+    if geom.linear:  # thick steps take the linear scheme: its slope channels (x, y, z) come last
+        q, slope = q[..., :-3], q[..., -1]
     ss = None
     if sun is not None and L > 0:
         ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
-    R, T = slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
+    R, T = slab_reflectance(np.asarray(sigma)[0, 0], q, None, margin, lat.h,
                             sky=0.0 if sun else 1.0, sun=sun,
-                            basis=basis(L, M) if L else None, sun_scatter=ss)
-    return R, T, int(light.iterations)
+                            basis=basis(L, M) if L else None, sun_scatter=ss, slope=slope)
+    return R, T, int(light.iterations), "linear" if geom.linear else "step"
 
 
 def main(argv=None):
@@ -62,6 +66,8 @@ def main(argv=None):
     ap.add_argument("--taus", type=float, nargs="+", default=[1.0, 2.0, 4.0, 16.0])
     ap.add_argument("--albedos", type=float, nargs="+", default=[0.9, 0.99])
     ap.add_argument("--g", type=float, default=0.85)
+    ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
+                    help="SweepSolver.first_collision")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     import jax
@@ -87,20 +93,24 @@ def main(argv=None):
                     for albedo in a.albedos:
                         for tau in a.taus:
                             t = time.perf_counter()
-                            R, T, k = slab(tau, albedo, a.g, N, M, L, ill, zen)
+                            R, T, k, scheme = slab(tau, albedo, a.g, N, M, L, ill, zen,
+                                                   a.first_collision)
                             Rr, Tr = ref(albedo, tau, ill, zen)
                             row = dict(N=N, M=M, L=L, illumination=ill + ("" if zen is None
                                                                           else f" {zen:g}°"),
                                        albedo=albedo, tau=tau, R=R, T=T, R_ref=Rr, T_ref=Tr,
                                        R_err=R / Rr - 1, T_err=T / Tr - 1, iterations=k,
+                                       scheme=scheme,
                                        s=time.perf_counter() - t)
                             rows.append(row)
                             print(f"N={N} M={M} L={L} {row['illumination']:15s} a={albedo} "
                                   f"τ={tau:g}: R {100 * row['R_err']:+6.1f}% "
-                                  f"T {100 * row['T_err']:+6.1f}%", flush=True)
+                                  f"T {100 * row['T_err']:+6.1f}% ({scheme})", flush=True)
     lines = ["# Henyey–Greenstein slabs against adding-doubling", "",
              f"g = {a.g}; relative error of R / T in % (float64); "
-             "`python benchmarks/slab_anisotropic.py`", ""]
+             "`python benchmarks/slab_anisotropic.py`"
+             + ("" if a.first_collision == "beam"
+                else f"; first collision: {a.first_collision}"), ""]
     lines += C.machine_lines(C.machine(bandwidth=False)) + [""]
     taus = a.taus
     head = ["N", "M", "L", "illumination", "albedo"] + [f"τ = {t:g}" for t in taus]
@@ -113,9 +123,12 @@ def main(argv=None):
             r = next(r for r in rows
                      if (r["N"], r["M"], r["L"], r["illumination"], r["albedo"]) == key
                      and r["tau"] == t)
-            cells.append(f"{100 * r['R_err']:+.1f} / {100 * r['T_err']:+.1f}")
+            mark = " ˡ" if r["scheme"] == "linear" else ""
+            cells.append(f"{100 * r['R_err']:+.1f} / {100 * r['T_err']:+.1f}{mark}")
         body.append(list(key) + cells)
     lines += C.md_table(head, body, "rrrlr" + "r" * len(taus))
+    if any(r["scheme"] == "linear" for r in rows):
+        lines += ["", "ˡ: the solver chose the linear scheme (optically thick steps)."]
     worst = {}
     for r in rows:
         if r["tau"] <= 4:
