@@ -7,7 +7,8 @@ cameras reduced ``--downsample`` times.  Prints each estimate's error (% of the 
 stated standard error, the steps and the time.
 
     python benchmarks/fit_anisotropic.py [--N 48] [--target-N 64] [--downsample 4]
-        [--phase-order 3] [--out benchmarks/results/fit_anisotropic.md]
+        [--phase-order 3] [--first-collision beam|deposit]
+        [--out benchmarks/results/fit_anisotropic.md]
 """
 
 from __future__ import annotations
@@ -29,6 +30,8 @@ def main(argv=None):
                     help="a scene override (PATH=VALUE) of the truth, e.g. fog.scattering=20")
     ap.add_argument("--model-error", default=None,
                     help="fit(model_error=...): \"refine\" or a finer resolution")
+    ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
+                    help="SweepSolver.first_collision, of the targets and the fit")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     import difffog as df
@@ -39,14 +42,15 @@ def main(argv=None):
              for k in ("fog.scattering", "fog.absorption", "fog.g")}
     t = time.perf_counter()
     targets = df.render(scene, accuracy=None, resolution=a.target_N, M=a.M,
-                        phase_order=a.phase_order).images
+                        phase_order=a.phase_order, first_collision=a.first_collision).images
     target_s = time.perf_counter() - t
     start = {"fog.scattering": 0.7 * truth["fog.scattering"],
              "fog.absorption": 1.5 * truth["fog.absorption"], "fog.g": 0.7}
     t = time.perf_counter()
     me = a.model_error
     res = df.fit(scene, targets, start, resolution=a.N, downsample=a.downsample,
-                 model_settings={"M": a.M, "phase_order": a.phase_order}, progress=True,
+                 model_settings={"M": a.M, "phase_order": a.phase_order,
+                                 "first_collision": a.first_collision}, progress=True,
                  model_error=int(me) if me and me.isdigit() else me)
     fit_s = time.perf_counter() - t
     lines = ["# Fit of ζ, γ and g to cloud-plane (anisotropic sweep)", "",
@@ -54,7 +58,8 @@ def main(argv=None):
              f"- scene: cloud-plane {' '.join(a.overrides)}",
              f"- targets: sweep N = {a.target_N}, M = {a.M}, phase_order {a.phase_order} "
              f"({target_s:.0f} s); fit: N = {a.N}, phase_order {a.phase_order}, both cameras / "
-             f"{a.downsample}; start ζ × 0.7, γ × 1.5, g = 0.7", "",
+             f"{a.downsample}; start ζ × 0.7, γ × 1.5, g = 0.7; first collision "
+             f"{a.first_collision}", "",
              "| unknown | truth | estimate | error % | stated standard error % | model error % "
              "| total uncertainty % |",
              "|---|---:|---:|---:|---:|---:|---:|"]

@@ -24,6 +24,7 @@ Writes ``slab_balance.csv`` and ``slab_balance.md`` (``--name`` changes the stem
     python benchmarks/slab_balance.py --n 32 --m 3 --taus 0.01 0.1 --name slab_balance_thin
     python benchmarks/slab_balance.py --quick --out /tmp/bal   # N 16, a 0.9, τ 1
     python benchmarks/slab_balance.py --segment-depth node --name slab_balance_node
+    python benchmarks/slab_balance.py --first-collision deposit --name slab_balance_deposit
 
 ``--segment-depth node`` is an experiment, not an option of the solver: it replaces the light
 solve's box-filtered segment depth (``_solver.segment_depth``: σ_t averaged over the M planes
@@ -61,7 +62,7 @@ def rows_of(table, albedos, taus, rows: str):
     return out
 
 
-def solve_row(albedo, tau, ill, N, M, scheme, tol):
+def solve_row(albedo, tau, ill, N, M, scheme, tol, first_collision="beam"):
     import jax
     import jax.numpy as jnp
 
@@ -72,7 +73,8 @@ def solve_row(albedo, tau, ill, N, M, scheme, tol):
     sun = None if ill == "diffuse" else (1.0, float(ill[4:]))
     sky = 1.0 if sun is None else 0.0
     scene, lat, margin = slab_problem(tau, albedo, N, M, sun=sun, sky=sky, margin=2 * M + 1)
-    solver = SweepSolver(M=M, max_iterations=20000, tol=tol, scheme=scheme, terms="all")
+    solver = SweepSolver(M=M, max_iterations=20000, tol=tol, scheme=scheme, terms="all",
+                         first_collision=first_collision)
     geom = solver.prepare(scene, lat)
     p = Params.from_scene(scene, jnp.float64)
     t0 = time.perf_counter()
@@ -97,10 +99,13 @@ def rel(x, ref):
     return x / ref - 1.0 if ref > 1e-12 else float("nan")
 
 
-def markdown(rows, ns, ms, machine, segment_depth: str = "box") -> str:
+def markdown(rows, ns, ms, machine, segment_depth: str = "box",
+             first_collision: str = "beam") -> str:
     title = "# Energy balance R + T + A over the adding-doubling slab table (g = 0)"
     if segment_depth == "node":
         title += ", segment depth = each node's own σ_t (`--segment-depth node`, an experiment)"
+    if first_collision != "beam":
+        title += f", first collision = {first_collision} (`--first-collision {first_collision}`)"
     lines = [
         title,
         "",
@@ -150,6 +155,8 @@ def main(argv=None):
     ap.add_argument("--n", type=int, nargs="+", default=[32], help="fog nodes across the slab")
     ap.add_argument("--m", type=int, nargs="+", default=[2], help="direction half-widths M")
     ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear"])
+    ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
+                    help="SweepSolver.first_collision")
     ap.add_argument("--albedos", type=float, nargs="+", default=None)
     ap.add_argument("--taus", type=float, nargs="+", default=None)
     ap.add_argument("--rows", nargs="+", default=None,
@@ -179,7 +186,7 @@ def main(argv=None):
     for m in a.m:
         for n in a.n:
             for albedo, tau, ill, R_ref, T_ref in cases:
-                r = solve_row(albedo, tau, ill, n, m, a.scheme, a.tol)
+                r = solve_row(albedo, tau, ill, n, m, a.scheme, a.tol, a.first_collision)
                 r.update(albedo=albedo, tau=tau, illumination=ill, N=n, M=m,
                          err_R=rel(r["R"], R_ref), err_T=rel(r["T"], T_ref))
                 rows.append(r)
@@ -202,7 +209,7 @@ def main(argv=None):
         w.writeheader()
         w.writerows(rows)
     tmp.replace(a.out / f"{a.name}.csv")
-    text = markdown(rows, a.n, a.m, C.machine(), a.segment_depth)
+    text = markdown(rows, a.n, a.m, C.machine(), a.segment_depth, a.first_collision)
     path = C.write_text(a.out / f"{a.name}.md", text)
     print("wrote", path)
 

@@ -12,7 +12,7 @@ Issue 14's cube (``difffog.study._semi_infinite.thick_cube``) without its sphere
 In a half-space whose density varies only with depth the reflectance is that of the uniform
 one, so all three should agree where the fog is thick.
 
-    python benchmarks/thick_top.py --zeta 100 1000 --resolutions 12 24
+    python benchmarks/thick_top.py --zeta 100 1000 --resolutions 12 24 [--first-collision deposit]
 
 Measured 2026-11-27 (2-core CPU), fills / region / grid, since the cameras' slopes stop where
 the fog does (``_model.side_slopes``): ζ = 10: 0.505 / 0.505 / 0.503 (N = 12), 0.495 / 0.495 /
@@ -57,6 +57,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--zeta", nargs="+", type=float, default=[100.0, 1000.0])
     ap.add_argument("--resolutions", nargs="+", type=int, default=[12, 24])
+    ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
+                    help="SweepSolver.first_collision")
     a = ap.parse_args(argv)
     print(f"semi-infinite conservative value {semi_infinite_value():.4f}")
     for zeta in a.zeta:
@@ -67,7 +69,8 @@ def main(argv=None):
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", df.ThickStepWarning)
                     m = df.forward_model(sc, "sweep", accuracy=None, resolution=n, M=2,
-                                         tol=1e-4, max_iterations=2000, supersample=1)
+                                         tol=1e-4, max_iterations=2000, supersample=1,
+                                         first_collision=a.first_collision)
                     out = df.render(m)
                 mean = float(out.images["top"].mean())
                 scheme = m.settings()["solver_options"]["scheme"]

@@ -9,6 +9,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
         [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
         [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep]
         [--cloud shared|b|c] [--balance 0.8|off] [--scheme auto|step|linear]
+        [--first-collision beam|deposit]
         [--out benchmarks/results/tomography]
 """
 
@@ -70,6 +71,8 @@ def main(argv=None):
     ap.add_argument("--balance", default=None,
                     help="the balancing principle's prior/data share (a number), or off "
                          "(default: fit_density's: on unless --prior fixes the weight)")
+    ap.add_argument("--first-collision", default=None, choices=["beam", "deposit"],
+                    help="the light solve's first collision (SweepSolver.first_collision)")
     ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
                     help="the light solve's transport scheme (default: fit_density's, "
                          "DENSITY_SCHEME; auto: the sweep's choice, linear where a step "
@@ -88,7 +91,8 @@ def main(argv=None):
         # the fit's own scheme (its default, or --scheme), a finer lattice
         m = df.forward_model(truth_scene, "sweep", resolution=args.target_N, M=3,
                              supersample=2, accuracy=None, cameras=views,
-                             scheme=args.scheme or DENSITY_SCHEME)
+                             scheme=args.scheme or DENSITY_SCHEME,
+                             first_collision=args.first_collision or "beam")
         targets = {v: np.asarray(img, np.float64) for v, img in m().items()}
     kw = {}
     for key, val in (("resolutions", ints(args.resolutions)),
@@ -107,8 +111,13 @@ def main(argv=None):
         kw["M"] = args.M
     if args.rtol is not None:
         kw["rtol"] = args.rtol
+    settings = {}
     if args.scheme is not None:
-        kw["settings"] = {"scheme": args.scheme}
+        settings["scheme"] = args.scheme
+    if args.first_collision is not None:
+        settings["first_collision"] = args.first_collision
+    if settings:
+        kw["settings"] = settings
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.ThickStepWarning)

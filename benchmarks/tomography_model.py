@@ -10,7 +10,7 @@ interpolated to the cell centres) against the finest setting's, by depth below t
 surface.
 
     python benchmarks/tomography_model.py [--cloud shared|b]
-        [--settings 32:3,48:3,64:3,96:3,32:2,48:2]
+        [--settings 32:3,48:3,64:3,96:3,32:2,48:2] [--first-collision beam|deposit]
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cloud", default="shared", choices=["shared", "b"])
     ap.add_argument("--settings", default="32:3,48:3,64:3,96:3,32:2,48:2")
+    ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
+                    help="the light solve's first collision (SweepSolver.first_collision)")
     args = ap.parse_args(argv)
     C.print_machine(C.machine())
     name, refdir, _, truth_scene = load_case(args.cloud)
@@ -52,7 +54,8 @@ def main(argv=None):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", df.ThickStepWarning)
             m = df.forward_model(truth_scene, "sweep", resolution=N, M=M, supersample=2,
-                                 accuracy=None, cameras=VIEWS, scheme="step")
+                                 accuracy=None, cameras=VIEWS, scheme="step",
+                                 first_collision=args.first_collision)
             p = m.params()
             light = m.light(p)
             imgs[spec] = {v: _block_mean(np.asarray(i, np.float64), 2)

@@ -58,7 +58,7 @@ QUICK_SETTINGS = [(16, 2)]
 
 
 def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int,
-                phase_order="auto", scheme="auto"):
+                phase_order="auto", scheme="auto", first_collision="beam"):
     """Images and timings of one (N, M) setting.
 
     ``difffog.render`` compiles the light solve and the images ahead of time
@@ -71,7 +71,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         warnings.simplefilter("always")
         model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=tol,
                                  max_iterations=max_iterations, phase_order=phase_order,
-                                 scheme=scheme)
+                                 scheme=scheme, first_collision=first_collision)
     notes = sorted({str(w.message).split(":")[0] for w in caught})
     out = df.render(model)
     t = out.timings
@@ -88,6 +88,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         "warnings": "; ".join(notes),
         "phase_order": model.geometry.order,
         "scheme": "linear" if model.geometry.linear else "step",
+        "first_collision": first_collision,
     }
     return images, info
 
@@ -166,6 +167,8 @@ def main(argv=None):
     ap.add_argument("--no-png", action="store_true")
     ap.add_argument("--scheme", default="auto", choices=("auto", "step", "linear"),
                     help="SweepSolver.scheme")
+    ap.add_argument("--first-collision", default="beam", choices=("beam", "deposit"),
+                    help="SweepSolver.first_collision")
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver.phase_order values to run (\"auto\" or integers)")
     C.add_quick(ap)
@@ -184,7 +187,7 @@ def main(argv=None):
         for (N, M), order in ((s, o) for s in settings for o in orders):
             t = time.perf_counter()
             images, info = run_setting(scene, N, M, args.tol, args.max_iterations, order,
-                                       args.scheme)
+                                       args.scheme, args.first_collision)
             for cam, img in images.items():
                 ref, noise = C.reference(scene, cam, args.references)
                 m = C.compare(img, ref, noise)
