@@ -507,10 +507,12 @@ class SweepModel(AbstractForwardModel):
         if depth <= THICK_STEP:
             return None
         need = math.ceil(self.resolution * depth / THICK_STEP)
+        how = ("a sunlit one gains light, which first_collision=deposit conserves"
+               if self.solver.first_collision == "beam" else "a sunlit one reads dark")
         return (f"one lattice step is optically thick (σ_t·h·M = {depth:.3g} > {THICK_STEP:g} at "
                 f"resolution {self.resolution}, M = {self.solver.M}): the light is coarse inside "
-                f"the fog, and thick fog's surface can be off by 5-30% (a sunlit one gains "
-                f"light; docs/validation.md); resolution >= {need} (or a smaller M) brings the "
+                f"the fog, and thick fog's surface can be off by 5-30% ({how}; "
+                f"docs/validation.md); resolution >= {need} (or a smaller M) brings the "
                 f"step to {THICK_STEP:g}")
 
     def layer_warning(self, params: Params) -> str | None:
