@@ -20,7 +20,8 @@ from difffog import Params, SweepSolver
 from difffog.forward.sweep._solver import _sources, _sweep_all
 from difffog.geometry._directions import FACE_AXES
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import kernels_agree, random_face_geometry, slab_table_reference
+from helpers import (assert_light_gradient, kernels_agree, random_face_geometry,
+                     slab_table_reference)
 
 
 @pytest.mark.parametrize("tau", [1e-4, 0.3, 0.7, 3.0, 40.0])
@@ -165,22 +166,7 @@ def test_gradients_match_finite_differences(x64):
     scene, lat, _ = slab_problem(16.0, 0.95, 12, 2, sun=(1.5, 30.0), sky=0.3)
     solver = SweepSolver(M=2, max_iterations=2000, tol=1e-12, adjoint_rtol=1e-11,
                          scheme="linear", sky_quadrature=(4, 8))
-    geom = solver.prepare(scene, lat)
-    p0 = Params.from_scene(scene, jnp.float64)
-    wt = jnp.asarray(np.random.default_rng(5).random(geom.shape))
-
-    def loss(p):
-        light = solver.solve(geom, p)
-        return jnp.sum(wt * light.fluence)
-
-    f = jax.jit(loss)
-    g = jax.jit(jax.grad(loss))(p0)
-    for path in ("fog.scattering", "fog.absorption", "sun.irradiance", "sky.radiance"):
-        v = float(df.get_param(p0, scene, path))
-        eps = 1e-5 * v
-        fd = (float(f(df.set_param(p0, scene, path, v + eps)))
-              - float(f(df.set_param(p0, scene, path, v - eps)))) / (2 * eps)
-        assert float(df.get_param(g, scene, path)) == pytest.approx(fd, rel=1e-6), path
+    assert_light_gradient(solver, scene, lat, seed=5)
 
 
 def test_scheme_is_checked_and_reaches_the_command_line():

@@ -20,7 +20,7 @@ from difffog import Params, SweepSolver
 from difffog.study._semi_infinite import semi_infinite_radiance, semi_infinite_value
 from difffog.study._semi_infinite import thick_cube as _thick_cube
 from difffog.study._slab import slab_exits, slab_problem, slab_reflectance
-from helpers import adding_doubling, slab_table_reference
+from helpers import adding_doubling, assert_light_gradient, slab_table_reference
 
 # the step scheme's balance, whose formal solution (slab_reflectance) matches its boundary cells;
 # the linear scheme's conservation is tested by its exit flux (test_linear_scheme.py)
@@ -106,20 +106,7 @@ def test_a_gradient_through_the_deposit_first_collision_matches_finite_differenc
     scene, lat, _ = slab_problem(8.0, 0.95, 8, 2, sun=(1.5, 30.0), sky=0.3)
     solver = SweepSolver(M=2, max_iterations=2000, tol=1e-12, adjoint_rtol=1e-11,
                          scheme="step", sky_quadrature=(4, 8), first_collision="deposit")
-    geom = solver.prepare(scene, lat)
-    p0 = Params.from_scene(scene, jnp.float64)
-    wt = jnp.asarray(np.random.default_rng(7).random(geom.shape))
-
-    def loss(p):
-        return jnp.sum(wt * solver.solve(geom, p).fluence)
-
-    f, g = jax.jit(loss), jax.jit(jax.grad(loss))(p0)
-    for path in ("fog.scattering", "fog.absorption", "sun.irradiance", "sky.radiance"):
-        v = float(df.get_param(p0, scene, path))
-        eps = 1e-5 * v
-        fd = (float(f(df.set_param(p0, scene, path, v + eps)))
-              - float(f(df.set_param(p0, scene, path, v - eps)))) / (2 * eps)
-        assert float(df.get_param(g, scene, path)) == pytest.approx(fd, rel=1e-6), path
+    assert_light_gradient(solver, scene, lat, seed=7)
 
 
 def test_first_collision_is_checked_and_reaches_the_command_line():
