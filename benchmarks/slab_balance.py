@@ -68,7 +68,7 @@ def solve_row(albedo, tau, ill, N, M, scheme, tol, first_collision="beam"):
 
     from difffog import Params, SweepSolver
     from difffog.study import slab_problem, slab_reflectance
-    from difffog.study._slab import slab_exits
+    from difffog.study._slab import slab_absorption, slab_exits
 
     sun = None if ill == "diffuse" else (1.0, float(ill[4:]))
     sky = 1.0 if sun is None else 0.0
@@ -84,9 +84,7 @@ def solve_row(albedo, tau, ill, N, M, scheme, tol, first_collision="beam"):
     slope = None if light.source_slope is None else np.asarray(light.source_slope)[0, 0, :, 2]
     R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h,
                             sky=sky, sun=sun, slope=slope)
-    fl = np.asarray(light.fluence + light.sky_fluence + light.sun_fluence, np.float64)[0, 0]
-    incident = math.pi * sky + (0.0 if sun is None else math.cos(math.radians(sun[1])))
-    A = float(np.sum((1.0 - albedo) * sigma * fl) * lat.h) / incident
+    A = slab_absorption(sigma, light, albedo, lat.h, sky=sky, sun=sun)
     R_lat, T_lat = slab_exits(solver, geom, p, light, margin, sky=sky, sun=sun)
     jax.clear_caches()  # one program per row: without this a long run exhausts LLVM's memory
     return dict(R=R, T=T, A=A, balance=R + T + A - 1.0, R_lattice=R_lat, T_lattice=T_lat,

@@ -19,7 +19,7 @@ import difffog as df
 from difffog import Params, SweepSolver
 from difffog.study._semi_infinite import semi_infinite_radiance, semi_infinite_value
 from difffog.study._semi_infinite import thick_cube as _thick_cube
-from difffog.study._slab import slab_exits, slab_problem, slab_reflectance
+from difffog.study._slab import slab_absorption, slab_exits, slab_problem, slab_reflectance
 from helpers import adding_doubling, assert_light_gradient, slab_table_reference
 
 # the step scheme's balance, whose formal solution (slab_reflectance) matches its boundary cells;
@@ -49,7 +49,7 @@ def test_thick_slab_conserves_energy(albedo, tau, x64):
     slope = None if light.source_slope is None else np.asarray(light.source_slope)[0, 0, :, 2]
     R, T = slab_reflectance(sigma, np.asarray(light.source)[0, 0], None, margin, lat.h, sky=1.0,
                             slope=slope)
-    A = float(np.sum((1 - albedo) * sigma * np.asarray(light.fluence)[0, 0] * lat.h)) / math.pi
+    A = slab_absorption(sigma, light, albedo, lat.h, sky=1.0)
     r_err, balance = THICK_SLABS[(albedo, tau)]
     assert abs(R + T + A - 1) <= balance, (R, T, A)
     R_ad, _ = adding_doubling(albedo, tau)
@@ -68,8 +68,7 @@ def _lattice_balance(albedo, tau, zenith, n_fog=16, M=2, first_collision="beam")
     assert int(light.result) == df.RESULTS.successful
     R, T = slab_exits(solver, geom, p, light, margin, sky=0.0, sun=(1.0, zenith))
     sigma = np.asarray(solver.problem(geom, p).sigma_t)[0, 0]
-    fl = np.asarray(light.fluence + light.sun_fluence)[0, 0]
-    A = float(np.sum((1 - albedo) * sigma * fl) * lat.h) / math.cos(math.radians(zenith))
+    A = slab_absorption(sigma, light, albedo, lat.h, sky=0.0, sun=(1.0, zenith))
     return R, T, R + T + A - 1
 
 

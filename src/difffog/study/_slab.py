@@ -80,6 +80,23 @@ def slab_problem(tau: float, albedo: float, n_fog: int, M: int, *, sky: float = 
     return scene, lat, margin
 
 
+def incident_flux(sky: float, sun: tuple[float, float] | None = None) -> float:
+    """The flux a slab receives: π·sky, plus F·μ₀ for a sun (F, zenith in degrees)."""
+    flux = math.pi * sky
+    if sun is not None:
+        flux += sun[0] * math.cos(math.radians(sun[1]))
+    return flux
+
+
+def slab_absorption(sigma_t, light, albedo: float, h: float, *, sky: float,
+                    sun: tuple[float, float] | None = None) -> float:
+    """A of a slab column from its solve's own fluence, (1 − a)·Σ σ_t·(Λ + the uncollided
+    sky and sun)·h over the incident flux; ``sigma_t`` (nz,) the column's extinction."""
+    fl = np.asarray(light.fluence + light.sky_fluence + light.sun_fluence, np.float64)[0, 0]
+    absorbed = float(np.sum((1.0 - albedo) * np.asarray(sigma_t, np.float64) * fl) * h)
+    return absorbed / incident_flux(sky, sun)
+
+
 def slab_exits(solver, geom, params, light, margin: int, *, sky: float,
                sun: tuple[float, float] | None = None):
     """(R, T) of a slab column as the lattice itself lets light out: the net flux of the
@@ -104,12 +121,11 @@ def slab_exits(solver, geom, params, light, margin: int, *, sky: float,
     nz = flux.shape[0]
     top = flux[nz - margin + M : nz - margin + 2 * M].mean()  # planes M+1..2M above the fog
     bottom = flux[margin - 2 * M : margin - M].mean()
-    incident = math.pi * sky
+    incident = incident_flux(sky, sun)
     direct = 0.0
     if sun is not None:
         F, zen = sun
         mu0 = math.cos(math.radians(zen))
-        incident += F * mu0
         sigma = np.asarray(pb.sigma_t, np.float64)[0, 0]
         direct = F * mu0 * math.exp(-float(sigma.sum() * geom.h) / mu0)
     # the lattice carries the sky (periodic default): net = up − π·sky at the top
