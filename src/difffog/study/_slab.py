@@ -206,11 +206,10 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     down = down + sky * np.exp(-total / mu)
     flux_up = 2 * math.pi * (wmu * mu * up).sum()
     flux_down = 2 * math.pi * (wmu * mu * down).sum()
-    incident = math.pi * sky
+    incident = incident_flux(sky, sun)
     if sun is not None:
         F, zen = sun
         mu0 = math.cos(math.radians(zen))
-        incident += F * mu0
         total_sun = total if sun_scatter is None else float(np.sum(sun_scatter[3]) * h)
         flux_down += F * mu0 * math.exp(-total_sun / mu0)
     return flux_up / incident, flux_down / incident
