@@ -833,7 +833,7 @@ class SweepSolver(eqx.Module):
         the first collision scatters exactly what the beams lose, at any step optical depth
         (that slab: within 2.5%).  Measured (docs/validation.md): cloud-tomo-b 2.04 → 1.69%
         and cloud-plane's oblique view 8.6 → 7.7% from Mitsuba at N = 32; issue 14's thick
-        cube 9–17% under the half-space value where a step spans 8–80 mean free paths, which
+        cube 9–17% under the half-space value where one node spans 4–80 mean free paths, which
         "beam" meets within 4% by its extra light (both reach the cube's own limit, 0.729 at
         ζ = 100, by N = 192).  The same in thin fog.  The linear scheme's first-collision
         slope stays the beam's own.
