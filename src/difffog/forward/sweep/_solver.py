@@ -454,10 +454,11 @@ def segment_depth(sigma_t, M: int, axis: int, periodic: bool):
     return acc / M
 
 
-def _deposit_average(x, sigma_t, solid, M: int, periodic_xy: bool):
+def _deposit_average(x, sigma_t, sigma_box, solid, M: int, periodic_xy: bool):
     """The uncollided beam ``x`` (nx, ny, nz[, K]) as the lattice's first-collision source
     must see it: Σ_a box_a(σ_t·x) / Σ_a box_a(σ_t), the box filters of ``segment_depth`` along
-    the three axes.
+    the three axes; ``sigma_box`` is the denominator, Σ_a box_a(σ_t), which the problem's
+    segment depths already hold.
 
     A node's beams remove light at the box-filtered σ̄ of each axis, and it re-emits what they
     remove; the uncollided sun and sky lose light at each node's own σ_t.  With the beam's own
@@ -472,11 +473,10 @@ def _deposit_average(x, sigma_t, solid, M: int, periodic_xy: bool):
     def box(a, axis):
         return segment_depth(a, M, axis, periodic_xy and axis < 2)
 
-    sx = sigma_t[..., None] * x if x.ndim > sigma_t.ndim else sigma_t * x
+    extra = x.ndim > sigma_t.ndim  # moments: (nx, ny, nz, K)
+    sx = sigma_t[..., None] * x if extra else sigma_t * x
     num = sum(box(sx, axis) for axis in range(3))
-    den = sum(box(sigma_t, axis) for axis in range(3))
-    if x.ndim > sigma_t.ndim:
-        den = den[..., None]
+    den = sigma_box[..., None] if extra else sigma_box
     avg = jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), x)
     return _mask(solid, avg)
 
@@ -1029,8 +1029,12 @@ class SweepSolver(eqx.Module):
         sun_fluence = jnp.where(geom.solid, 0.0, sun_fluence)
         sun_beam, sky_beam, sky_moments_beam = sun_fluence, sky_fluence, sky_moments
         if self.first_collision == "deposit":
+            # Σ_a box_a(σ_t), from the + faces' σ̄·h/2 (0 in solids, where the average is 0)
+            sigma_box = sum(tau_world[FACE_AXES.index((a, 1))] for a in range(3)) / (geom.h / 2)
+
             def dep(x):
-                return _deposit_average(x, sigma_t, geom.solid, geom.M, geom.periodic_xy)
+                return _deposit_average(x, sigma_t, sigma_box, geom.solid, geom.M,
+                                        geom.periodic_xy)
 
             sun_fluence = dep(sun_beam)
             sky_fluence = dep(sky_fluence)
