@@ -259,13 +259,17 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
         f"{c}_{k}" for c in ("top", "oblique")
         for k in ("fit.npy", "target.npy", "residual.npy", "fit.png")])
     rep = json.loads((out / "fit.json").read_text())
-    assert rep["estimates"]["fog.scattering"] == pytest.approx(2.0, rel=1e-3)
-    assert rep["estimates"]["fog.absorption"] == pytest.approx(0.5, rel=1e-3)
+    # the targets are the N = 12 model's own: its fit finds them
+    assert rep["fitted"]["fog.scattering"] == pytest.approx(2.0, rel=1e-3)
+    assert rep["fitted"]["fog.absorption"] == pytest.approx(0.5, rel=1e-3)
     assert set(rep["stderr"]) == {"fog.scattering", "fog.absorption"}
-    # --model-error refine (the default): the model's own error, from a render at N = 24
+    # --model-error refine (the default): the estimate is that fit corrected to N = 24, and
+    # the model's own error is the correction (first order, doubled lattice)
     assert [lv["resolution"] for lv in rep["ladder"]] == [12, 24]
+    assert rep["estimates"] == rep["ladder"][1]["estimates"]
     for path in ("fog.scattering", "fog.absorption"):
-        assert rep["model_error"][path] > 0
+        shift = abs(rep["estimates"][path] - rep["fitted"][path])
+        assert rep["model_error"][path] == pytest.approx(shift) and shift > 0
         assert rep["uncertainty"][path] >= max(rep["stderr"][path], rep["model_error"][path])
     assert len(rep["correlation"]) == 2 and rep["converged"]
     assert rep["settings"]["forward"] == "sweep" and rep["settings"]["optimizer"] == "lm"

@@ -683,13 +683,62 @@ def test_refine_resolution_arguments():
         _refine_resolution(fog_balls, object(), 24, None, "refine", ())
 
 
+class LatticeToy(Toy):
+    """The Toy with a first-order discretization error: its ζ reads (1 + 1/N) too strong on a
+    lattice of N, as a coarse sweep's images are off by O(h)."""
+
+    resolution: int = eqx.field(static=True)
+
+    def __init__(self, resolution=10):
+        super().__init__()
+        self.resolution = resolution
+
+    def images_from(self, light, p):
+        img = super().images_from(light, p)["top"]
+        return {"top": img + p.scattering * p.sun_irradiance * self.a / self.resolution}
+
+    def at_resolution(self, n):
+        return LatticeToy(n)
+
+
+def test_refine_corrects_the_estimate_to_the_finer_lattice():
+    """model_error="refine" returns the fit corrected to the doubled lattice (the Toy's images
+    are linear in the unknowns, so one Gauss–Newton step lands on the finer lattice's own
+    best fit, up to the log coordinate's curvature), keeps the fit itself in ``fitted``, and
+    states the corrected estimate's first-order error, |corrected − fitted|·N/(N_f − N),
+    which covers the truth (the limit N → ∞)."""
+    zeta, gamma = 1.5, 0.3
+    truth = {"fog.scattering": zeta, "fog.absorption": gamma}
+    exact = LatticeToy(10**9)  # the targets: the model without its discretization error
+    target = _toy_target(exact, **truth)
+    res = df.fit(exact.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
+                 forward=LatticeToy(10), model_error="refine")
+    assert res.converged, res.message
+    assert res.fitted["fog.scattering"] == pytest.approx(zeta / 1.1, rel=1e-4)
+    assert res.estimates["fog.scattering"] == pytest.approx(zeta / 1.05, rel=2e-3)
+    assert res.fitted["fog.absorption"] == pytest.approx(gamma, rel=1e-3)
+    assert res.estimates["fog.absorption"] == pytest.approx(gamma, rel=1e-3)
+    assert [lv["resolution"] for lv in res.ladder] == [10, 20]
+    me = res.model_error["fog.scattering"]
+    assert me == pytest.approx(abs(res.estimates["fog.scattering"] - res.fitted["fog.scattering"]))
+    assert abs(res.estimates["fog.scattering"] - zeta) <= 1.5 * res.uncertainty["fog.scattering"]
+    assert res.uncertainty["fog.scattering"] >= me
+    rep = res.to_json()
+    assert rep["fitted"] == res.fitted and rep["estimates"] == res.estimates
+    assert "corrected to N = 20" in res.summary()
+    plain = df.fit(exact.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
+                   forward=LatticeToy(10))
+    assert plain.estimates == pytest.approx(res.fitted) and plain.to_json()["fitted"] == plain.estimates
+
+
 @pytest.mark.slow  # two fits and two compiled models (~4 min on 2 cores)
 def test_refined_model_error_predicts_the_finer_fit_and_covers_the_truth():
     """Targets rendered on a finer lattice (N = 32) than the fit's (12): model_error=24 renders
     the fitted model at N = 24 once and predicts, by one Gauss–Newton step, the estimate a fit
-    at N = 24 reaches (checked against that fit: measured −0.147 against −0.145 in ζ); the
-    total uncertainty (× 2, first order in the voxel size) covers the truth where the
-    noise-only standard error does not.  Each predicted shift is held to 20% of the finer
+    at N = 24 reaches (checked against that fit: measured −0.147 against −0.145 in ζ), which
+    becomes the estimate; its total uncertainty (the step × 12/(24 − 12), first order in the
+    voxel size) covers the truth, where the noise-only standard error of the N = 12 fit does
+    not cover that fit's error.  Each predicted shift is held to 20% of the finer
     fit's, or a quarter of the unknown's noise standard error where that is larger: the
     walls' albedo moves by less than one standard error (predicted +0.00066, the finer fit
     +0.00050, standard error 0.00085), and 20% of so small a shift would test the noise of one
@@ -705,13 +754,17 @@ def test_refined_model_error_predicts_the_finer_fit_and_covers_the_truth():
     assert res.converged, res.message
     finer = df.fit(scene, targets, start, resolution=24, **kw)
     predicted = res.ladder[1]["estimates"]
+    assert predicted == res.estimates  # the estimate is the fit corrected to N = 24
     for path, v in FIT_TRUTH.items():
-        shift = predicted[path] - res.estimates[path]
-        actual = finer.estimates[path] - res.estimates[path]
+        shift = predicted[path] - res.fitted[path]
+        actual = finer.estimates[path] - res.fitted[path]
         assert shift == pytest.approx(actual, rel=0.2, abs=0.25 * res.stderr[path]), path
-        err = abs(res.estimates[path] - v)
+        err = abs(res.fitted[path] - v)
         assert err > 2 * res.stderr[path]  # the noise-only error bar misses the model's error
+        err = abs(res.estimates[path] - v)
         assert err <= 3 * res.uncertainty[path], (path, err, res.uncertainty[path])
+    zeta = "fog.scattering"  # the unknown the lattice moves most: the correction helps
+    assert abs(res.estimates[zeta] - FIT_TRUTH[zeta]) < abs(res.fitted[zeta] - FIT_TRUTH[zeta])
     assert "model error" in res.summary()
 
 

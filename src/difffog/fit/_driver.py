@@ -427,10 +427,12 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     model_error: the forward model's own error in each estimate, added to the standard error
         in ``uncertainty``: "refine" (for a named solver) renders the fitted model once more at
         the estimate on a lattice twice as fine (or at the resolution given as an int), takes
-        the Gauss–Newton step that image change would cause, J⁺·Δy (the estimate a fit with
-        the finer model would reach, to first order), and extrapolates it to first order in
-        the voxel size (× N_f/(N_f − N): 2 for a doubled lattice).  One light solve and the
-        images at the finer resolution, after the fit.  None (default): no estimate.
+        the Gauss–Newton step that image change would cause, J⁺·Δy: to first order the
+        estimate a fit with the finer model would reach.  That corrected estimate is returned
+        in ``estimates`` (the fit at ``resolution`` itself in ``fitted``, with its images), and
+        its own error, first order in the voxel size, is the step × N/(N_f − N) (1 for a
+        doubled lattice): its ``model_error``.  One light solve and the images at the finer
+        resolution, after the fit.  None (default): no correction, no estimate.
     callback: called after every step with that step's history entry (of the last level).
 
     The result is "light_solve_failed" (not converged) when the light solve at the estimate
@@ -518,14 +520,19 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
     dy = sqrt_w * (y_f.astype(np.float64) - y) / scale  # in the residual's units
     du = -np.linalg.lstsq(J, dy, rcond=None)[0]  # the Gauss–Newton step the finer model takes
-    dv = np.array([c.dv_du(float(x)) for c, x in zip(st.coords, u)]) * du
-    factor = fine_n / (fine_n - n)  # θ(h) = θ* + c·h: θ(h) − θ* = (θ(h) − θ(h_f))·h/(h − h_f)
-    res.model_error = {p: float(factor * abs(x)) for p, x in zip(res.paths, dv)}
+    # the estimate corrected to the finer lattice: the step taken in the unconstrained
+    # coordinates, so a corrected albedo stays inside its bounds
+    refined = {p: float(c.to_v(float(x) + float(d)))
+               for p, c, x, d in zip(res.paths, st.coords, u, du)}
+    # θ(h) = θ* + c·h: the corrected estimate stands for θ(h_f), whose own error is
+    # θ(h_f) − θ* = (θ(h) − θ(h_f))·h_f/(h − h_f) = shift·N/(N_f − N) (1 for a doubled lattice)
+    factor = n / (fine_n - n)
+    res.fitted = dict(res.estimates)
+    res.estimates = refined
+    res.model_error = {p: float(factor * abs(refined[p] - res.fitted[p])) for p in res.paths}
     res.uncertainty = {p: math.hypot(res.stderr[p], res.model_error[p]) for p in res.paths}
-    res.ladder = [{"resolution": n, "estimates": dict(res.estimates)},
-                  {"resolution": fine_n, "estimates": {p: res.estimates[p] + float(x)
-                                                       for p, x in zip(res.paths, dv)},
-                   "linearized": True}]
+    res.ladder = [{"resolution": n, "estimates": dict(res.fitted)},
+                  {"resolution": fine_n, "estimates": dict(refined), "linearized": True}]
     return res
 
 

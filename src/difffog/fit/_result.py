@@ -43,9 +43,13 @@ class FitResult:
         channel, ...; ``_images.load_target``) for the targets given as files.
     mask_files: {camera: path} for the weights given as files.
     model_error: {path: value}: the forward model's own discretization error in each estimate,
-        from the fit's resolution ladder (``fit(ladder=...)``); empty without a ladder.
+        from ``fit(model_error="refine")`` or the resolution ladder (``fit(ladder=...)``);
+        empty without either.
     uncertainty: {path: value}: the total, one standard deviation: √(stderr² + model_error²)
-        (the standard error alone without a ladder).
+        (the standard error alone without a model error).
+    fitted: {path: value}: with ``model_error="refine"``, the best fit of the model at the
+        fit's own resolution, the point ``images`` are rendered at; ``estimates`` are then that
+        fit corrected to the finer lattice by one Gauss–Newton step.  Otherwise the estimates.
     ladder: one dict per level of the ladder (resolution, estimates, iterations, time_s,
         result).
     """
@@ -72,6 +76,7 @@ class FitResult:
     model_error: dict = field(default_factory=dict)
     uncertainty: dict = field(default_factory=dict)
     ladder: list = field(default_factory=list)
+    fitted: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -83,15 +88,22 @@ class FitResult:
     def summary(self, truth: Mapping[str, float] | None = None) -> str:
         w = max(len(p) for p in self.paths)
         model = bool(self.model_error)
-        head = f"{'unknown':<{w}}  {'initial':>10}  {'estimate':>10}  {'std err':>9}"
+        corrected = bool(self.fitted) and self.fitted != self.estimates
+        head = f"{'unknown':<{w}}  {'initial':>10}  "
+        if corrected:
+            fit_n = "fit N=" + str(self.ladder[0]["resolution"])
+            head += f"{fit_n:>10}  "
+        head += f"{'estimate':>10}  {'std err':>9}"
         if model:
             head += f"  {'model err':>9}  {'total ±':>9}"
         if truth:
             head += f"  {'truth':>10}  {'error %':>8}"
         lines = [head, "-" * len(head)]
         for p in self.paths:
-            s = (f"{p:<{w}}  {self.initial[p]:>10.4g}  {self.estimates[p]:>10.4g}  "
-                 f"{self.stderr[p]:>9.2g}")
+            s = f"{p:<{w}}  {self.initial[p]:>10.4g}  "
+            if corrected:
+                s += f"{self.fitted[p]:>10.4g}  "
+            s += f"{self.estimates[p]:>10.4g}  {self.stderr[p]:>9.2g}"
             if model:
                 s += f"  {self.model_error[p]:>9.2g}  {self.uncertainty[p]:>9.2g}"
             if truth and p in truth:
@@ -106,6 +118,11 @@ class FitResult:
                 f"{k}: {', '.join(v)}" for k, v in by.items() if v)
                 + " (model error from resolution "
                 + " → ".join(str(lv["resolution"]) for lv in self.ladder) + ")")
+        if corrected:
+            lines.append(f"estimate: the fit at N = {self.ladder[0]['resolution']} corrected to "
+                         f"N = {self.ladder[1]['resolution']} by one Gauss–Newton step on that "
+                         f"lattice's images (the fitted images are at the N = "
+                         f"{self.ladder[0]['resolution']} fit)")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
         for cam, f in self.target_files.items():
@@ -148,6 +165,7 @@ class FitResult:
             "model_error": _finite_or_none(self.model_error),
             "uncertainty": _finite_or_none(self.uncertainty),
             "ladder": self.ladder,
+            "fitted": self.fitted or self.estimates,
         }
 
 
