@@ -334,7 +334,8 @@ def save_comparison_png(path, scene: str, camera: str, ours, ref, label: str, m:
 # ----------------------------------------------------------------------------- fits
 def fit_model(scene, cameras, resolution: int, M: int, downsample: int):
     """The sweep model a fit of ``cameras`` uses (the registry's fit defaults at
-    ``resolution`` and ``M``, each camera reduced by ``downsample``), built once so that
+    ``resolution`` and ``M``, each camera reduced by ``downsample``, 16·downsample rays in a
+    pixel that straddles an edge), built once so that
     several fits (``difffog.fit(..., forward=model)``) share its compiled step."""
     import dataclasses
 
@@ -345,7 +346,8 @@ def fit_model(scene, cameras, resolution: int, M: int, downsample: int):
         c = scene.camera(name)
         cams.append(dataclasses.replace(c, resolution=(c.width // downsample,
                                                        c.height // downsample)))
-    settings = {**df.SOLVERS["sweep"].fit_defaults, "resolution": resolution, "M": M}
+    settings = {**df.SOLVERS["sweep"].fit_defaults, "resolution": resolution, "M": M,
+                "edge_samples": 16 * downsample}  # as difffog.fit's own model (make_model)
     return df.forward_model(scene, "sweep", accuracy=None, cameras=cams, **settings)
 
 

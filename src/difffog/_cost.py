@@ -232,10 +232,11 @@ def _cameras(scene, cameras):
     return [c for c in scene.cameras if cameras is None or c.name in cameras]
 
 
-def camera_rays(scene, cameras, supersample: int, edge_samples: bool = True) -> int:
-    """Rays the cameras cast: supersample² per pixel (+ the sweep's edge re-samples)."""
+def camera_rays(scene, cameras, supersample: int, edge_samples: int = EDGE_SAMPLES) -> int:
+    """Rays the cameras cast: supersample² per pixel (+ the sweep's edge re-samples, 0 for
+    none)."""
     px = sum(c.width * c.height for c in _cameras(scene, cameras))
-    extra = EDGE_FRACTION * EDGE_SAMPLES if edge_samples else 0.0
+    extra = EDGE_FRACTION * int(edge_samples)
     return int(px * (supersample ** 2 + extra))
 
 
@@ -246,7 +247,7 @@ def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras
     f = 4  # float32
     shape = lattice_shape(scene, resolution, 0)
     n = math.prod(shape)
-    rays = camera_rays(scene, cameras, int(supersample), edge_samples=False)
+    rays = camera_rays(scene, cameras, int(supersample), edge_samples=0)
     ext = max(shape)
     K = int(sheets) if sheets else int(math.ceil(math.sqrt(3) * ext)) + 2
     texels = int((math.sqrt(2) * ext + 8) ** 2)
@@ -265,7 +266,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
                    cameras=None, restart: int = 30, backend: str | None = None,
                    kernel: str = "auto", gradient: bool = False, tangent_solves: int = 0,
                    phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
-                   sweep_residuals: str = "auto", **_ignored) -> CostEstimate:
+                   sweep_residuals: str = "auto", edge_samples: int = EDGE_SAMPLES,
+                   **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
@@ -287,7 +289,7 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     shape = lattice_shape(scene, resolution, M + 1)
     n = math.prod(shape)
     D = (2 * M + 1) ** 2
-    rays = camera_rays(scene, cameras, int(supersample))
+    rays = camera_rays(scene, cameras, int(supersample), int(edge_samples))
     surfaces = bool(scene.shapes)
     from .forward.sweep._solver import SweepSolver
 

@@ -77,7 +77,8 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
                  phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
-                 sweep_residuals: str = "auto", first_collision: str = "beam"):
+                 sweep_residuals: str = "auto", first_collision: str = "beam",
+                 edge_samples: int = 16):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 
@@ -88,7 +89,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                          phase_order=phase_order, scheme=scheme, tangents=tangents,
                          sweep_residuals=sweep_residuals, first_collision=first_collision)
     return SweepModel(scene, resolution=resolution, solver=solver, supersample=supersample,
-                      cameras=cameras)
+                      cameras=cameras, edge_samples=edge_samples)
 
 
 def _build_splat(scene, *, cameras=None, resolution: int = 64, sheets: int | None = None,

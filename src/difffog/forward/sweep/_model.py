@@ -25,8 +25,8 @@ from ...scene._params import Params
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
-from ._march import (LatticeFields, RayHits, _flat_table, _interp, camera_hits, edge_pixels,
-                     render_camera)
+from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _flat_table, _interp, camera_hits,
+                     edge_pixels, render_camera)
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
@@ -408,6 +408,10 @@ class SweepModel(AbstractForwardModel):
     solver: the light solve's configuration (default ``SweepSolver(M=3)``).
     supersample: s×s stratified rays per pixel (box filter).
     cameras: names of the cameras to render (default: all), or Camera objects (e.g. reduced).
+    edge_samples: rays of a pixel that straddles an edge (Hammersley points, default 16): its
+        coverage of each side is right to ~1/(2·edge_samples) of the pixel's width.  A fit
+        that reduces its cameras k-fold uses 16·k, so that a reduced pixel's edges are placed
+        as finely as a full pixel's.
 
     Camera rays meet the shapes exactly (``hits``: cast on the host once per camera, see
     ``_march.RayHits``); only a periodic-xy domain with shapes (which the host caster does not
@@ -424,14 +428,19 @@ class SweepModel(AbstractForwardModel):
     density_ops: DensityOperators | None  # a density grid's linear maps (``Params.density``)
     resolution: int = eqx.field(static=True)
     supersample: int = eqx.field(static=True)
+    edge_samples: int = eqx.field(static=True)
     host: HostInfo = eqx.field(static=True)
 
     def __init__(self, scene: Scene, *, resolution: int = 64, solver: SweepSolver | None = None,
-                 supersample: int = 2, cameras=None):
+                 supersample: int = 2, cameras=None, edge_samples: int = EDGE_SAMPLES):
         check_point_sun(scene)  # before any work
         self.scene = scene
         self.solver = solver if solver is not None else SweepSolver()
         self.supersample = int(supersample)
+        self.edge_samples = int(edge_samples)
+        if self.edge_samples < 1:
+            raise SceneError(f"edge_samples={edge_samples!r}: give a positive number of rays "
+                             f"for a pixel that straddles an edge (default {EDGE_SAMPLES})")
         self.resolution = int(resolution)
         self.cameras = select_cameras(scene, cameras)
         t = time.perf_counter()
@@ -462,7 +471,8 @@ class SweepModel(AbstractForwardModel):
                 fog, sun_box = np.asarray(fog).reshape(-1)[sharp].reshape(sharp.shape), cg.fog_box
             self.hits = tuple(
                 camera_hits(scene, c, self.supersample, fog, lattice.origin, lattice.h,
-                            lattice.shape, periodic, sun_box=sun_box) for c in self.cameras)
+                            lattice.shape, periodic, edge_samples=self.edge_samples,
+                            sun_box=sun_box) for c in self.cameras)
             hit_fog = np.asarray(fog)
         else:
             self.hits = None
@@ -476,7 +486,16 @@ class SweepModel(AbstractForwardModel):
     def at_resolution(self, resolution: int) -> "SweepModel":
         """The same model (scene, cameras, solver, supersampling) on another lattice."""
         return SweepModel(self.scene, resolution=resolution, solver=self.solver,
-                          supersample=self.supersample, cameras=self.cameras)
+                          supersample=self.supersample, cameras=self.cameras,
+                          edge_samples=self.edge_samples)
+
+    def with_solver(self, solver: SweepSolver) -> "SweepModel":
+        """The same model (scene, cameras, lattice resolution, supersampling) with another
+        light solve, e.g. another direction set M (the lattice is built anew: its vacuum
+        margin and surface shell follow M)."""
+        return SweepModel(self.scene, resolution=self.resolution, solver=solver,
+                          supersample=self.supersample, cameras=self.cameras,
+                          edge_samples=self.edge_samples)
 
     @property
     def lattice(self) -> Lattice:
@@ -603,6 +622,7 @@ class SweepModel(AbstractForwardModel):
             "voxel_size": lat.h,
             "node_counts": lat.counts(),
             "supersample": self.supersample,
+            "edge_samples": self.edge_samples,
             "cameras": [c.name for c in self.cameras],
             "dtype": str(jnp.result_type(float)),
             "terms": ([] if self.geometry.terms is None
