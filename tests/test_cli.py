@@ -1,6 +1,7 @@
 """The command line: outputs on disk, exit codes and one-line errors."""
 
 import json
+import math
 import re
 import subprocess
 import sys
@@ -265,11 +266,16 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
     assert set(rep["stderr"]) == {"fog.scattering", "fog.absorption"}
     # --model-error refine (the default): the estimate is that fit corrected to N = 24, and
     # the model's own error is the correction (first order, doubled lattice)
-    assert [lv["resolution"] for lv in rep["ladder"]] == [12, 24]
+    # (and the checks of a lattice between, N = 18, and of the direction set, M = 3 at N = 12)
+    assert [(lv["resolution"], lv.get("M")) for lv in rep["ladder"]] == [
+        (12, None), (24, None), (18, None), (12, 3)]
     assert rep["estimates"] == rep["ladder"][1]["estimates"]
     for path in ("fog.scattering", "fog.absorption"):
         shift = abs(rep["estimates"][path] - rep["fitted"][path])
-        assert rep["model_error"][path] == pytest.approx(shift) and shift > 0
+        parts = rep["model_error_parts"][path]
+        assert parts["lattice"] == pytest.approx(shift) and shift > 0
+        assert rep["model_error"][path] == pytest.approx(math.sqrt(sum(
+            v * v for v in parts.values())))
         assert rep["uncertainty"][path] >= max(rep["stderr"][path], rep["model_error"][path])
     assert len(rep["correlation"]) == 2 and rep["converged"]
     assert rep["settings"]["forward"] == "sweep" and rep["settings"]["optimizer"] == "lm"

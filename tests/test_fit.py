@@ -706,7 +706,8 @@ def test_refine_corrects_the_estimate_to_the_finer_lattice():
     are linear in the unknowns, so one Gauss–Newton step lands on the finer lattice's own
     best fit, up to the log coordinate's curvature), keeps the fit itself in ``fitted``, and
     states the corrected estimate's first-order error, |corrected − fitted|·N/(N_f − N),
-    which covers the truth (the limit N → ∞)."""
+    which covers the truth (the limit N → ∞); a lattice between that lands on the first-order
+    line adds nothing."""
     zeta, gamma = 1.5, 0.3
     truth = {"fog.scattering": zeta, "fog.absorption": gamma}
     exact = LatticeToy(10**9)  # the targets: the model without its discretization error
@@ -718,9 +719,16 @@ def test_refine_corrects_the_estimate_to_the_finer_lattice():
     assert res.estimates["fog.scattering"] == pytest.approx(zeta / 1.05, rel=2e-3)
     assert res.fitted["fog.absorption"] == pytest.approx(gamma, rel=1e-3)
     assert res.estimates["fog.absorption"] == pytest.approx(gamma, rel=1e-3)
-    assert [lv["resolution"] for lv in res.ladder] == [10, 20]
+    assert [lv["resolution"] for lv in res.ladder] == [10, 20, 15]  # the fit, N_f, between
     me = res.model_error["fog.scattering"]
-    assert me == pytest.approx(abs(res.estimates["fog.scattering"] - res.fitted["fog.scattering"]))
+    parts = res.model_error_parts["fog.scattering"]
+    shift = abs(res.estimates["fog.scattering"] - res.fitted["fog.scattering"])
+    assert parts["lattice"] == pytest.approx(shift)
+    # N = 15 lies on the first-order line through N = 10 and 20 (up to the log coordinate's
+    # curvature): no erratic part; the Toy has no direction set
+    assert set(parts) == {"lattice", "lattice_between"}
+    assert parts["lattice_between"] < 0.02 * parts["lattice"]
+    assert me == pytest.approx(shift, rel=1e-3)
     assert abs(res.estimates["fog.scattering"] - zeta) <= 1.5 * res.uncertainty["fog.scattering"]
     assert res.uncertainty["fog.scattering"] >= me
     rep = res.to_json()
@@ -729,6 +737,38 @@ def test_refine_corrects_the_estimate_to_the_finer_lattice():
     plain = df.fit(exact.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
                    forward=LatticeToy(10))
     assert plain.estimates == pytest.approx(res.fitted) and plain.to_json()["fitted"] == plain.estimates
+
+
+class ErraticToy(LatticeToy):
+    """A lattice error that does not shrink with N: ζ reads 5% too strong on an even lattice,
+    5% too weak on an odd one (as where the nodes fall against a thin wall decides it)."""
+
+    def images_from(self, light, p):
+        img = Toy.images_from(self, light, p)["top"]
+        sign = 1.0 if self.resolution % 2 == 0 else -1.0
+        return {"top": img + sign * 0.05 * p.scattering * p.sun_irradiance * self.a}
+
+    def at_resolution(self, n):
+        return ErraticToy(n)
+
+
+def test_refine_sees_a_lattice_error_that_does_not_shrink():
+    """Fit at N = 10 and the doubled lattice agree (both even: the same +5%), so the first-order
+    part is nil; the lattice between (N = 15, odd) lands off that line by the whole swing, and
+    the total uncertainty covers the truth that the two even lattices alone would miss."""
+    zeta, gamma = 1.5, 0.3
+    truth = {"fog.scattering": zeta, "fog.absorption": gamma}
+    target = _toy_target(Toy(), **truth)
+    res = df.fit(Toy().scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
+                 forward=ErraticToy(10), model_error="refine")
+    assert res.converged, res.message
+    parts = res.model_error_parts["fog.scattering"]
+    assert res.estimates["fog.scattering"] == pytest.approx(zeta / 1.05, rel=1e-3)
+    assert parts["lattice"] < 1e-3 * zeta
+    # (one Gauss–Newton step in log ζ for a 10% swing: first order, not exact)
+    assert parts["lattice_between"] == pytest.approx(zeta / 0.95 - zeta / 1.05, rel=0.1)
+    err = abs(res.estimates["fog.scattering"] - zeta)
+    assert 10 * res.stderr["fog.scattering"] < err <= res.uncertainty["fog.scattering"]
 
 
 @pytest.mark.slow  # two fits and two compiled models (~4 min on 2 cores)

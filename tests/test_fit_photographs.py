@@ -442,7 +442,8 @@ def test_cli_fits_the_exposure_of_a_16bit_png(tmp_path, capsys):
     assert rep["initial"]["exposure"] == pytest.approx(gain, rel=1e-3)
     assert 0 < rep["stderr"]["exposure"] < 1e-3 * gain  # 16-bit quantization: tiny
     assert abs(rep["estimates"]["exposure"] - gain) == pytest.approx(
-        rep["model_error"]["exposure"], rel=1e-3)
+        rep["model_error_parts"]["exposure"]["lattice"], rel=1e-3)
+    assert rep["model_error"]["exposure"] >= rep["model_error_parts"]["exposure"]["lattice"]
     assert rep["target_files"]["top"] == {
         "path": str(tmp_path / "photo.png"), "format": "png", "dtype": "uint16",
         "transfer": "linear", "channel": "grey", "channels": ["Y"], "alpha": None,

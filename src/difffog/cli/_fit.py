@@ -84,11 +84,12 @@ def add_parser(sub) -> None:
                         "change, extrapolated to first order, is each estimate's model error, "
                         "added to its uncertainty in fit.json (default none: noise only)")
     p.add_argument("--model-error", default="refine", metavar="refine|none|N",
-                   help="estimate the model's own error in each estimate and add it to its "
-                        "uncertainty in fit.json: render the fitted model once more on a "
-                        "lattice twice as fine (or N) and take the Gauss-Newton step that "
-                        "image change causes, extrapolated to first order (default refine; "
-                        "none: noise only)")
+                   help="correct the estimates for the lattice and state its error: render "
+                        "the fitted model once more on a lattice twice as fine (or N) and take "
+                        "the Gauss-Newton step that image change causes; the estimates are the "
+                        "fit moved by it (fit.json's fitted: the fit itself), their model error "
+                        "that step to first order, added to the uncertainty (default refine; "
+                        "none: the fit itself, noise only)")
     p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
                    help="--unknown fog.density: the prior and its weight relative to the "
                         "images' mean squared misfit: tv=W (total variation) or smooth=W "

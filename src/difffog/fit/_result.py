@@ -51,7 +51,12 @@ class FitResult:
         fit's own resolution, the point ``images`` are rendered at; ``estimates`` are then that
         fit corrected to the finer lattice by one Gauss–Newton step.  Otherwise the estimates.
     ladder: one dict per level of the ladder (resolution, estimates, iterations, time_s,
-        result).
+        result); with ``model_error="refine"`` the fit and each finer model's linearized
+        estimate (resolution, M where it changes, estimates).
+    model_error_parts: with ``model_error="refine"``, {path: {part: value}}: the lattice's
+        first-order error ("lattice"), how far a lattice between lands from that first-order
+        line ("lattice_between") and the direction set's change with M + 1 ("directions"); ``model_error`` is their
+        root sum of squares.
     """
 
     paths: list[str]
@@ -77,6 +82,7 @@ class FitResult:
     uncertainty: dict = field(default_factory=dict)
     ladder: list = field(default_factory=list)
     fitted: dict = field(default_factory=dict)
+    model_error_parts: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -114,10 +120,15 @@ class FitResult:
             for p in self.paths:
                 if math.isfinite(self.model_error[p]) and math.isfinite(self.stderr[p]):
                     by["model error" if self.model_error[p] > self.stderr[p] else "noise"].append(p)
+            if self.model_error_parts:
+                checks = [f"N = {lv['resolution']}" + (f", M = {lv['M']}" if "M" in lv else "")
+                          for lv in self.ladder[1:]]
+                source = "model error from " + "; ".join(checks)
+            else:
+                source = ("model error from resolution "
+                          + " → ".join(str(lv["resolution"]) for lv in self.ladder))
             lines.append("uncertainty dominated by " + "; ".join(
-                f"{k}: {', '.join(v)}" for k, v in by.items() if v)
-                + " (model error from resolution "
-                + " → ".join(str(lv["resolution"]) for lv in self.ladder) + ")")
+                f"{k}: {', '.join(v)}" for k, v in by.items() if v) + f" ({source})")
         if corrected:
             lines.append(f"estimate: the fit at N = {self.ladder[0]['resolution']} corrected to "
                          f"N = {self.ladder[1]['resolution']} by one Gauss–Newton step on that "
@@ -166,6 +177,7 @@ class FitResult:
             "uncertainty": _finite_or_none(self.uncertainty),
             "ladder": self.ladder,
             "fitted": self.fitted or self.estimates,
+            "model_error_parts": self.model_error_parts,
         }
 
 
