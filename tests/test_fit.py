@@ -771,6 +771,39 @@ def test_refine_sees_a_lattice_error_that_does_not_shrink():
     assert 10 * res.stderr["fog.scattering"] < err <= res.uncertainty["fog.scattering"]
 
 
+class UnconvergedBetweenToy(LatticeToy):
+    """The LatticeToy whose light solve does not converge on the lattice between (N = 15)."""
+
+    def light(self, params):
+        code = df.RESULTS.max_iterations_reached if self.resolution == 15 else df.RESULTS.successful
+        return ToyLight(result=jnp.asarray(code, jnp.int32),
+                        iterations=jnp.asarray(1, jnp.int32),
+                        error_estimate=jnp.asarray(0.0, params.scattering.dtype))
+
+    def at_resolution(self, n):
+        return UnconvergedBetweenToy(n)
+
+
+def test_refine_says_which_check_it_left_out():
+    """A check of the model error whose light solve fails is left out with a warning that
+    names it (the correction and the other parts stand); a failed correction leaves the fit
+    uncorrected, its model error NaN, and says so."""
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3}
+    target = _toy_target(LatticeToy(10**9), **truth)
+    start = {"fog.scattering": 0.5, "fog.absorption": 1.0}
+    res = df.fit(Toy().scene, target, start, forward=UnconvergedBetweenToy(10),
+                 model_error="refine")
+    assert res.estimates["fog.scattering"] == pytest.approx(1.5 / 1.05, rel=2e-3)
+    assert set(res.model_error_parts["fog.scattering"]) == {"lattice"}
+    assert any("leaves out its check at N = 15" in w and "max_iterations_reached" in w
+               for w in res.warnings), res.warnings
+    res = df.fit(Toy().scene, target, start, forward=UnconvergedBetweenToy(10), model_error=15)
+    assert res.estimates == res.fitted or not res.fitted  # not corrected
+    assert math.isnan(res.model_error["fog.scattering"])
+    assert any("the model error is not estimated: the light solve at N = 15" in w
+               for w in res.warnings), res.warnings
+
+
 @pytest.mark.slow  # two fits and two compiled models (~4 min on 2 cores)
 def test_refined_model_error_predicts_the_finer_fit_and_covers_the_truth():
     """Targets rendered on a finer lattice (N = 32) than the fit's (12): model_error=24 renders

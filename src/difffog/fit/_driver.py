@@ -548,12 +548,18 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     for what, model in _refined_models(scene, forward, st, fine_n, downsample, model_settings,
                                        len(res.paths)):
         y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u), (model, st.data)))
-        label = ", ".join(f"{k} {v}" for k, v in what.items())
+        label = ", ".join(f"{'N' if k == 'resolution' else k} = {v}" for k, v in what.items())
         if int(code) != RESULTS.successful:
-            res.warnings.append(f"the model error is not estimated: the light solve at {label} "
-                                f"did not converge ({RESULTS(int(code)).name})")
-            res.model_error = {p: float("nan") for p in res.paths}
-            return res
+            name = RESULTS(int(code)).name
+            if not moved:  # the correction itself
+                res.warnings.append(f"the model error is not estimated: the light solve at "
+                                    f"{label} did not converge ({name})")
+                res.model_error = {p: float("nan") for p in res.paths}
+                return res
+            res.warnings.append(f"the model error leaves out its check at {label}: that light "
+                                f"solve did not converge ({name}); the uncertainty may be too "
+                                f"small")
+            continue
         dy = sqrt_w * (y_f.astype(np.float64) - y) / scale  # in the residual's units
         du = -np.linalg.lstsq(J, dy, rcond=None)[0]  # the Gauss–Newton step that model takes
         # taken in the unconstrained coordinates, so a moved albedo stays inside its bounds
