@@ -50,6 +50,7 @@ DOWNSAMPLE = 8 if SMALL else 4  # fit each camera at 1/DOWNSAMPLE of its width a
 LIGHT_TOL = 1e-3 if SMALL else 1e-5  # the light solve's tolerance inside the fit
 JAC_RTOL = 1e-3 if SMALL else 1e-4  # the tangent light solves' (the Jacobian's) tolerance
 MAX_STEPS = 2 if SMALL else 30  # the small size's fits stop after two: a check, not a result
+REFINE_STEPS = 8 if SMALL else 30  # section 9 needs a converged fit to correct
 print(f"fit: N = {FIT_N}, M = {FIT_M}, downsample {DOWNSAMPLE}, light tol {LIGHT_TOL:g}")
 
 # %%
@@ -102,9 +103,12 @@ plot.image_grid({f"{v}, {n[-2:].lstrip('0')}% noise": targets[n][v]
 small_cams = tuple(dataclasses.replace(c, resolution=(c.width // DOWNSAMPLE,
                                                       c.height // DOWNSAMPLE))
                    for c in scene.cameras)
+# edge_samples: rays in a pixel that straddles an edge; a reduced pixel spans DOWNSAMPLE² target
+# pixels, so 16 per reduction places its edges as finely as the target's (what df.fit's own model
+# does: with 16 the walls' rim alone biased the walls' albedo by -0.7%)
 forward = df.forward_model(scene, "sweep", accuracy=None, cameras=small_cams,
                            resolution=FIT_N, M=FIT_M, tol=LIGHT_TOL, max_iterations=1000,
-                           adjoint_rtol=JAC_RTOL, supersample=2)
+                           adjoint_rtol=JAC_RTOL, supersample=2, edge_samples=16 * DOWNSAMPLE)
 print(forward.lattice)
 print("fit images:", {c.name: (c.height, c.width) for c in small_cams})
 
@@ -218,14 +222,14 @@ fig
 # noise: here it is mostly bias, which sets their size but not their meaning, and the truth
 # may or may not lie within ±2 of them (the `error/se` column).
 #
-# The recovery study (`benchmarks/results/recovery.md`, N = 24, M = 3, both views at 1/4
-# size, the full size of this notebook; re-measured 2026-11-27) measured it: at 1% noise ζ −1.1%
-# (± 0.3%), γ −0.2% (± 0.3%), the walls' albedo −0.9% (± 0.05%); with 5% noise −1.0%, −0.3%,
-# −0.9% (the same); against the Mitsuba 3 reference instead of synthetic targets −3.3%, +0.5%,
-# −0.8%. The model's misfit at the truth was 2.1% of the target mean (8.4% before the cameras
-# met the exact geometry). The truth lies outside ±2 standard errors for ζ and the albedo in
-# every case. At the
-# small size (N = 21, M = 2, 1/8 of the pixels) the bias is larger.
+# At the full size (N = 24, M = 3, both views at 1/4 size, 64 rays in an edge pixel) this
+# notebook's fits measured (2026-11-29): with 1% noise ζ −1.2%, γ +0.4%, the walls' albedo
+# −0.2% (both views), standard errors 0.02–0.13%: the truth lies 3–10 of them away, and the
+# model's misfit at the truth, 1.0% of the target mean, is four times the noise's (1% per
+# target pixel, 0.25% after the fit's 4×4 averaging). (Before 2026-11-29 the fit's reduced pixels had 16 rays at an edge, not
+# 64: the walls' rim alone then biased the albedo by −0.9% and the misfit at the truth was
+# 2.1%.) Section 9 corrects the estimates for the lattice and puts the model's error into the
+# error bars. At the small size (N = 21, M = 2, 1/8 of the pixels) the bias is larger.
 
 # %%
 def misfit(res, views):
@@ -316,16 +320,46 @@ plot.error_map(both1.images["oblique"], both1.targets["oblique"], relative=False
                title="fitted − target, oblique view")
 
 # %% [markdown]
+# ## 9. Correcting for the model, with error bars that include it
+#
+# `model_error="refine"` (the command line's default) renders the fitted model once more on a
+# lattice twice as fine and takes the Gauss–Newton step that image change causes: to first
+# order, the estimate a fit on that finer lattice would reach, for the price of one render
+# there. That corrected estimate is the answer (`estimates`; the fit itself is `fitted`, the
+# point its images are rendered at). Two more renders check it: a lattice between the two (does
+# the estimate move along the first-order line, or does it follow where the nodes fall against
+# the walls?) and one more direction (M + 1 on the fit's lattice). The root sum of squares of
+# the three parts is each estimate's model error, and the total uncertainty,
+# √(stderr² + model error²), is the error bar to quote. At the full size (2026-11-29) the
+# corrected estimates here are within 0.4% of the truth with totals of 0.2–2.1%. The recovery
+# study (`benchmarks/results/recovery.md`, fits at N = 24 and 32) finds every estimate within 2%
+# of the truth and the truth within 3 total uncertainties in 58 of 60 cases, the Mitsuba 3
+# images included (the two misses: translucent-cube's ground albedo against Mitsuba, −0.44%
+# against ±0.13%).
+
+# %%
+both_ref = df.fit(scene, targets["noise01"], init, optimizer="lm", forward=forward,
+                  downsample=DOWNSAMPLE, max_steps=REFINE_STEPS, model_error="refine",
+                  progress=False)
+print(both_ref.summary(truth))
+print(f"\n{'model error, % of the truth':28s} {'lattice':>8s} {'between':>8s} {'M + 1':>8s}")
+for p, parts in both_ref.model_error_parts.items():
+    print(f"  {p:26s} " + " ".join(f"{100 * parts.get(k, 0.0) / truth[p]:8.2f}"
+                                   for k in ("lattice", "lattice_between", "directions")))
+if both_ref.converged:
+    for p in both_ref.paths:  # the total uncertainty is at least the noise's share
+        assert both_ref.uncertainty[p] >= both_ref.stderr[p]
+
+# %% [markdown]
 # ## What to take from this
 #
 # * The fit converges in a handful of steps from a start 20–60% off, and reports standard errors
 #   and correlations with the estimates.
 # * At a coarse lattice its error against the truth is the forward model's bias, not the noise:
-#   the recovery study at N = 24 (`benchmarks/results/recovery.md`) found ζ 1.1% low, γ within
-#   0.3% and the albedo 0.9% low whatever the noise (1% or 5%), and 3.3%, 0.5% and 0.8% off
-#   against the Mitsuba 3 image; the standard errors (0.05–0.3%) do not cover that. Read them as the noise's
-#   share of the uncertainty only, and check the bias as above: render at the estimates with a
-#   finer model (larger N and M), or fit at two resolutions and see how far the estimates move.
+#   here ζ 1.2% low whatever the noise (1% or 5%); the standard errors (0.02–0.4%) do not cover
+#   that. Read them as the noise's share of the uncertainty only. `model_error="refine"` (the
+#   command line's default) corrects the estimates to a lattice twice as fine and adds the
+#   model's own error to the error bars (section 9).
 # * A second view shrinks ζ's and γ's standard errors but leaves them strongly correlated: what
 #   separates them is the ratio of glow to dimming, which every view of this scene sees alike.
 # * `difffog fit` does the same from the command line and writes the estimates, the convergence
