@@ -734,6 +734,16 @@ def test_refine_corrects_the_estimate_to_the_finer_lattice():
     rep = res.to_json()
     assert rep["fitted"] == res.fitted and rep["estimates"] == res.estimates
     assert "corrected to N = 20" in res.summary()
+    # a run with a text meter says what it renders after the steps, under its own label
+    import io
+
+    buf = io.StringIO()
+    df.fit(exact.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
+           forward=LatticeToy(10), model_error="refine",
+           progress=df.TextProgress("fit", file=buf))
+    out = buf.getvalue()
+    assert "fit " in out and "model error 0/2: N 20" in out and "model error 1/2: N 15" in out
+    assert "model error 2/2" in out and out.index("fit ") < out.index("model error")
     plain = df.fit(exact.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
                    forward=LatticeToy(10))
     assert plain.estimates == pytest.approx(res.fitted) and plain.to_json()["fitted"] == plain.estimates

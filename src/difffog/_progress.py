@@ -123,3 +123,16 @@ def as_meter(progress, label: str = "") -> AbstractProgressMeter:
 
     raise DifffogError(f"progress must be True, False or a progress meter "
                        f"(difffog.TextProgress(), ...), got {progress!r}")
+
+
+def sibling(progress, label: str) -> AbstractProgressMeter:
+    """A meter for another phase of the same run (e.g. a fit's model error after its steps):
+    one of the same kind with ``label``, or a user's own meter as it is."""
+    meter = as_meter(progress, label)
+    if isinstance(meter, NoProgress):
+        return meter
+    if type(meter) is TextProgress:
+        return TextProgress(label, meter.file)
+    if type(meter) is TqdmProgress:
+        return TqdmProgress(label)
+    return meter

@@ -10,6 +10,7 @@ the same per-step bookkeeping (:class:`_Tracker`): history, stall test, light-so
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 import time
@@ -26,7 +27,7 @@ import numpy as np
 import optimistix as optx
 
 from .._errors import AdjointWarning, DifffogError, ThickStepWarning, ThinLayerWarning
-from .._progress import as_meter
+from .._progress import as_meter, sibling
 from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
 from ..forward._registry import check_settings, guard, solver_entry
@@ -456,7 +457,8 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
                          resume=resume, callback=callback, **kw)
         if fine_n is not None:
             t0 = time.perf_counter()
-            _with_refined_error(res, scene, forward, fine_n, downsample, model_settings)
+            _with_refined_error(res, scene, forward, fine_n, downsample, model_settings,
+                                progress)
             res.time_s += time.perf_counter() - t0
         return res
     if checkpoint is not None or resume:
@@ -501,10 +503,11 @@ def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_
 
 
 def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, model_settings,
-                    n_unknowns: int) -> list[tuple[dict, Any]]:
-    """The finer models the model error renders, as (what, model): the lattice ``fine_n``
-    (the correction), a lattice between the fit's and it (the lattice error's erratic part),
-    and, where the model has a direction set, M + 1 on the fit's own lattice."""
+                    n_unknowns: int) -> list[tuple[dict, Callable]]:
+    """The finer models the model error renders, as (what, a function that builds it): the
+    lattice ``fine_n`` (the correction), a lattice between the fit's and it (the lattice
+    error's erratic part), and, where the model has a direction set, M + 1 on the fit's own
+    lattice."""
     n = int(st.model.resolution)
     mid = int(round(0.5 * (n + fine_n)))
     lattices = [fine_n] + ([mid] if n < mid < fine_n else [])
@@ -516,23 +519,23 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
                               resolution=resolution, model_settings={**settings, **extra},
                               unknowns=n_unknowns)
 
-        out = [({"resolution": f}, build(f)) for f in lattices]
+        out = [({"resolution": f}, functools.partial(build, f)) for f in lattices]
         entry = solver_entry(forward)
         if "M" in entry.settings:
             m = int({**entry.fit_defaults, **settings}.get("M", 3)) + 1
-            out.append(({"resolution": n, "M": m}, build(n, M=m)))
+            out.append(({"resolution": n, "M": m}, functools.partial(build, n, M=m)))
         return out
-    out = [({"resolution": f}, forward.at_resolution(f)) for f in lattices]
+    out = [({"resolution": f}, functools.partial(forward.at_resolution, f)) for f in lattices]
     solver = getattr(forward, "solver", None)
     if solver is not None and hasattr(solver, "M") and hasattr(forward, "with_solver"):
         m = int(solver.M) + 1
         out.append(({"resolution": n, "M": m},
-                    forward.with_solver(dataclasses.replace(solver, M=m))))
+                    functools.partial(forward.with_solver, dataclasses.replace(solver, M=m))))
     return out
 
 
 def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
-                        downsample: int, model_settings) -> FitResult:
+                        downsample: int, model_settings, progress=None) -> FitResult:
     """``res`` corrected to the lattice ``fine_n``, with its model error and total uncertainty
     (see ``fit``'s ``model_error``)."""
     lin = getattr(res, "_linear", None)
@@ -545,16 +548,22 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
     fitted = dict(res.estimates)
     moved = []  # (what, {path: the estimate the finer model would reach, to first order})
-    for what, model in _refined_models(scene, forward, st, fine_n, downsample, model_settings,
-                                       len(res.paths)):
-        y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u), (model, st.data)))
-        label = ", ".join(f"{'N' if k == 'resolution' else k} = {v}" for k, v in what.items())
+    checks = _refined_models(scene, forward, st, fine_n, downsample, model_settings,
+                             len(res.paths))
+    meter = sibling(progress, "model error")
+    for i, (what, build) in enumerate(checks):
+        shown = {"N" if k == "resolution" else k: v for k, v in what.items()}
+        label = ", ".join(f"{k} = {v}" for k, v in shown.items())
+        meter.update(i, len(checks), **shown)  # rendering this check
+        y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u),
+                                                               (build(), st.data)))
         if int(code) != RESULTS.successful:
             name = RESULTS(int(code)).name
             if not moved:  # the correction itself
                 res.warnings.append(f"the model error is not estimated: the light solve at "
                                     f"{label} did not converge ({name})")
                 res.model_error = {p: float("nan") for p in res.paths}
+                meter.close()
                 return res
             res.warnings.append(f"the model error leaves out its check at {label}: that light "
                                 f"solve did not converge ({name}); the uncertainty may be too "
@@ -565,6 +574,8 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         # taken in the unconstrained coordinates, so a moved albedo stays inside its bounds
         moved.append((what, {p: float(c.to_v(float(x) + float(d)))
                              for p, c, x, d in zip(res.paths, st.coords, u, du)}))
+    meter.update(len(checks), len(checks))
+    meter.close()
     refined = moved[0][1]  # the estimate corrected to the finer lattice
     # θ(h) = θ* + c·h: the corrected estimate stands for θ(h_f), whose own error is
     # θ(h_f) − θ* = (θ(h) − θ(h_f))·h_f/(h − h_f) = shift·N/(N_f − N) (1 for a doubled lattice).
