@@ -266,9 +266,10 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
     assert set(rep["stderr"]) == {"fog.scattering", "fog.absorption"}
     # --model-error refine (the default): the estimate is that fit corrected to N = 24, and
     # the model's own error is the correction (first order, doubled lattice)
-    # (and the checks of a lattice between, N = 18, and of the direction set, M = 3 at N = 12)
+    # (with one more direction, M = 3; and the checks of a lattice between, N = 18, and of
+    # the direction set, M = 3 at N = 12)
     assert [(lv["resolution"], lv.get("M")) for lv in rep["ladder"]] == [
-        (12, None), (24, None), (18, None), (12, 3)]
+        (12, None), (24, 3), (18, None), (12, 3)]
     assert rep["estimates"] == rep["ladder"][1]["estimates"]
     for path in ("fog.scattering", "fog.absorption"):
         shift = abs(rep["estimates"][path] - rep["fitted"][path])

@@ -85,10 +85,11 @@ def add_parser(sub) -> None:
                         "added to its uncertainty in fit.json (default none: noise only)")
     p.add_argument("--model-error", default="refine", metavar="refine|none|N",
                    help="correct the estimates for the lattice and state its error: render "
-                        "the fitted model once more on a lattice twice as fine (or N) and take "
-                        "the Gauss-Newton step that image change causes; the estimates are the "
-                        "fit moved by it (fit.json's fitted: the fit itself), their model error "
-                        "that step to first order, added to the uncertainty (default refine; "
+                        "the fitted model once more on a lattice twice as fine (or N) with one "
+                        "more direction and take the Gauss-Newton step that image change "
+                        "causes; the estimates are the fit moved by it (fit.json's fitted: the "
+                        "fit itself); their model error, from that step and two checks (a "
+                        "lattice between, M + 1), is added to the uncertainty (default refine; "
                         "none: the fit itself, noise only)")
     p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
                    help="--unknown fog.density: the prior and its weight relative to the "

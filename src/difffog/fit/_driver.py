@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._errors import AdjointWarning, DifffogError, ThickStepWarning, ThinLayerWarning
+from .._errors import (AdjointWarning, DifffogError, ResourceError, ThickStepWarning,
+                       ThinLayerWarning)
 from .._progress import as_meter, sibling
 from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
@@ -433,13 +434,16 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         resolutions, and two levels can miss most of the error.
     model_error: the forward model's own error in each estimate, added to the standard error
         in ``uncertainty``: "refine" (for a named solver) renders the fitted model once more at
-        the estimate on a lattice twice as fine (or at the resolution given as an int), takes
-        the Gauss–Newton step that image change would cause, J⁺·Δy: to first order the
-        estimate a fit with the finer model would reach.  That corrected estimate is returned
-        in ``estimates`` (the fit at ``resolution`` itself in ``fitted``, with its images), and
-        its own error, first order in the voxel size, is the step × N/(N_f − N) (1 for a
-        doubled lattice): its ``model_error``.  One light solve and the images at the finer
-        resolution, after the fit.  None (default): no correction, no estimate.
+        the estimate on a lattice twice as fine (or at the resolution given as an int) and,
+        for the sweep, with one more direction (M + 1), takes the Gauss–Newton step that image
+        change would cause, J⁺·Δy: to first order the estimate a fit with the finer model
+        would reach.  That corrected estimate is returned in ``estimates`` (the fit at
+        ``resolution`` itself in ``fitted``, with its images).  Its ``model_error`` is the root
+        sum of squares of three parts (``model_error_parts``): the step × N/(N_f − N), first
+        order in the voxel size (1 for a doubled lattice); how far a lattice between lands
+        from that first-order line; and the change with M + 1 on the fit's own lattice.  Three
+        light solves and their images after the fit.  None (default): no correction, no
+        estimate.
     callback: called after every step with that step's history entry (of the last level).
 
     The result is "light_solve_failed" (not converged) when the light solve at the estimate
@@ -505,12 +509,11 @@ def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_
 def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, model_settings,
                     n_unknowns: int) -> list[tuple[dict, Callable]]:
     """The finer models the model error renders, as (what, a function that builds it): the
-    lattice ``fine_n`` (the correction), a lattice between the fit's and it (the lattice
-    error's erratic part), and, where the model has a direction set, M + 1 on the fit's own
-    lattice."""
+    correction's, on the lattice ``fine_n`` with one more direction (M + 1) where the model has
+    a direction set; a lattice between the fit's and ``fine_n`` (the lattice error's erratic
+    part); and M + 1 on the fit's own lattice (the direction set's part)."""
     n = int(st.model.resolution)
     mid = int(round(0.5 * (n + fine_n)))
-    lattices = [fine_n] + ([mid] if n < mid < fine_n else [])
     if isinstance(forward, str):
         settings = dict(model_settings or {})
 
@@ -519,18 +522,29 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
                               resolution=resolution, model_settings={**settings, **extra},
                               unknowns=n_unknowns)
 
-        out = [({"resolution": f}, functools.partial(build, f)) for f in lattices]
         entry = solver_entry(forward)
-        if "M" in entry.settings:
-            m = int({**entry.fit_defaults, **settings}.get("M", 3)) + 1
+        m = (int({**entry.fit_defaults, **settings}.get("M", 3)) + 1
+             if "M" in entry.settings else None)
+        more = {} if m is None else {"M": m}
+        out = [({"resolution": fine_n, **more}, functools.partial(build, fine_n, **more))]
+        if n < mid < fine_n:
+            out.append(({"resolution": mid}, functools.partial(build, mid)))
+        if m is not None:
             out.append(({"resolution": n, "M": m}, functools.partial(build, n, M=m)))
         return out
-    out = [({"resolution": f}, functools.partial(forward.at_resolution, f)) for f in lattices]
     solver = getattr(forward, "solver", None)
+    finer = None
     if solver is not None and hasattr(solver, "M") and hasattr(forward, "with_solver"):
-        m = int(solver.M) + 1
-        out.append(({"resolution": n, "M": m},
-                    functools.partial(forward.with_solver, dataclasses.replace(solver, M=m))))
+        finer = dataclasses.replace(solver, M=int(solver.M) + 1)
+    if finer is None:
+        out = [({"resolution": fine_n}, functools.partial(forward.at_resolution, fine_n))]
+    else:
+        out = [({"resolution": fine_n, "M": finer.M},
+                functools.partial(forward.with_solver, finer, resolution=fine_n))]
+    if n < mid < fine_n:
+        out.append(({"resolution": mid}, functools.partial(forward.at_resolution, mid)))
+    if finer is not None:
+        out.append(({"resolution": n, "M": finer.M}, functools.partial(forward.with_solver, finer)))
     return out
 
 
@@ -555,19 +569,24 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         shown = {"N" if k == "resolution" else k: v for k, v in what.items()}
         label = ", ".join(f"{k} = {v}" for k, v in shown.items())
         meter.update(i, len(checks), **shown)  # rendering this check
-        y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u),
-                                                               (build(), st.data)))
-        if int(code) != RESULTS.successful:
-            name = RESULTS(int(code)).name
+        try:
+            model = build()
+        except ResourceError as e:  # a finer model this machine cannot hold
+            model, name = None, f"{e}"
+        if model is not None:
+            y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u),
+                                                                   (model, st.data)))
+            name = None if int(code) == RESULTS.successful else (
+                f"that light solve did not converge ({RESULTS(int(code)).name})")
+        if name is not None:
             if not moved:  # the correction itself
-                res.warnings.append(f"the model error is not estimated: the light solve at "
-                                    f"{label} did not converge ({name})")
+                res.warnings.append(f"the estimate is not corrected and the model error not "
+                                    f"estimated: at {label}, {name}")
                 res.model_error = {p: float("nan") for p in res.paths}
                 meter.close()
                 return res
-            res.warnings.append(f"the model error leaves out its check at {label}: that light "
-                                f"solve did not converge ({name}); the uncertainty may be too "
-                                f"small")
+            res.warnings.append(f"the model error leaves out its check at {label}: {name}; "
+                                f"the uncertainty may be too small")
             continue
         dy = sqrt_w * (y_f.astype(np.float64) - y) / scale  # in the residual's units
         du = -np.linalg.lstsq(J, dy, rcond=None)[0]  # the Gauss–Newton step that model takes
@@ -585,7 +604,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     factor = n / (fine_n - n)
     parts = {p: {"lattice": factor * abs(refined[p] - fitted[p])} for p in res.paths}
     for what, est in moved[1:]:
-        if "M" in what:
+        if "M" in what:  # M + 1 on the fit's own lattice
             for p in res.paths:
                 parts[p]["directions"] = abs(est[p] - fitted[p])
             continue

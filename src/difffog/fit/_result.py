@@ -130,10 +130,11 @@ class FitResult:
             lines.append("uncertainty dominated by " + "; ".join(
                 f"{k}: {', '.join(v)}" for k, v in by.items() if v) + f" ({source})")
         if corrected:
+            to = self.ladder[1]
             lines.append(f"estimate: the fit at N = {self.ladder[0]['resolution']} corrected to "
-                         f"N = {self.ladder[1]['resolution']} by one Gauss–Newton step on that "
-                         f"lattice's images (the fitted images are at the N = "
-                         f"{self.ladder[0]['resolution']} fit)")
+                         f"N = {to['resolution']}" + (f", M = {to['M']}" if "M" in to else "")
+                         + " by one Gauss–Newton step on that model's images (the fitted "
+                         f"images are at the N = {self.ladder[0]['resolution']} fit)")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
         for cam, f in self.target_files.items():

@@ -489,13 +489,13 @@ class SweepModel(AbstractForwardModel):
                           supersample=self.supersample, cameras=self.cameras,
                           edge_samples=self.edge_samples)
 
-    def with_solver(self, solver: SweepSolver) -> "SweepModel":
-        """The same model (scene, cameras, lattice resolution, supersampling) with another
-        light solve, e.g. another direction set M (the lattice is built anew: its vacuum
-        margin and surface shell follow M)."""
-        return SweepModel(self.scene, resolution=self.resolution, solver=solver,
-                          supersample=self.supersample, cameras=self.cameras,
-                          edge_samples=self.edge_samples)
+    def with_solver(self, solver: SweepSolver, resolution: int | None = None) -> "SweepModel":
+        """The same model (scene, cameras, supersampling; its lattice resolution unless
+        ``resolution`` is given) with another light solve, e.g. another direction set M (the
+        lattice is built anew: its vacuum margin and surface shell follow M)."""
+        return SweepModel(self.scene, resolution=self.resolution if resolution is None
+                          else resolution, solver=solver, supersample=self.supersample,
+                          cameras=self.cameras, edge_samples=self.edge_samples)
 
     @property
     def lattice(self) -> Lattice:
