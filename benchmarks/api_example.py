@@ -114,7 +114,9 @@ def main() -> None:
                           "std err %", "total ± %", "|error| / total"], rows), "",
              f"- result `{res['result']}` after {res['iterations']} steps; estimates: the fit "
              f"at N = {res['ladder'][0]['resolution']} corrected to N = "
-             f"{res['ladder'][1]['resolution']}" if res.get("ladder") else "",
+             f"{res['ladder'][1]['resolution']}"
+             + (f", M = {res['ladder'][1]['M']}" if "M" in res["ladder"][1] else "")
+             if res.get("ladder") else "",
              f"- `difffog.fit` wall time: first run (empty compilation cache) "
              f"{first['fit_s']:.1f} s, a new process on the filled cache "
              f"{second['fit_s']:.1f} s, warm (the same fit again in that process) "

@@ -323,19 +323,20 @@ plot.error_map(both1.images["oblique"], both1.targets["oblique"], relative=False
 # ## 9. Correcting for the model, with error bars that include it
 #
 # `model_error="refine"` (the command line's default) renders the fitted model once more on a
-# lattice twice as fine and takes the Gauss–Newton step that image change causes: to first
-# order, the estimate a fit on that finer lattice would reach, for the price of one render
-# there. That corrected estimate is the answer (`estimates`; the fit itself is `fitted`, the
+# lattice twice as fine with one more direction (M + 1) and takes the Gauss–Newton step that
+# image change causes: to first order, the estimate a fit with that finer model would reach,
+# for the price of one render. That corrected estimate is the answer (`estimates`; the fit itself is `fitted`, the
 # point its images are rendered at). Two more renders check it: a lattice between the two (does
 # the estimate move along the first-order line, or does it follow where the nodes fall against
 # the walls?) and one more direction (M + 1 on the fit's lattice). The root sum of squares of
 # the three parts is each estimate's model error, and the total uncertainty,
-# √(stderr² + model error²), is the error bar to quote. At the full size (2026-11-29) the
-# corrected estimates here are within 0.4% of the truth with totals of 0.2–2.1%. The recovery
-# study (`benchmarks/results/recovery.md`, fits at N = 24 and 32) finds every estimate within 2%
-# of the truth and the truth within 3 total uncertainties in 58 of 60 cases, the Mitsuba 3
-# images included (the two misses: translucent-cube's ground albedo against Mitsuba, −0.44%
-# against ±0.13%).
+# √(stderr² + model error²), is the error bar to quote. Here the targets were rendered at N =
+# 48, M = 4, the very model the correction steps to from N = 24, so the corrected estimates land
+# on the truth (within 0.1%): a check of the step, not of the model's error. The recovery study
+# (`benchmarks/results/recovery.md`, fits at N = 24 and 32) is the test: every estimate within
+# 1% of the synthetic targets at N = 32 too, within 2% of the Mitsuba 3 images at N = 32 (2.3%
+# at N = 24), and the truth within 3 total uncertainties in 59 of 60 cases (the miss:
+# translucent-cube's ground albedo against Mitsuba at N = 24, −0.32% against ±0.06%).
 
 # %%
 both_ref = df.fit(scene, targets["noise01"], init, optimizer="lm", forward=forward,
