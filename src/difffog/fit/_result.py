@@ -49,14 +49,16 @@ class FitResult:
         (the standard error alone without a model error).
     fitted: {path: value}: with ``model_error="refine"``, the best fit of the model at the
         fit's own resolution, the point ``images`` are rendered at; ``estimates`` are then that
-        fit corrected to the finer lattice by one Gauss–Newton step.  Otherwise the estimates.
+        fit corrected by one Gauss–Newton step to the finer model (the doubled lattice; for the
+        sweep with M + 1).  Otherwise the estimates.
     ladder: one dict per level of the ladder (resolution, estimates, iterations, time_s,
         result); with ``model_error="refine"`` the fit and each finer model's linearized
         estimate (resolution, M where it changes, estimates).
-    model_error_parts: with ``model_error="refine"``, {path: {part: value}}: the lattice's
-        first-order error ("lattice"), how far a lattice between lands from that first-order
-        line ("lattice_between") and the direction set's change with M + 1 ("directions"); ``model_error`` is their
-        root sum of squares.
+    model_error_parts: with ``model_error="refine"``, {path: {part: value}}: the correction's
+        step taken as first order in the voxel size, × N/(N_f − N) ("lattice"); how far the
+        estimate of a lattice between (1.5 N, the fit's M) lands from the line through the fit
+        and the corrected estimate ("lattice_between"); the change with M + 1 on the fit's own
+        lattice ("directions").  ``model_error`` is their root sum of squares.
     """
 
     paths: list[str]
