@@ -346,8 +346,10 @@ def fit_model(scene, cameras, resolution: int, M: int, downsample: int):
         c = scene.camera(name)
         cams.append(dataclasses.replace(c, resolution=(c.width // downsample,
                                                        c.height // downsample)))
+    from difffog._cost import fit_edge_samples
+
     settings = {**df.SOLVERS["sweep"].fit_defaults, "resolution": resolution, "M": M,
-                "edge_samples": 16 * downsample}  # as difffog.fit's own model (make_model)
+                "edge_samples": fit_edge_samples(downsample)}  # as difffog.fit's own model
     return df.forward_model(scene, "sweep", accuracy=None, cameras=cams, **settings)
 
 

@@ -26,17 +26,17 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._cost import fit_edge_samples
 from .._errors import (AdjointWarning, DifffogError, ResourceError, ThickStepWarning,
                        ThinLayerWarning)
 from .._progress import as_meter, sibling
 from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
 from ..forward._registry import check_settings, guard, solver_entry
-from ..forward.sweep._march import EDGE_SAMPLES
 from ..scene._description import Scene
 from . import _checkpoint
 from ._images import load_files
-from ._result import FitResult, IdentifiabilityWarning, result_name, statistics
+from ._result import FitResult, IdentifiabilityWarning, level_label, result_name, statistics
 from ._residuals import LOSSES
 from ._stepper import make_optimizer, stepper_for
 from ._targets import prepare_targets, reduced_scene
@@ -67,10 +67,7 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
     small = reduced_scene(scene, cameras, downsample)
     full = {**entry.fit_defaults, **settings}
     if "edge_samples" in entry.settings and "edge_samples" not in settings:
-        # a reduced pixel spans k×k target pixels: k times the edge rays place its edges as
-        # finely as the target's own pixels (16 at k = 4 left 1.1-1.2% RMS, a +0.2-0.4% mean
-        # and a 0.7% bias of fog-balls' walls' albedo against the targets' box average)
-        full["edge_samples"] = EDGE_SAMPLES * int(downsample)
+        full["edge_samples"] = fit_edge_samples(downsample)
     # the memory guard: a fit's Jacobian holds one tangent solve's Krylov vectors per unknown
     # besides the forward solve
     guard(small, forward, force=force, tangent_solves=max(1, int(unknowns)),
@@ -516,36 +513,31 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
     mid = int(round(0.5 * (n + fine_n)))
     if isinstance(forward, str):
         settings = dict(model_settings or {})
-
-        def build(resolution, **extra):
-            return make_model(scene, forward, cameras=st.names, downsample=downsample,
-                              resolution=resolution, model_settings={**settings, **extra},
-                              unknowns=n_unknowns)
-
         entry = solver_entry(forward)
         m = (int({**entry.fit_defaults, **settings}.get("M", 3)) + 1
              if "M" in entry.settings else None)
-        more = {} if m is None else {"M": m}
-        out = [({"resolution": fine_n, **more}, functools.partial(build, fine_n, **more))]
-        if n < mid < fine_n:
-            out.append(({"resolution": mid}, functools.partial(build, mid)))
-        if m is not None:
-            out.append(({"resolution": n, "M": m}, functools.partial(build, n, M=m)))
-        return out
-    solver = getattr(forward, "solver", None)
-    finer = None
-    if solver is not None and hasattr(solver, "M") and hasattr(forward, "with_solver"):
-        finer = dataclasses.replace(solver, M=int(solver.M) + 1)
-    if finer is None:
-        out = [({"resolution": fine_n}, functools.partial(forward.at_resolution, fine_n))]
+
+        def build(resolution, M=None):
+            extra = {} if M is None else {"M": M}
+            return make_model(scene, forward, cameras=st.names, downsample=downsample,
+                              resolution=resolution, model_settings={**settings, **extra},
+                              unknowns=n_unknowns)
     else:
-        out = [({"resolution": fine_n, "M": finer.M},
-                functools.partial(forward.with_solver, finer, resolution=fine_n))]
-    if n < mid < fine_n:
-        out.append(({"resolution": mid}, functools.partial(forward.at_resolution, mid)))
-    if finer is not None:
-        out.append(({"resolution": n, "M": finer.M}, functools.partial(forward.with_solver, finer)))
-    return out
+        solver = getattr(forward, "solver", None)
+        m = (int(solver.M) + 1 if solver is not None and hasattr(solver, "M")
+             and hasattr(forward, "with_solver") else None)
+
+        def build(resolution, M=None):
+            if M is None:
+                return forward.at_resolution(resolution)
+            return forward.with_solver(dataclasses.replace(solver, M=M), resolution=resolution)
+
+    def check(resolution, M=None):
+        return ({"resolution": resolution} if M is None else {"resolution": resolution, "M": M},
+                functools.partial(build, resolution, M))
+
+    return ([check(fine_n, m)] + ([check(mid)] if n < mid < fine_n else [])
+            + ([check(n, m)] if m is not None else []))
 
 
 def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
@@ -566,9 +558,9 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                              len(res.paths))
     meter = sibling(progress, "model error")
     for i, (what, build) in enumerate(checks):
-        shown = {"N" if k == "resolution" else k: v for k, v in what.items()}
-        label = ", ".join(f"{k} = {v}" for k, v in shown.items())
-        meter.update(i, len(checks), **shown)  # rendering this check
+        label = level_label(what)
+        meter.update(i, len(checks), **{"N" if k == "resolution" else k: v
+                                        for k, v in what.items()})  # rendering this check
         try:
             model = build()
         except ResourceError as e:  # a finer model this machine cannot hold

@@ -123,20 +123,17 @@ class FitResult:
                 if math.isfinite(self.model_error[p]) and math.isfinite(self.stderr[p]):
                     by["model error" if self.model_error[p] > self.stderr[p] else "noise"].append(p)
             if self.model_error_parts:
-                checks = [f"N = {lv['resolution']}" + (f", M = {lv['M']}" if "M" in lv else "")
-                          for lv in self.ladder[1:]]
-                source = "model error from " + "; ".join(checks)
+                source = "model error from " + "; ".join(level_label(lv) for lv in self.ladder[1:])
             else:
                 source = ("model error from resolution "
                           + " → ".join(str(lv["resolution"]) for lv in self.ladder))
             lines.append("uncertainty dominated by " + "; ".join(
                 f"{k}: {', '.join(v)}" for k, v in by.items() if v) + f" ({source})")
         if corrected:
-            to = self.ladder[1]
-            lines.append(f"estimate: the fit at N = {self.ladder[0]['resolution']} corrected to "
-                         f"N = {to['resolution']}" + (f", M = {to['M']}" if "M" in to else "")
-                         + " by one Gauss–Newton step on that model's images (the fitted "
-                         f"images are at the N = {self.ladder[0]['resolution']} fit)")
+            lines.append(f"estimate: the fit at {level_label(self.ladder[0])} corrected to "
+                         f"{level_label(self.ladder[1])} by one Gauss–Newton step on that "
+                         f"model's images (the fitted images are at the "
+                         f"{level_label(self.ladder[0])} fit)")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
         for cam, f in self.target_files.items():
@@ -182,6 +179,11 @@ class FitResult:
             "fitted": self.fitted or self.estimates,
             "model_error_parts": self.model_error_parts,
         }
+
+
+def level_label(level: Mapping) -> str:
+    """A model of the ladder or the model error's checks in words: "N = 48, M = 4"."""
+    return f"N = {level['resolution']}" + (f", M = {level['M']}" if "M" in level else "")
 
 
 def _finite_or_none(d: Mapping[str, float]) -> dict:

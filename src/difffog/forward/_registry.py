@@ -30,7 +30,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-from .._cost import estimate_splat, estimate_sweep
+from .._cost import EDGE_SAMPLES, estimate_splat, estimate_sweep
 from .._errors import DifffogError
 from ..scene._description import Scene
 from ._model import AbstractForwardModel
@@ -78,7 +78,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
                  phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
                  sweep_residuals: str = "auto", first_collision: str = "beam",
-                 edge_samples: int = 16):
+                 edge_samples: int = EDGE_SAMPLES):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
 

@@ -33,6 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+# EDGE_SAMPLES: rays in a pixel that an edge crosses (Hammersley points, see camera_hits),
+# defined with the cost model, which counts them
+from ..._cost import EDGE_SAMPLES
 from ..._numerics import one_minus_exp_over
 from ...scene._description import Camera
 from .._camera import camera_rays, hg_phase
@@ -958,8 +961,6 @@ def render_camera(fields: LatticeFields, camera: Camera, *, supersample: int = 2
     return rad.reshape(H, W, S).mean(axis=-1)
 
 
-#: samples in a pixel that an edge crosses (Hammersley points, see :func:`camera_hits`)
-EDGE_SAMPLES = 16
 #: normals closer than this (cosine) count as one surface when looking for edges
 EDGE_NORMAL_COS = 0.99
 #: hit points farther apart than this along their normal (in domain diagonals) are two surfaces

@@ -485,9 +485,7 @@ class SweepModel(AbstractForwardModel):
 
     def at_resolution(self, resolution: int) -> "SweepModel":
         """The same model (scene, cameras, solver, supersampling) on another lattice."""
-        return SweepModel(self.scene, resolution=resolution, solver=self.solver,
-                          supersample=self.supersample, cameras=self.cameras,
-                          edge_samples=self.edge_samples)
+        return self.with_solver(self.solver, resolution)
 
     def with_solver(self, solver: SweepSolver, resolution: int | None = None) -> "SweepModel":
         """The same model (scene, cameras, supersampling; its lattice resolution unless
