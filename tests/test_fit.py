@@ -540,14 +540,24 @@ def test_fit_result_json_round_trips(small_forward, small_targets, tmp_path):
 DATA = ROOT / "data_synthetic"
 
 
-def _recover(scene_name, case, N=24):
+def _recover(scene_name, case, N=24, **fit_kw):
+    """(result, truth) of a fit from ζ × 0.6, γ × 1.6, albedo − 0.15, both views at 1/4, to
+    set 0's synthetic targets ("hires", "noise01", ...) or the Mitsuba images ("mc", whose
+    truth is the scene's own values); N None: the fit's default."""
+    from difffog.study.references import reference
+
+    scene = df.load_scene(scene_name)
     truth = json.loads((DATA / "truth.json").read_text())[scene_name]["sets"][0]["params"]
-    suffix = "" if case == "hires" else f"_{case}"
-    targets = {c: np.load(DATA / scene_name / "set0" / f"{c}{suffix}.npy")
-               for c in ("top", "oblique")}
+    if case == "mc":
+        targets = {c: reference(scene_name, c)[0] for c in ("top", "oblique")}
+        truth = {p: float(df.get_param(df.Params.from_scene(scene), scene, p)) for p in truth}
+    else:
+        suffix = "" if case == "hires" else f"_{case}"
+        targets = {c: np.load(DATA / scene_name / "set0" / f"{c}{suffix}.npy")
+                   for c in ("top", "oblique")}
     start = {p: (0.6 * v if p == "fog.scattering" else 1.6 * v if p == "fog.absorption"
                  else v - 0.15) for p, v in truth.items()}
-    res = df.fit(df.load_scene(scene_name), targets, start, resolution=N, downsample=4)
+    res = df.fit(scene, targets, start, resolution=N, downsample=4, **fit_kw)
     return res, truth
 
 
@@ -585,29 +595,10 @@ DEFAULT_FIT_BOUNDS = {("fog-balls", "hires"): 1.0, ("fog-balls", "mc"): 2.0,
                       ("translucent-cube", "hires"): 1.0, ("translucent-cube", "mc"): 2.0}
 
 
-def _default_fit(scene_name, case, resolution=None):
-    """(result, truth) of `difffog fit`'s defaults with the model error (and ``resolution``),
-    from ζ × 0.6, γ × 1.6, albedo − 0.15, to set 0's synthetic targets ("hires") or the Mitsuba
-    images ("mc")."""
-    from difffog.study.references import reference
-
-    scene = df.load_scene(scene_name)
-    truth = json.loads((DATA / "truth.json").read_text())[scene_name]["sets"][0]["params"]
-    if case == "mc":
-        targets = {c: reference(scene_name, c)[0] for c in ("top", "oblique")}
-        truth = {p: float(df.get_param(df.Params.from_scene(scene), scene, p)) for p in truth}
-    else:
-        targets = {c: np.load(DATA / scene_name / "set0" / f"{c}.npy") for c in ("top", "oblique")}
-    start = {p: (0.6 * v if p == "fog.scattering" else 1.6 * v if p == "fog.absorption"
-                 else v - 0.15) for p, v in truth.items()}
-    return df.fit(scene, targets, start, downsample=4, model_error="refine",
-                  resolution=resolution), truth
-
-
 @pytest.mark.slow  # a fit at N = 32 and its three renders of the model error (~1 min each)
 @pytest.mark.parametrize("scene_name,case", list(DEFAULT_FIT_BOUNDS))
 def test_the_fits_defaults_recover_the_truth_within_their_uncertainty(scene_name, case):
-    res, truth = _default_fit(scene_name, case)
+    res, truth = _recover(scene_name, case, N=None, model_error="refine")
     assert res.converged, res.message
     assert [lv["resolution"] for lv in res.ladder] == [32, 64, 48, 32]
     for p, v in truth.items():
@@ -621,7 +612,7 @@ def test_the_fits_defaults_recover_the_truth_within_their_uncertainty(scene_name
 @pytest.mark.xfail(strict=True, reason="translucent-cube's ground albedo against Mitsuba at "
                    "N = 24: -0.32% against a total uncertainty of 0.06% (issue 16)")
 def test_translucent_cube_ground_albedo_against_mitsuba_within_its_uncertainty_at_24():
-    res, truth = _default_fit("translucent-cube", "mc", resolution=24)
+    res, truth = _recover("translucent-cube", "mc", N=24, model_error="refine")
     p = "shape.ground.albedo"
     assert abs(res.estimates[p] - truth[p]) <= 3 * res.uncertainty[p]
 
