@@ -51,6 +51,8 @@ class SolverEntry:
     estimate: (scene, *, cameras, **settings) → its :class:`difffog.CostEstimate` (``_cost.py``).
     traces_density: whether its model takes ``fog.density`` as a traced parameter
         (``difffog.with_density``; density tomography).
+    traces_sun: whether its model can take the sun's angles as traced parameters
+        (``sun.zenith_deg``, ``sun.azimuth_deg``; ``SweepModel.with_sun_derivatives``).
     """
 
     name: str
@@ -62,6 +64,7 @@ class SolverEntry:
     quick: tuple[Mapping, ...] = ()
     estimate: Callable | None = None
     traces_density: bool = False
+    traces_sun: bool = False
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -125,6 +128,7 @@ SOLVERS: dict[str, SolverEntry] = {
         quick=(dict(resolution=16, M=2, tol=1e-3),),
         estimate=estimate_sweep,
         traces_density=True,
+        traces_sun=True,
     ),
     "splat": SolverEntry(
         name="splat",

@@ -4,8 +4,9 @@
 per-shape albedo and emission, and the light intensities.  Geometry (shapes, sun direction,
 the lattice) is static.  The same dotted paths serve ``--set`` overrides and the unknowns of
 a fit: ``fog.scattering``, ``fog.absorption``, ``fog.g``, ``sun.irradiance``, ``sky.radiance``,
-``shape.<name>.albedo``, ``shape.<name>.emission``; and ``fog.density``, the density grid
-(an array, traced by the sweep solver only: ``with_density``).
+``shape.<name>.albedo``, ``shape.<name>.emission``; and, traced by the sweep solver only,
+``fog.density`` (the density grid, an array: ``with_density``) and ``sun.zenith_deg``,
+``sun.azimuth_deg`` (the sun's direction, for photographs whose sun is not known exactly).
 """
 
 from __future__ import annotations
@@ -30,6 +31,11 @@ class Params(eqx.Module):
     # files index it), or None: the scene's own density, fixed on the host.  Only the sweep
     # solver traces it (``with_density``; the lattice maps it by ``Lattice.density_map``).
     density: Float[Array, "gx gy gz"] | None = None
+    # the sun's direction as unknowns (degrees, as the scene file's [sun]), or None: the scene's
+    # own, fixed on the host.  Only the sweep solver traces them, in a model built with
+    # ``with_sun_derivatives`` (its host-side sun quantities linearized about the scene's sun).
+    sun_zenith: Float[Array, ""] | None = None
+    sun_azimuth: Float[Array, ""] | None = None
 
     @classmethod
     def from_scene(cls, scene: Scene, dtype=None) -> "Params":
@@ -76,14 +82,37 @@ def param_paths(scene: Scene) -> list[str]:
     out = list(_SCALAR_PATHS)
     if scene.fog is not None:
         out.append("fog.density")
+    if scene.sun is not None:
+        out += list(_SUN_PATHS)
     for s in scene.shapes:
         out += [f"shape.{s.name}.albedo", f"shape.{s.name}.emission"]
     return out
 
 
+#: the sun's direction: dotted path → ``Params`` field and the scene's ``Sun`` attribute
+_SUN_PATHS = {"sun.zenith_deg": ("sun_zenith", "zenith_deg"),
+              "sun.azimuth_deg": ("sun_azimuth", "azimuth_deg")}
+
+
+def sun_direction_of(params: Params, scene: Scene):
+    """The unit vector towards the sun (3,) from ``params``' traced angles (the scene's where
+    only one is given), or None when neither is traced (the scene's, static)."""
+    if scene.sun is None or (params.sun_zenith is None and params.sun_azimuth is None):
+        return None
+    dt = params.scattering.dtype
+    zen = (jnp.asarray(scene.sun.zenith_deg, dt) if params.sun_zenith is None
+           else params.sun_zenith.astype(dt))
+    az = (jnp.asarray(scene.sun.azimuth_deg, dt) if params.sun_azimuth is None
+          else params.sun_azimuth.astype(dt))
+    t, p = jnp.deg2rad(zen), jnp.deg2rad(az)
+    return jnp.stack([jnp.sin(t) * jnp.cos(p), jnp.sin(t) * jnp.sin(p), jnp.cos(t)])
+
+
 def _locate(scene: Scene, path: str):
     if path in _SCALAR_PATHS:
         return _SCALAR_PATHS[path], None
+    if path in _SUN_PATHS and scene.sun is not None:
+        return _SUN_PATHS[path][0], None
     if path == "fog.density" and scene.fog is not None:
         return "density", None
     parts = path.split(".")
@@ -108,6 +137,9 @@ def get_param(params: Params, scene: Scene, path: str):
         d = scene.fog.density
         return jnp.ones((1, 1, 1), params.scattering.dtype) if d is None else jnp.asarray(
             d, params.scattering.dtype)
+    if leaf in ("sun_zenith", "sun_azimuth") and v is None:  # the scene's own
+        return jnp.asarray(getattr(scene.sun, _SUN_PATHS["sun." + leaf[4:] + "_deg"][1]),
+                           params.scattering.dtype)
     return v if idx is None else v[idx]
 
 
@@ -115,6 +147,9 @@ def set_param(params: Params, scene: Scene, path: str, value) -> Params:
     leaf, idx = _locate(scene, path)
     if leaf == "density":
         return with_density(params, value)
+    if leaf in ("sun_zenith", "sun_azimuth"):
+        new = jnp.asarray(value, dtype=params.scattering.dtype)
+        return eqx.tree_at(lambda p: getattr(p, leaf), params, new, is_leaf=lambda x: x is None)
     if idx is None:
         new = jnp.asarray(value, dtype=getattr(params, leaf).dtype)
     else:

@@ -252,3 +252,7 @@ def _no_density(params: Params) -> None:
         raise SceneError("fog.density: the splat solver takes the scene's density grid as "
                          "fixed and does not trace it; render or fit a density with the sweep "
                          "solver (forward_model(scene, \"sweep\"))")
+    if params.sun_zenith is not None or params.sun_azimuth is not None:
+        raise SceneError("sun.zenith_deg / sun.azimuth_deg: the splat solver takes the sun's "
+                         "direction as fixed (its sheets are built facing it); fit the sun with "
+                         "the sweep solver (forward=\"sweep\")")

@@ -148,6 +148,9 @@ class LatticeFields(eqx.Module):
     # last spacing (the fields must be extended to the nodes just outside it)
     fog_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = eqx.field(
         static=True, default=None)
+    # optional: the sun's direction traced (the sun as an unknown), near ``sun_dir``, for the
+    # sun's phase towards the camera (None: ``sun_dir``)
+    sun_vec: Float[Array, "3"] | None = None
 
     def __post_init__(self):
         if self.shape is None:
@@ -710,8 +713,9 @@ def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
     has_sun = fields.sun_dir is not None
     coef = []
     if has_sun:
-        coef.append(hg_phase(d @ jnp.asarray(fields.sun_dir, dtype),
-                             jnp.asarray(fields.g, dtype))[:, None])
+        sd = (jnp.asarray(fields.sun_dir, dtype) if fields.sun_vec is None
+              else fields.sun_vec.astype(dtype))
+        coef.append(hg_phase(d @ sd, jnp.asarray(fields.g, dtype))[:, None])
     if fields.harmonics is not None:  # light going towards the camera: −d
         coef.append(basis(*fields.harmonics).evaluate(-d, jnp).astype(dtype))
     phase = jnp.concatenate(coef, axis=1) if coef else jnp.zeros((o.shape[0], 0), dtype)

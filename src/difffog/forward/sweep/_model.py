@@ -21,7 +21,7 @@ from ...geometry._hits import casts_exactly
 from ..._errors import SceneError
 from ...geometry._lattice import SOLID, SURFACE, Lattice, apply_density_map, voxelize
 from ...scene._description import Camera, Scene
-from ...scene._params import Params
+from ...scene._params import Params, get_param, sun_direction_of
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
@@ -83,14 +83,15 @@ def _clamped_index(shape, ranges) -> np.ndarray:
     return np.ravel_multi_index(tuple(idx), shape)
 
 
-def _sun_path(scene: Scene, lattice, fog_box, ranges) -> np.ndarray:
+def _sun_path(scene: Scene, lattice, fog_box, ranges, sun_dir=None) -> np.ndarray:
     """∫ density ds from every node towards the sun, solids ignored, continued linearly outside
     the fog's box from its last two nodes along each axis (so that a camera's trilinear lookup
     between the last node inside and the first outside is the path from the point itself: 0 on
     a face the sun enters by).  Inside, a uniform fog: exactly, the distance to the box's face
     towards the sun; a density grid: :func:`sun_path` through the lattice's density
-    (trapezoids, resampled sheet by sheet)."""
-    s = np.asarray(scene.sun.direction, float)
+    (trapezoids, resampled sheet by sheet).  ``sun_dir``: towards the sun (default the
+    scene's)."""
+    s = np.asarray(scene.sun.direction if sun_dir is None else sun_dir, float)
     if scene.fog.density is None:  # uniform (density 1 in the box): t of the box's exit
         inside = [np.clip(np.arange(n), *r) for n, r in zip(lattice.shape, ranges)]
         P = np.moveaxis(lattice.node_positions()[np.ix_(*inside)], -1, 0)  # at clamped nodes
@@ -153,6 +154,9 @@ class CameraGeometry(eqx.Module):
     # the node index ranges of the fog's box per axis (``_fog_support``), for a traced density's
     # ``sun_path``; None without ``fog_box``
     support_ranges: tuple | None = eqx.field(static=True, default=None)
+    # the sun's direction traced (an unknown; ``SweepModel.with_sun_derivatives``), near
+    # ``sun_dir``; None: ``sun_dir``
+    sun_vec: jax.Array | None = None
 
     @classmethod
     def build(cls, scene: Scene, lattice, exact_hits: bool = False,
@@ -316,6 +320,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         j_slope=j_slope,
         sun_depth=sun_depth,
         fog_box=cam.fog_box,
+        sun_vec=cam.sun_vec,
     )
 
 
@@ -398,6 +403,33 @@ def _hit_sun_depth(fog, plan: HitSunPlan, sun_dir, origin, h: float, periodic_xy
     return acc * plan.ds
 
 
+#: the sun's angles' step (degrees) of the central differences that linearize the host's sun
+#: quantities (``SweepModel.with_sun_derivatives``): a shadow edge moves by ~1/60 of the
+#: occluder's height per degree, so that at the fits' pixel sizes a few rays change sides
+SUN_STEP_DEG = 1.0
+
+
+class SunLinearization(eqx.Module):
+    """The sun's quantities the host computes (from exact shadow rays and the fog's geometry),
+    linearized in the sun's angles about the model's own sun: their derivatives by zenith and
+    azimuth (per degree, central differences of ±``step`` degrees), each a pair (d/dzenith,
+    d/dazimuth) of arrays shaped like the quantity, or None where the model has none."""
+
+    vis: tuple[jax.Array, jax.Array] | None  # the light solve's sun_vis (nodes)
+    cam_vis: tuple[jax.Array, jax.Array] | None  # the cameras' sun_vis
+    cam_path: tuple[jax.Array, jax.Array] | None  # the cameras' sun_path
+    hit_cos: tuple[tuple[jax.Array, jax.Array], ...] | None  # per camera: RayHits.sun_cos
+    hit_depth: tuple[tuple[jax.Array, jax.Array], ...] | None  # per camera: RayHits.sun_depth
+    zenith: float = eqx.field(static=True)
+    azimuth: float = eqx.field(static=True)
+    step: float = eqx.field(static=True)
+
+
+def _sun_vector(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
+    t, p = math.radians(zenith_deg), math.radians(azimuth_deg)
+    return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
+
+
 class SweepModel(AbstractForwardModel):
     """The sweep's forward model (final): a scene prepared for repeated, differentiable renders.
 
@@ -426,6 +458,7 @@ class SweepModel(AbstractForwardModel):
     density: jax.Array
     hits: tuple[RayHits, ...] | None
     density_ops: DensityOperators | None  # a density grid's linear maps (``Params.density``)
+    sun_lin: SunLinearization | None  # the sun as an unknown (``with_sun_derivatives``)
     resolution: int = eqx.field(static=True)
     supersample: int = eqx.field(static=True)
     edge_samples: int = eqx.field(static=True)
@@ -479,7 +512,8 @@ class SweepModel(AbstractForwardModel):
         self.density_ops = (None if lattice.density_map is None else DensityOperators.build(
             lattice, self.hits, self.camera_geometry.sun_dir, self.camera_geometry.fog_box,
             hit_fog))
-        self.host = HostInfo(lattice=lattice, setup_s={
+        self.sun_lin = None
+        self.host = HostInfo(lattice=lattice, hit_fog=hit_fog, setup_s={
             "voxelize_s": voxelize_s, "prepare_s": prepare_s,
             "camera_hits_s": time.perf_counter() - t})
 
@@ -491,9 +525,142 @@ class SweepModel(AbstractForwardModel):
         """The same model (scene, cameras, supersampling; its lattice resolution unless
         ``resolution`` is given) with another light solve, e.g. another direction set M (the
         lattice is built anew: its vacuum margin and surface shell follow M)."""
-        return SweepModel(self.scene, resolution=self.resolution if resolution is None
-                          else resolution, solver=solver, supersample=self.supersample,
-                          cameras=self.cameras, edge_samples=self.edge_samples)
+        out = SweepModel(self.scene, resolution=self.resolution if resolution is None
+                         else resolution, solver=solver, supersample=self.supersample,
+                         cameras=self.cameras, edge_samples=self.edge_samples)
+        return out if self.sun_lin is None else out.with_sun_derivatives(self.sun_lin.step)
+
+    def at_sun(self, zenith_deg: float, azimuth_deg: float, step_deg: float | None = None
+               ) -> "SweepModel":
+        """The same model built with its scene's sun at these angles, and the sun's derivatives
+        where this model has them (with ``step_deg``, default this model's step)."""
+        import dataclasses
+
+        if self.scene.sun is None:
+            raise SceneError("at_sun: the scene has no [sun]")
+        scene = self.scene.replace(sun=dataclasses.replace(
+            self.scene.sun, zenith_deg=float(zenith_deg), azimuth_deg=float(azimuth_deg)))
+        out = SweepModel(scene, resolution=self.resolution, solver=self.solver,
+                         supersample=self.supersample, cameras=self.cameras,
+                         edge_samples=self.edge_samples)
+        if self.sun_lin is None and step_deg is None:
+            return out
+        return out.with_sun_derivatives(self.sun_lin.step if step_deg is None else step_deg)
+
+    def with_sun_derivatives(self, step_deg: float = SUN_STEP_DEG) -> "SweepModel":
+        """This model with the sun's angles as parameters it can trace (``sun.zenith_deg``,
+        ``sun.azimuth_deg``; :func:`difffog.set_param`).  The light solve's beam, the surfaces'
+        cosines and the sun's phase follow the traced direction exactly; what the host computes
+        from the scene's geometry (the shapes' shadows from exact rays, the fog's path towards
+        the sun) is linearized about the model's own sun by central differences of
+        ±``step_deg`` degrees (four more host passes).  Exact at the model's sun, first order
+        near it (a shadow's edge is where its rays change sides, so its derivative is a
+        difference, not a derivative of a smooth function): build the model again at the
+        estimated sun to render it exactly there (``difffog.fit`` does)."""
+        sun = self.scene.sun
+        if sun is None:
+            raise SceneError("sun.zenith_deg / sun.azimuth_deg: the scene has no [sun] to "
+                             "move; add one (its angles are the start)")
+        step = float(step_deg)
+        if not 0.0 < step <= 10.0:
+            raise SceneError(f"with_sun_derivatives: step_deg={step_deg!r} must lie in (0, 10] "
+                             f"degrees (default {SUN_STEP_DEG:g})")
+        from ...geometry._hits import sun_depth, sun_visibility
+
+        lat, geom, cg = self.lattice, self.geometry, self.camera_geometry
+        ranges = cg.support_ranges
+
+        def quantities(s):
+            out = {}
+            if geom.sun_vis is not None:
+                vis = sun_visibility(self.scene, lat.shape, lat.origin, lat.h, s)
+                out["vis"] = vis
+                if cg.sun_vis is not None:
+                    v = vis.reshape(-1)[np.asarray(cg.near_fluid)].reshape(-1)
+                    out["cam_vis"] = v[np.asarray(cg.support_index)].reshape(lat.shape)
+            elif cg.sun_vis is not None:
+                out["cam_vis"] = np.asarray(cg.sun_vis)  # no shapes: nothing shadows
+            if cg.sun_path is not None:
+                out["cam_path"] = _sun_path(self.scene, lat, cg.fog_box, ranges, s)
+            if self.hits is not None:
+                cos, depth = [], []
+                for h in self.hits:
+                    t = np.asarray(h.t, np.float64)
+                    m = np.isfinite(t)
+                    p = (np.asarray(h.origins, np.float64)[m]
+                         + t[m, None] * np.asarray(h.directions, np.float64)[m])
+                    c, d = np.zeros(len(t)), np.zeros(len(t))
+                    if m.any():
+                        c[m], d[m] = sun_depth(self.scene, p, np.asarray(h.normal, np.float64)[m],
+                                               s, self.host.hit_fog, lat.origin, lat.h,
+                                               box=cg.fog_box)
+                    cos.append(c)
+                    depth.append(d)
+                out["hit_cos"], out["hit_depth"] = cos, depth
+            return out
+
+        z, a = float(sun.zenith_deg), float(sun.azimuth_deg)
+        q = {k: quantities(_sun_vector(z + dz, a + da))
+             for k, (dz, da) in {"z+": (step, 0), "z-": (-step, 0), "a+": (0, step),
+                                 "a-": (0, -step)}.items()}
+
+        def deriv(key, i=None):
+            if key not in q["z+"]:
+                return None
+            pick = (lambda d: d[key]) if i is None else (lambda d: d[key][i])  # noqa: E731
+            f32 = lambda x: jnp.asarray(np.asarray(x, np.float64), jnp.float32)  # noqa: E731
+            return (f32((pick(q["z+"]) - pick(q["z-"])) / (2 * step)),
+                    f32((pick(q["a+"]) - pick(q["a-"])) / (2 * step)))
+
+        n_cam = len(self.hits) if self.hits is not None else 0
+        lin = SunLinearization(
+            vis=deriv("vis"), cam_vis=deriv("cam_vis"), cam_path=deriv("cam_path"),
+            hit_cos=tuple(deriv("hit_cos", i) for i in range(n_cam)) if n_cam else None,
+            hit_depth=tuple(deriv("hit_depth", i) for i in range(n_cam)) if n_cam else None,
+            zenith=z, azimuth=a, step=step)
+        return eqx.tree_at(lambda m: m.sun_lin, self, lin, is_leaf=lambda x: x is None)
+
+    def _with_sun(self, params: Params, geom, cg, hits):
+        """(solver geometry, camera geometry, hits) at ``params``' sun (the host's when its
+        angles are not traced): the traced direction where the device computes with it, the
+        host's quantities moved along their derivatives (``with_sun_derivatives``)."""
+        s = sun_direction_of(params, self.scene)
+        if s is None:
+            return geom, cg, hits
+        lin = self.sun_lin
+        if lin is None:
+            raise SceneError("sun.zenith_deg / sun.azimuth_deg are traced, but this model was "
+                             "built without the sun's derivatives: use "
+                             "model.with_sun_derivatives() (difffog.fit does)")
+        if params.density is not None:
+            raise SceneError("the sun's angles and fog.density cannot be traced together yet: "
+                             "fit the density under a known sun, or the sun with the scene's "
+                             "density")
+        dt = params.scattering.dtype
+        dz = get_param(params, self.scene, "sun.zenith_deg").astype(dt) - lin.zenith
+        da = get_param(params, self.scene, "sun.azimuth_deg").astype(dt) - lin.azimuth
+
+        def moved(v, d, clip=True):  # a visibility or a cosine stays in [0, 1]; a path not
+            # (the cameras' is continued linearly past the fog's box, negative beyond a face)
+            out = v.astype(dt) + d[0].astype(dt) * dz + d[1].astype(dt) * da
+            return jnp.clip(out, 0.0, 1.0) if clip else out
+
+        normal = geom.normal.astype(dt)
+        cos = jnp.where(geom.surf, jnp.maximum(normal @ s, 0.0), 0.0)
+        geom = eqx.tree_at(lambda g: (g.sun_cos, g.sun_vec), geom, (cos, s),
+                           is_leaf=lambda x: x is None)
+        if lin.vis is not None:
+            geom = eqx.tree_at(lambda g: g.sun_vis, geom, moved(geom.sun_vis, lin.vis))
+        cg = eqx.tree_at(lambda c: c.sun_vec, cg, s, is_leaf=lambda x: x is None)
+        if lin.cam_vis is not None:
+            cg = eqx.tree_at(lambda c: c.sun_vis, cg, moved(cg.sun_vis, lin.cam_vis))
+        if lin.cam_path is not None:
+            cg = eqx.tree_at(lambda c: c.sun_path, cg, moved(cg.sun_path, lin.cam_path, False))
+        if hits is not None and lin.hit_cos is not None:
+            hits = tuple(eqx.tree_at(lambda r: (r.sun_cos, r.sun_depth), h,
+                                     (moved(h.sun_cos, dc), moved(h.sun_depth, dd, False)))
+                         for h, dc, dd in zip(hits, lin.hit_cos, lin.hit_depth))
+        return geom, cg, hits
 
     @property
     def lattice(self) -> Lattice:
@@ -591,11 +758,13 @@ class SweepModel(AbstractForwardModel):
         return geom, cg, jnp.where(solid, 0.0, fog), hits
 
     def light(self, params: Params) -> LightField:
-        geom, *_ = self._with_density(params, cameras=False)
+        geom, cg, _, hits = self._with_density(params, cameras=False)
+        geom, *_ = self._with_sun(params, geom, cg, None)
         return self.solver.solve(geom, params)
 
     def images_from(self, light: LightField, params: Params) -> dict[str, jax.Array]:
-        _, cg, density, hits = self._with_density(params)
+        geom, cg, density, hits = self._with_density(params)
+        _, cg, hits = self._with_sun(params, geom, cg, hits)
         f = camera_fields(cg, density, light, params)
         hits = hits if hits is not None else (None,) * len(self.cameras)
         return {c.name: render_camera(f, c, supersample=self.supersample, hits=h)
@@ -621,6 +790,7 @@ class SweepModel(AbstractForwardModel):
             "node_counts": lat.counts(),
             "supersample": self.supersample,
             "edge_samples": self.edge_samples,
+            "sun_derivative_step_deg": None if self.sun_lin is None else self.sun_lin.step,
             "cameras": [c.name for c in self.cameras],
             "dtype": str(jnp.result_type(float)),
             "terms": ([] if self.geometry.terms is None

@@ -103,12 +103,21 @@ class SweepGeometry(eqx.Module):
     optical_size: float = eqx.field(static=True, default=0.0)  # of the scene's fog (prepare)
     order: int = eqx.field(static=True, default=0)  # δ-M order L of the phase (0: isotropic)
     linear: bool = eqx.field(static=True, default=False)  # the linear-source scheme (slopes)
-    # order > 0 with a sun: cos Θ to the sun's light at n² points over each face direction's
-    # cell and their weights, (6, D, n²) each (the cell-averaged phase of the first-collision sun)
+    # order > 0 with a sun: n² unit vectors over each face direction's cell (6, D, n², 3) and
+    # their weights (6, D, n²) (the cell-averaged phase of the first-collision sun)
     sun_cells: tuple[jax.Array, jax.Array] | None = None
     # the sun's visibility past the shapes, box-filtered over each node's fluid from exact
     # shadow rays (``geometry._hits.sun_visibility``), or None: the SOLID nodes block the beam
     sun_vis: jax.Array | None = None
+    # the sun's direction traced (``sun.zenith_deg`` / ``sun.azimuth_deg`` as unknowns), near
+    # the static ``sun_dir`` the host's parts were built for; None: ``sun_dir``
+    sun_vec: jax.Array | None = None
+
+    def sun_vector(self, dtype):
+        """The unit vector towards the sun (3,) the light solve uses (traced or static)."""
+        if self.sun_vec is not None:
+            return self.sun_vec.astype(dtype)
+        return jnp.asarray(np.asarray(self.sun_dir, np.float64), dtype)
 
     @property
     def n_moments(self) -> int:
@@ -242,18 +251,18 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         optical_size=_optical_size(scene, lattice, solid),
         order=int(order),
         linear=bool(linear),
-        sun_cells=None if harm is None or sun_dir is None else _sun_cells(dirs, sun_dir),
+        sun_cells=None if harm is None or sun_dir is None else _sun_cells(dirs),
         sun_vis=None if vis is None else f32(vis),
     )
 
 
-def _sun_cells(dirs, sun_dir):
-    cos, wt = [], []
+def _sun_cells(dirs):
+    vecs, wt = [], []
     for f in range(6):
         vec, w = cell_samples(dirs, f)
-        cos.append(vec @ -np.asarray(sun_dir))  # the sun's light propagates along −sun_dir
+        vecs.append(vec)
         wt.append(w)
-    return jnp.asarray(np.stack(cos), jnp.float32), jnp.asarray(np.stack(wt), jnp.float32)
+    return jnp.asarray(np.stack(vecs), jnp.float32), jnp.asarray(np.stack(wt), jnp.float32)
 
 
 def _host_face(x: np.ndarray, axis: int, sign: int) -> np.ndarray:
@@ -977,7 +986,8 @@ class SweepSolver(eqx.Module):
             opaque = geom.solid if geom.sun_vis is None else jnp.zeros_like(geom.solid)
             t_sun, t_sun_avg, *t_grad = sun_transmittance(
                 sigma_sun, opaque, np.array(geom.sun_dir), geom.h, geom.periodic_xy,
-                average=True, slope=geom.linear and sun_phase is None)
+                average=True, slope=geom.linear and sun_phase is None,
+                vec=None if geom.sun_vec is None else geom.sun_vec.astype(dt))
             if geom.sun_vis is not None:
                 vis = geom.sun_vis.astype(dt)
                 t_sun, t_sun_avg = vis * t_sun, vis * t_sun_avg
@@ -1152,8 +1162,9 @@ def _cell_phase(geom: SweepGeometry, g, dt):
     """Per face (D,): the Henyey–Greenstein phase of the sun's light averaged over each
     direction's cell, normalized so that Σ_d w_d P_d = 1 over all faces (the first collision
     re-emits exactly what it scatters)."""
-    cos, wt = geom.sun_cells
-    cos, wt = cos.astype(dt), wt.astype(dt)
+    vec, wt = geom.sun_cells
+    # the sun's light propagates along −sun_dir
+    cos, wt = vec.astype(dt) @ -geom.sun_vector(dt), wt.astype(dt)
     p = (wt * (1.0 - g * g) / (FOUR_PI * (1.0 + g * g - 2.0 * g * cos) ** 1.5)).sum(-1)  # (6, D)
     w = jnp.stack([c.weight.astype(dt) for c in geom.consts])
     p = p / (w * p).sum()

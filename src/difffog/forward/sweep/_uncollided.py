@@ -38,12 +38,16 @@ NO_SUN_PATH = 1e20
 _MOMENT_TO_CHANGE = 12.0
 
 
-def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool):
+def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool, vec=None):
     """The sheet order of a beam towards ``sun_dir``: (perm, sign, along, resample), or None
     for a sun on the horizon of a periodic domain.  ``perm`` puts the sweep axis first, the
     sheets run in the light's direction (reversed when ``sign`` < 0), ``along`` = |sun_dir| on
     the axis, and ``resample(t, fill)`` moves a sheet's buffer by the beam's lateral offset per
-    sheet (bilinear; ``fill`` enters from outside an open domain, periodic sides wrap)."""
+    sheet (bilinear; ``fill`` enters from outside an open domain, periodic sides wrap).
+
+    ``vec``: a traced direction near ``sun_dir`` (the sun as an unknown): ``along`` and the
+    offsets' fractions follow it, the sheet order and the offsets' whole voxels stay
+    ``sun_dir``'s (a fraction past [0, 1] extrapolates the bilinear weights linearly)."""
     axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
     along = float(abs(sun_dir[axis]))  # Python floats below: weak-typed, keep σ's dtype
     if along < 1e-9:
@@ -54,6 +58,9 @@ def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool):
     src = [float(sun_dir[u]) / along, float(sun_dir[v]) / along]  # offsets to sample, in voxels
     ipart = [math.floor(x) for x in src]
     frac = [x - i for x, i in zip(src, ipart)]
+    if vec is not None:
+        along = jnp.abs(vec[axis])
+        frac = [vec[u] / along - ipart[0], vec[v] / along - ipart[1]]
     lateral_periodic = (periodic_xy and u in (0, 1), periodic_xy and v in (0, 1))
 
     def resample(t, fill):
@@ -68,7 +75,11 @@ def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool):
                 tp = jnp.pad(t, widths, constant_values=fill)
             a0 = jax.lax.slice_in_dim(tp, pad_lo + i0, pad_lo + i0 + n, axis=ax)
             a1 = jax.lax.slice_in_dim(tp, pad_lo + i0 + 1, pad_lo + i0 + 1 + n, axis=ax)
-            t = a0 if f == 0.0 else (1.0 - f) * a0 + f * a1
+            if isinstance(f, float):
+                t = a0 if f == 0.0 else (1.0 - f) * a0 + f * a1
+            else:
+                f = f.astype(t.dtype)
+                t = (1.0 - f) * a0 + f * a1
         return t
 
     return (axis, u, v), sign, along, resample
@@ -99,7 +110,8 @@ def sun_path(density, sun_dir, h, periodic_xy):
     return jnp.transpose(out, np.argsort(perm))
 
 
-def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, slope=False):
+def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, slope=False,
+                      vec=None):
     """Transmittance of the direct sun beam arriving at every node.
 
     sigma_t: (nx, ny, nz) extinction per unit length (ζ+γ)·density; opaque: (nx, ny, nz) bool
@@ -113,9 +125,10 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
     slope: also return h∇T̄ (nx, ny, nz, 3), the segment average's change per lattice spacing
     along the beam, from the first moment of e^(−s) over the node's segment (the linear-source
     scheme's first-collision slope: in a thick node the beam's power is spent near its entry).
+    vec: the sun's direction traced (an unknown), near ``sun_dir`` (``_beam_frame``).
     """
     sun_dir = np.asarray(sun_dir, dtype=np.float64)
-    frame = _beam_frame(sun_dir, periodic_xy)
+    frame = _beam_frame(sun_dir, periodic_xy, vec)
     if frame is None:  # sun exactly on the horizon of a periodic domain: no direct light
         return jnp.zeros_like(sigma_t)
     perm, sign, along, resample = frame
@@ -124,6 +137,8 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
     if sign < 0:
         s, o = s[::-1], o[::-1]
 
+    if not isinstance(along, float):
+        along = along.astype(s.dtype)
     tau = s * (h / (2.0 * along))  # half-segment optical depth per node
     half = jnp.exp(-tau)
     mean = one_minus_exp_over(2.0 * tau)  # mean of e^(−s) over the node's whole segment
@@ -146,7 +161,8 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
         out = jax.tree.map(lambda a: a[::-1], out)
     t_arr, t_avg, *t_first = (jnp.transpose(a, np.argsort(perm)) for a in out)
     if slope:  # along the light's propagation, −sun_dir
-        grad = t_first[0][..., None] * jnp.asarray(-sun_dir, t_first[0].dtype)
+        light = -(sun_dir if vec is None else vec)
+        grad = t_first[0][..., None] * jnp.asarray(light, t_first[0].dtype)
         return t_arr, t_avg, jnp.where(opaque[..., None], 0.0, grad)
     return (t_arr, t_avg) if average else t_arr
 
