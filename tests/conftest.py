@@ -30,6 +30,7 @@ def pytest_configure(config):
 # long files first the short ones fill the gaps at the end, where alphabetical order, or
 # xdist's own by-test-count order, left one worker running the notebooks alone for minutes.
 LONGEST_FIRST = ["test_notebooks.py", "test_sweep.py", "test_interface.py", "test_fit.py",
+                 "test_sun_unknown.py",
                  "test_tomography.py",
                  "test_extremes.py", "test_cli.py", "test_splat.py", "test_camera.py",
                  "test_thick.py", "test_linear_scheme.py", "test_anisotropic.py"]

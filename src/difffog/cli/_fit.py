@@ -53,12 +53,13 @@ def add_parser(sub) -> None:
                         "16-bit and float), srgb or linear")
     p.add_argument("--unknown", action="append", metavar="PATH[=INIT]",
                    help="a parameter to fit, e.g. fog.scattering=1.0, or a gain on the images "
-                        "(exposure, camera.NAME.exposure; for photographs) (repeatable; default "
-                        "initial value: the scene's; an exposure's: the best gain for the "
-                        "first render)")
+                        "(exposure, camera.NAME.exposure; for photographs), or the sun's "
+                        "direction (sun.zenith_deg, sun.azimuth_deg; sweep solver) (repeatable; "
+                        "default initial value: the scene's; an exposure's: the best gain for "
+                        "the first render)")
     p.add_argument("--bounds", action="append", metavar="PATH=LOWER,UPPER",
                    help="bounds of an unknown (default: (0, inf) for coefficients, (0, 1) "
-                        "for albedo)")
+                        "for albedo, (0, 90) for the sun's zenith, (-360, 360) for its azimuth)")
     p.add_argument("--mask", action="append", metavar="CAMERA=FILE",
                    help="a target's mask: .npy weights >= 0, or an image file used where its "
                         "alpha (else any channel) is nonzero, e.g. the photo itself")

@@ -40,21 +40,24 @@ from ._result import FitResult, IdentifiabilityWarning, level_label, result_name
 from ._residuals import LOSSES
 from ._stepper import make_optimizer, stepper_for
 from ._targets import prepare_targets, reduced_scene
-from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera, within_bounds
+from ._unknowns import (SUN_PATHS, Coordinate, as_unknowns, coordinates, exposure_camera,
+                        within_bounds)
 
 
 def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample: int = 1,
                resolution: int | None = None, model_settings: Mapping | None = None,
-               unknowns: int = 1):
+               unknowns: int = 1, sun: bool | float = False):
     """The forward model of a fit: ``forward`` as it is if it is a model, else the registry's
     solver of that name at its fit defaults (overridden by ``resolution`` and
     ``model_settings``), rendering the target cameras reduced by ``downsample``; its memory is
-    checked for a Jacobian of ``unknowns`` columns."""
+    checked for a Jacobian of ``unknowns`` columns.  ``sun``: the sun's angles are unknowns
+    (the model is built with their derivatives, ``SweepModel.with_sun_derivatives``, with this
+    step in degrees if a number)."""
     if isinstance(forward, AbstractForwardModel):
         if model_settings or resolution is not None:
             raise DifffogError("fit: resolution and model_settings apply when forward is a "
                                "solver name; the forward model given is already built")
-        return forward
+        return _with_sun(forward, sun) if sun else forward
     if not isinstance(forward, str):
         raise DifffogError(f"forward: {type(forward).__name__} is not a forward model; pass a "
                            f"solver name ('sweep', 'splat') or difffog.forward_model(...)")
@@ -72,7 +75,32 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
     # besides the forward solve
     guard(small, forward, force=force, tangent_solves=max(1, int(unknowns)),
           what=f"the fit's {forward} model", **full)
-    return entry.build(small, **full)
+    if sun and not entry.traces_sun:
+        raise DifffogError(f"sun.zenith_deg / sun.azimuth_deg: the {forward} forward model "
+                           f"takes the sun's direction as fixed; fit the sun with "
+                           f"forward=\"sweep\"")
+    model = entry.build(small, **full)
+    return _with_sun(model, sun) if sun else model
+
+
+def _has_sun(unknowns) -> bool:
+    """Whether the sun's angles are among the unknowns."""
+    return any(u.path in SUN_PATHS for u in as_unknowns(unknowns))
+
+
+def _with_sun(model, step=True):
+    """``model`` able to trace the sun's angles (a one-line error for a solver that cannot),
+    its host quantities linearized with ``step`` degrees (True: the model's default, or the
+    step it has)."""
+    if not hasattr(model, "with_sun_derivatives"):
+        raise DifffogError(f"sun.zenith_deg / sun.azimuth_deg: a {type(model).__name__} takes "
+                           f"the sun's direction as fixed; fit the sun with forward=\"sweep\"")
+    lin = getattr(model, "sun_lin", None)
+    if step is True:
+        return model if lin is not None else model.with_sun_derivatives()
+    if lin is not None and lin.step == float(step):
+        return model
+    return model.with_sun_derivatives(float(step))
 
 
 @dataclass
@@ -141,7 +169,7 @@ def _exposure_starts(stepper, args, coords, inits, names, tgt, wts, dtype) -> li
 
 def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, downsample,
            model_settings, weights, loss, loss_scale, rtol, atol, max_steps, stall_steps,
-           dtype, channel, transfer, edge_weight=1.0) -> _Setup:
+           dtype, channel, transfer, edge_weight=1.0, sun_step=None) -> _Setup:
     unknowns = as_unknowns(unknowns)
     if loss not in LOSSES:
         raise DifffogError(f"loss '{loss}': choose one of {', '.join(LOSSES)}")
@@ -168,7 +196,8 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
     names = sorted(targets)  # a fixed order: fits of the same views share one compiled step
     model = make_model(scene, forward, cameras=names, downsample=downsample,
                        resolution=resolution, model_settings=model_settings,
-                       unknowns=len(unknowns))
+                       unknowns=len(unknowns),
+                       sun=_has_sun(unknowns) and (sun_step or True))
     tgt, wts = prepare_targets(scene, model, targets, weights, downsample, files=target_files)
     edge_share = _weigh_edges(model, names, wts, float(edge_weight))
     dtype = dtype or jnp.result_type(float)
@@ -385,9 +414,12 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     unknowns: dotted parameter paths (``fog.scattering``, ``fog.absorption``,
         ``shape.<name>.albedo``; ``fog.g``, ``sun.irradiance``, ``sky.radiance`` as nuisance
         parameters; ``exposure`` or ``camera.<name>.exposure``, a gain on every image or on one
-        camera's, for photographs of unknown scale): a list, a dict {path: init | (init,
-        lower, upper) | None} or :class:`Unknown` objects.  An exposure without an initial
-        value starts at the gain that best fits the first render to the targets.
+        camera's, for photographs of unknown scale; ``sun.zenith_deg``, ``sun.azimuth_deg``,
+        the sun's direction, for photographs whose sun is not known exactly: the sweep only,
+        in rounds that rebuild the model at the estimated sun, ``FitResult.sun_rounds``): a
+        list, a dict {path: init | (init, lower, upper) | None} or :class:`Unknown` objects.
+        An exposure without an initial value starts at the gain that best fits the first
+        render to the targets.
     forward: a solver name ("sweep", default, or "splat": built from the registry at its fit
         defaults, e.g. the sweep at N = 32, M = 3, light tol 1e-5) or a forward model
         (``difffog.forward_model(...)``, used as it is: its cameras must match the targets).
@@ -454,8 +486,9 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
               atol=atol, max_steps=max_steps, stall_steps=stall_steps, dtype=dtype,
               channel=channel, transfer=transfer, progress=progress, edge_weight=edge_weight)
     if len(levels) < 2:
-        res = _fit_level(scene, targets, unknowns, resolution=resolution, checkpoint=checkpoint,
-                         resume=resume, callback=callback, **kw)
+        res, scene = _fit_sun_rounds(scene, targets, unknowns, resolution=resolution,
+                                     checkpoint=checkpoint, resume=resume, callback=callback,
+                                     **kw)
         if fine_n is not None:
             t0 = time.perf_counter()
             _with_refined_error(res, scene, forward, fine_n, downsample, model_settings,
@@ -465,6 +498,9 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     if checkpoint is not None or resume:
         raise DifffogError("checkpoint/resume is not supported with a ladder yet (the coarse "
                            "level would be refitted); use ladder=None (--ladder none)")
+    if _has_sun(unknowns):
+        raise DifffogError("the sun's angles as unknowns are not supported with a ladder; use "
+                           "model_error=\"refine\" (the measured honest one) or no ladder")
     t0 = time.perf_counter()
     unk = as_unknowns(unknowns)
     coarse = _fit_level(scene, targets, unk, resolution=levels[0], **kw)
@@ -475,6 +511,76 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     out = _with_model_error(fine, coarse, levels)  # (its ladder keeps each level's own time)
     out.time_s = time.perf_counter() - t0
     return out
+
+
+#: a fit with the sun's angles as unknowns rebuilds its model at the estimated sun (the host's
+#: shadows and paths are linearized about the model's own sun) until the sun moves less than
+#: this (degrees; or than its standard error, where that is larger) in a round, at most
+#: ``SUN_ROUNDS`` rounds
+SUN_SETTLE_DEG = 0.05
+SUN_ROUNDS = 6
+#: the linearization's step in the first round (degrees): its central differences span
+#: ±4°, so that a shadow can move that far within the round; later rounds take half the last
+#: round's move, within [SUN_STEP_MIN, SUN_FIRST_STEP]
+SUN_FIRST_STEP = 4.0
+SUN_STEP_MIN = 0.5
+
+
+def _finite_or(v, default: float) -> float:
+    return float(v) if v is not None and math.isfinite(v) else default
+
+
+def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=False,
+                    callback=None, **kw) -> tuple[FitResult, Scene]:
+    """:func:`_fit_level`, and with the sun's angles among the unknowns, again on a model
+    rebuilt at the estimated sun until it settles (``SUN_SETTLE_DEG``): (the last round's
+    result with every round's record, the scene with the sun it was built at)."""
+    unk = as_unknowns(unknowns)
+    sun_paths = [u.path for u in unk if u.path in SUN_PATHS]
+    if not sun_paths or scene.sun is None:  # (no sun: the unknown's own one-line error)
+        res = _fit_level(scene, targets, unk, checkpoint=checkpoint, resume=resume,
+                         callback=callback, **kw)
+        return res, scene
+    if resume:
+        raise DifffogError("resume: not supported with the sun's angles as unknowns yet (each "
+                           "round of the fit rebuilds the model at the estimated sun); run "
+                           "without resume")
+    t0 = time.perf_counter()
+    rounds, history, first = [], [], None
+    step = SUN_FIRST_STEP
+    for r in range(SUN_ROUNDS):
+        res = _fit_level(scene, targets, unk, checkpoint=checkpoint, callback=callback,
+                         sun_step=step, **kw)
+        first = first or res
+        at = {p: float(getattr(scene.sun, p[4:])) for p in SUN_PATHS}
+        moved = max(abs(res.estimates[p] - at[p]) for p in sun_paths)
+        # settled: it moved less than SUN_SETTLE_DEG, or than the noise's standard error (the
+        # host's shadows change in steps of their rays, so the estimate jitters with the sun
+        # the model is built at)
+        settle = {p: max(SUN_SETTLE_DEG, _finite_or(res.stderr.get(p), 0.0)) for p in sun_paths}
+        rounds.append({"sun": at, "step_deg": step, "estimates": dict(res.estimates),
+                       "iterations": res.iterations, "result": res.result,
+                       "time_s": round(res.time_s, 3)})
+        step = min(max(0.5 * moved, SUN_STEP_MIN), SUN_FIRST_STEP)
+        history += [{**h, "round": r + 1} for h in res.history]
+        if not res.converged or all(abs(res.estimates[p] - at[p]) <= settle[p]
+                                    for p in sun_paths):
+            break
+        new = {k[4:]: res.estimates.get(k, at[k]) for k in SUN_PATHS}
+        scene = scene.replace(sun=dataclasses.replace(scene.sun, **new))
+        unk = [dataclasses.replace(u, init=within_bounds(u, res.estimates[u.path])) for u in unk]
+        if isinstance(kw.get("forward"), AbstractForwardModel):
+            kw["forward"] = kw["forward"].at_sun(new["zenith_deg"], new["azimuth_deg"], step)
+    else:
+        res.warnings.append(f"the sun's estimate still moved {moved:.2g}° in the last of "
+                            f"{SUN_ROUNDS} rounds (each rebuilds the model at the estimated "
+                            f"sun); it may be off by about that much")
+    res.initial = first.initial
+    res.iterations = sum(rd["iterations"] for rd in rounds)
+    res.history = history
+    res.sun_rounds = rounds
+    res.time_s = time.perf_counter() - t0
+    return res, scene
 
 
 def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_error,
@@ -521,7 +627,8 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
             extra = {} if M is None else {"M": M}
             return make_model(scene, forward, cameras=st.names, downsample=downsample,
                               resolution=resolution, model_settings={**settings, **extra},
-                              unknowns=n_unknowns)
+                              unknowns=n_unknowns,
+                              sun=any(c.path in SUN_PATHS for c in st.coords))
     else:
         solver = getattr(forward, "solver", None)
         m = (int(solver.M) + 1 if solver is not None and hasattr(solver, "M")
@@ -603,6 +710,10 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         t = (1 / what["resolution"] - 1 / n) / (1 / fine_n - 1 / n)  # its place on the line
         for p in res.paths:
             parts[p]["lattice_between"] = abs(est[p] - (fitted[p] + t * (refined[p] - fitted[p])))
+    if len(res.sun_rounds) >= 2:  # how far the last rebuild at the estimated sun moved each
+        before, last = res.sun_rounds[-2]["estimates"], res.sun_rounds[-1]["estimates"]
+        for p in res.paths:
+            parts[p]["sun_rounds"] = abs(last[p] - before[p])
     res.fitted = fitted
     res.estimates = refined
     res.model_error = {p: float(math.sqrt(sum(v * v for v in parts[p].values())))
@@ -734,6 +845,9 @@ def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
         if bad in kwargs:
             raise DifffogError(f"fit_batch: {bad} is not supported; run fit() per target set "
                                f"for checkpoints and callbacks")
+    if _has_sun(unknowns):
+        raise DifffogError("fit_batch: the sun's angles as unknowns need a model rebuilt at "
+                           "each fit's estimated sun; run fit() per target set")
     unknown = set(kwargs) - set(_SETUP_DEFAULTS)
     if unknown:
         raise DifffogError(f"fit_batch: unknown keyword {', '.join(sorted(unknown))}; it takes "

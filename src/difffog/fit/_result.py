@@ -58,7 +58,13 @@ class FitResult:
         step taken as first order in the voxel size, × N/(N_f − N) ("lattice"); how far the
         estimate of a lattice between (1.5 N, the fit's M) lands from the line through the fit
         and the corrected estimate ("lattice_between"); the change with M + 1 on the fit's own
-        lattice ("directions").  ``model_error`` is their root sum of squares.
+        lattice ("directions"); with the sun's angles as unknowns, how far the last round's
+        rebuild at the estimated sun moved each estimate ("sun_rounds").  ``model_error`` is
+        their root sum of squares.
+    sun_rounds: with the sun's angles as unknowns, one dict per round of the fit (the sun the
+        round's model was built at, its estimates, iterations, result): each round rebuilds
+        the model at the previous round's sun, until the sun moves less than
+        ``_driver.SUN_SETTLE_DEG``.
     """
 
     paths: list[str]
@@ -85,13 +91,17 @@ class FitResult:
     ladder: list = field(default_factory=list)
     fitted: dict = field(default_factory=dict)
     model_error_parts: dict = field(default_factory=dict)
+    sun_rounds: list = field(default_factory=list)
 
     @property
     def converged(self) -> bool:
         return self.result in ("successful", "loss_stalled")
 
     def relative_error(self, truth: Mapping[str, float]) -> dict[str, float]:
-        return {p: (self.estimates[p] - truth[p]) / truth[p] for p in self.paths if p in truth}
+        """{path: (estimate − truth) / truth} (the sun's angles: estimate − truth, degrees)."""
+        return {p: (self.estimates[p] - truth[p]) / (
+            1.0 if p.startswith("sun.") and p.endswith("_deg") else truth[p])
+            for p in self.paths if p in truth}
 
     def summary(self, truth: Mapping[str, float] | None = None) -> str:
         w = max(len(p) for p in self.paths)
@@ -115,7 +125,10 @@ class FitResult:
             if model:
                 s += f"  {self.model_error[p]:>9.2g}  {self.uncertainty[p]:>9.2g}"
             if truth and p in truth:
-                s += f"  {truth[p]:>10.4g}  {100 * (self.estimates[p] / truth[p] - 1):>+8.3f}"
+                if p.startswith("sun.") and p.endswith("_deg"):  # an angle: off by degrees
+                    s += f"  {truth[p]:>10.4g}  {self.estimates[p] - truth[p]:>+7.3f}°"
+                else:
+                    s += f"  {truth[p]:>10.4g}  {100 * (self.estimates[p] / truth[p] - 1):>+8.3f}"
             lines.append(s)
         if model:
             by = {"model error": [], "noise": []}
@@ -136,6 +149,9 @@ class FitResult:
                          f"{level_label(self.ladder[0])} fit)")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
+        if self.sun_rounds:
+            lines.append(f"the sun: {len(self.sun_rounds)} rounds, each on a model built at the "
+                         f"last estimated sun")
         for cam, f in self.target_files.items():
             lines.append(f"target {cam}: {f['path']} ({f['dtype']}, transfer {f['transfer']}, "
                          f"{f['channel']})")
@@ -178,6 +194,7 @@ class FitResult:
             "ladder": self.ladder,
             "fitted": self.fitted or self.estimates,
             "model_error_parts": self.model_error_parts,
+            "sun_rounds": self.sun_rounds,
         }
 
 

@@ -51,10 +51,17 @@ def _kind(path: str) -> str:
         return "albedo"
     if path == "fog.g":
         return "g"
+    if path in ("sun.zenith_deg", "sun.azimuth_deg"):
+        return path[4:]
     return "positive"
 
 
-_NATURAL = {"albedo": (0.0, 1.0), "g": (-0.99, 0.99), "positive": (0.0, math.inf)}
+#: the sun's angles in degrees: a sun above the horizon, an azimuth free to turn either way
+_NATURAL = {"albedo": (0.0, 1.0), "g": (-0.99, 0.99), "positive": (0.0, math.inf),
+            "zenith_deg": (0.0, 90.0), "azimuth_deg": (-360.0, 360.0)}
+
+#: the sun's angles as unknowns (the sweep traces them: ``SweepModel.with_sun_derivatives``)
+SUN_PATHS = ("sun.zenith_deg", "sun.azimuth_deg")
 
 
 @dataclass(frozen=True)
