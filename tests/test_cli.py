@@ -343,6 +343,8 @@ def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, cap
       "fog.scattering=3,9"], "outside"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--edge-weight", "2"],
      "edge_weight must be a number in [0, 1]"),
+    (["--target", "top=T.npy", "--unknown", "sun.zenith_deg", "--bounds",
+      "sun.zenith_deg=0,120"], "bounds [0.0, 120.0] must satisfy 0.0 <= lower < upper <= 90.0"),
     # FIT_SMALL gives -M, a setting the splat does not take
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--solver", "splat"],
      "--directions does not apply to --solver splat"),
