@@ -546,7 +546,7 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
                            "round of the fit rebuilds the model at the estimated sun); run "
                            "without resume")
     t0 = time.perf_counter()
-    rounds, history, first = [], [], None
+    rounds, history, first, last_move = [], [], None, None
     step = SUN_FIRST_STEP
     for r in range(SUN_ROUNDS):
         res = _fit_level(scene, targets, unk, checkpoint=checkpoint, callback=callback,
@@ -566,7 +566,14 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
         if not res.converged or all(abs(res.estimates[p] - at[p]) <= settle[p]
                                     for p in sun_paths):
             break
-        new = {k[4:]: res.estimates.get(k, at[k]) for k in SUN_PATHS}
+        move = {k: res.estimates.get(k, at[k]) - at[k] for k in SUN_PATHS}
+        if last_move is not None and sum(move[k] * last_move[k] for k in SUN_PATHS) < 0:
+            # it turned back: the estimate jitters with the sun the model is built at (its
+            # shadows change in steps of their rays); halve the move, or it can swing between
+            # two suns for good
+            move = {k: 0.5 * v for k, v in move.items()}
+        last_move = move
+        new = {k[4:]: at[k] + move[k] for k in SUN_PATHS}
         scene = scene.replace(sun=dataclasses.replace(scene.sun, **new))
         unk = [dataclasses.replace(u, init=within_bounds(u, res.estimates[u.path])) for u in unk]
         if isinstance(kw.get("forward"), AbstractForwardModel):
