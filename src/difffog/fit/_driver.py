@@ -486,9 +486,9 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
               atol=atol, max_steps=max_steps, stall_steps=stall_steps, dtype=dtype,
               channel=channel, transfer=transfer, progress=progress, edge_weight=edge_weight)
     if len(levels) < 2:
-        res, scene = _fit_sun_rounds(scene, targets, unknowns, resolution=resolution,
-                                     checkpoint=checkpoint, resume=resume, callback=callback,
-                                     **kw)
+        res, scene, forward = _fit_sun_rounds(scene, targets, unknowns, resolution=resolution,
+                                              checkpoint=checkpoint, resume=resume,
+                                              callback=callback, **kw)
         if fine_n is not None:
             t0 = time.perf_counter()
             _with_refined_error(res, scene, forward, fine_n, downsample, model_settings,
@@ -531,16 +531,17 @@ def _finite_or(v, default: float) -> float:
 
 
 def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=False,
-                    callback=None, **kw) -> tuple[FitResult, Scene]:
+                    callback=None, **kw) -> tuple[FitResult, Scene, Any]:
     """:func:`_fit_level`, and with the sun's angles among the unknowns, again on a model
     rebuilt at the estimated sun until it settles (``SUN_SETTLE_DEG``): (the last round's
-    result with every round's record, the scene with the sun it was built at)."""
+    result with every round's record, the scene with the sun it was built at, ``forward``
+    (a solver name, or the model given rebuilt at that sun))."""
     unk = as_unknowns(unknowns)
     sun_paths = [u.path for u in unk if u.path in SUN_PATHS]
     if not sun_paths or scene.sun is None:  # (no sun: the unknown's own one-line error)
         res = _fit_level(scene, targets, unk, checkpoint=checkpoint, resume=resume,
                          callback=callback, **kw)
-        return res, scene
+        return res, scene, kw["forward"]
     if resume:
         raise DifffogError("resume: not supported with the sun's angles as unknowns yet (each "
                            "round of the fit rebuilds the model at the estimated sun); run "
@@ -587,7 +588,7 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
     res.history = history
     res.sun_rounds = rounds
     res.time_s = time.perf_counter() - t0
-    return res, scene
+    return res, scene, kw["forward"]
 
 
 def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_error,
