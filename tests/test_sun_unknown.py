@@ -207,6 +207,9 @@ def test_fit_of_a_given_model_rebuilds_it_at_the_sun_and_refines_there():
     for p, want in (("sun.zenith_deg", 36.5), ("sun.azimuth_deg", 18.5)):
         assert res.fitted[p] == pytest.approx(want, abs=0.1)
         assert "sun_rounds" in res.model_error_parts[p]
-        # the refined estimate corrects towards the finer lattice's reading of the targets
-        # (rendered at N = 12 themselves): it moves, but not far
-        assert abs(res.estimates[p] - res.fitted[p]) < 1.0
+        # the correction moves towards the finer lattice's reading of targets rendered at
+        # N = 12 themselves (on so coarse a lattice the zenith by ~2°): the model error, which
+        # the truth is judged by, covers that move
+        assert res.model_error[p] >= abs(res.estimates[p] - res.fitted[p])
+    final = res.sun_rounds[-1]["sun"]  # the refine's models were built at the last round's sun
+    assert final != res.sun_rounds[0]["sun"]
