@@ -34,14 +34,14 @@ from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
 from ..forward._registry import check_settings, guard, solver_entry
 from ..scene._description import Scene
+from ..scene._params import SUN_PATHS
 from . import _checkpoint
 from ._images import load_files
 from ._result import FitResult, IdentifiabilityWarning, level_label, result_name, statistics
 from ._residuals import LOSSES
 from ._stepper import make_optimizer, stepper_for
 from ._targets import prepare_targets, reduced_scene
-from ._unknowns import (SUN_PATHS, Coordinate, as_unknowns, coordinates, exposure_camera,
-                        within_bounds)
+from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera, within_bounds
 
 
 def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample: int = 1,
@@ -75,12 +75,15 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
     # besides the forward solve
     guard(small, forward, force=force, tangent_solves=max(1, int(unknowns)),
           what=f"the fit's {forward} model", **full)
-    if sun and not entry.traces_sun:
-        raise DifffogError(f"sun.zenith_deg / sun.azimuth_deg: the {forward} forward model "
-                           f"takes the sun's direction as fixed; fit the sun with "
-                           f"forward=\"sweep\"")
+    if sun and not entry.traces_sun:  # before building it
+        raise _fixed_sun(f"the {forward} forward model")
     model = entry.build(small, **full)
     return _with_sun(model, sun) if sun else model
+
+
+def _fixed_sun(what: str) -> DifffogError:
+    return DifffogError(f"sun.zenith_deg / sun.azimuth_deg: {what} takes the sun's direction "
+                        f"as fixed; fit the sun with forward=\"sweep\"")
 
 
 def _has_sun(unknowns) -> bool:
@@ -93,8 +96,7 @@ def _with_sun(model, step=True):
     its host quantities linearized with ``step`` degrees (True: the model's default, or the
     step it has)."""
     if not hasattr(model, "with_sun_derivatives"):
-        raise DifffogError(f"sun.zenith_deg / sun.azimuth_deg: a {type(model).__name__} takes "
-                           f"the sun's direction as fixed; fit the sun with forward=\"sweep\"")
+        raise _fixed_sun(f"a {type(model).__name__}")
     lin = getattr(model, "sun_lin", None)
     if step is True:
         return model if lin is not None else model.with_sun_derivatives()
@@ -553,7 +555,7 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
         res = _fit_level(scene, targets, unk, checkpoint=checkpoint, callback=callback,
                          sun_step=step, **kw)
         first = first or res
-        at = {p: float(getattr(scene.sun, p[4:])) for p in SUN_PATHS}
+        at = {p: float(getattr(scene.sun, attr)) for p, (_, attr) in SUN_PATHS.items()}
         moved = max(abs(res.estimates[p] - at[p]) for p in sun_paths)
         # settled: it moved less than SUN_SETTLE_DEG, or than the noise's standard error (the
         # host's shadows change in steps of their rays, so the estimate jitters with the sun
@@ -574,7 +576,7 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
             # two suns for good
             move = {k: 0.5 * v for k, v in move.items()}
         last_move = move
-        new = {k[4:]: at[k] + move[k] for k in SUN_PATHS}
+        new = {attr: at[k] + move[k] for k, (_, attr) in SUN_PATHS.items()}
         scene = scene.replace(sun=dataclasses.replace(scene.sun, **new))
         unk = [dataclasses.replace(u, init=within_bounds(u, res.estimates[u.path])) for u in unk]
         if isinstance(kw.get("forward"), AbstractForwardModel):
@@ -636,7 +638,7 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
             return make_model(scene, forward, cameras=st.names, downsample=downsample,
                               resolution=resolution, model_settings={**settings, **extra},
                               unknowns=n_unknowns,
-                              sun=any(c.path in SUN_PATHS for c in st.coords))
+                              sun=_has_sun([c.path for c in st.coords]))
     else:
         solver = getattr(forward, "solver", None)
         m = (int(solver.M) + 1 if solver is not None and hasattr(solver, "M")

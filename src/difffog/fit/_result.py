@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import optimistix as optx
 
+from ..scene._params import SUN_PATHS
+
 
 class IdentifiabilityWarning(UserWarning):
     """The unknowns are not (well) determined by the given views: near-singular JᵀJ or a
@@ -100,7 +102,7 @@ class FitResult:
     def relative_error(self, truth: Mapping[str, float]) -> dict[str, float]:
         """{path: (estimate − truth) / truth} (the sun's angles: estimate − truth, degrees)."""
         return {p: (self.estimates[p] - truth[p]) / (
-            1.0 if p.startswith("sun.") and p.endswith("_deg") else truth[p])
+            1.0 if p in SUN_PATHS else truth[p])
             for p in self.paths if p in truth}
 
     def summary(self, truth: Mapping[str, float] | None = None) -> str:
@@ -125,7 +127,7 @@ class FitResult:
             if model:
                 s += f"  {self.model_error[p]:>9.2g}  {self.uncertainty[p]:>9.2g}"
             if truth and p in truth:
-                if p.startswith("sun.") and p.endswith("_deg"):  # an angle: off by degrees
+                if p in SUN_PATHS:  # an angle: off by degrees
                     s += f"  {truth[p]:>10.4g}  {self.estimates[p] - truth[p]:>+7.3f}°"
                 else:
                     s += f"  {truth[p]:>10.4g}  {100 * (self.estimates[p] / truth[p] - 1):>+8.3f}"

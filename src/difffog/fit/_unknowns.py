@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from .._errors import DifffogError, SceneError
 from ..scene._description import Scene
-from ..scene._params import Params, get_param
+from ..scene._params import SUN_PATHS, Params, get_param
 
 
 @dataclass(frozen=True)
@@ -51,8 +51,8 @@ def _kind(path: str) -> str:
         return "albedo"
     if path == "fog.g":
         return "g"
-    if path in ("sun.zenith_deg", "sun.azimuth_deg"):
-        return path[4:]
+    if path in SUN_PATHS:
+        return SUN_PATHS[path][1]  # the scene's Sun attribute: "zenith_deg", "azimuth_deg"
     return "positive"
 
 
@@ -60,8 +60,6 @@ def _kind(path: str) -> str:
 _NATURAL = {"albedo": (0.0, 1.0), "g": (-0.99, 0.99), "positive": (0.0, math.inf),
             "zenith_deg": (0.0, 90.0), "azimuth_deg": (-360.0, 360.0)}
 
-#: the sun's angles as unknowns (the sweep traces them: ``SweepModel.with_sun_derivatives``)
-SUN_PATHS = ("sun.zenith_deg", "sun.azimuth_deg")
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,12 @@ class Fog:
         return self.scattering / e if e > 0 else 0.0
 
 
+def sun_vector(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Unit vector towards a sun at these angles (from +z; from +x towards +y)."""
+    t, p = math.radians(zenith_deg), math.radians(azimuth_deg)
+    return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
+
+
 @dataclass(frozen=True)
 class Sun:
     """A directional light: ``irradiance`` on a plane perpendicular to the beam, the direction
@@ -107,8 +113,7 @@ class Sun:
     @property
     def direction(self) -> np.ndarray:
         """Unit vector pointing *towards* the sun."""
-        t, p = math.radians(self.zenith_deg), math.radians(self.azimuth_deg)
-        return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
+        return sun_vector(self.zenith_deg, self.azimuth_deg)
 
 
 @dataclass(frozen=True)

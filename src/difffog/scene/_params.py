@@ -83,15 +83,16 @@ def param_paths(scene: Scene) -> list[str]:
     if scene.fog is not None:
         out.append("fog.density")
     if scene.sun is not None:
-        out += list(_SUN_PATHS)
+        out += list(SUN_PATHS)
     for s in scene.shapes:
         out += [f"shape.{s.name}.albedo", f"shape.{s.name}.emission"]
     return out
 
 
 #: the sun's direction: dotted path → ``Params`` field and the scene's ``Sun`` attribute
-_SUN_PATHS = {"sun.zenith_deg": ("sun_zenith", "zenith_deg"),
-              "sun.azimuth_deg": ("sun_azimuth", "azimuth_deg")}
+SUN_PATHS = {"sun.zenith_deg": ("sun_zenith", "zenith_deg"),
+             "sun.azimuth_deg": ("sun_azimuth", "azimuth_deg")}
+_SUN_FIELDS = {field: attr for field, attr in SUN_PATHS.values()}
 
 
 def sun_direction_of(params: Params, scene: Scene):
@@ -111,8 +112,8 @@ def sun_direction_of(params: Params, scene: Scene):
 def _locate(scene: Scene, path: str):
     if path in _SCALAR_PATHS:
         return _SCALAR_PATHS[path], None
-    if path in _SUN_PATHS and scene.sun is not None:
-        return _SUN_PATHS[path][0], None
+    if path in SUN_PATHS and scene.sun is not None:
+        return SUN_PATHS[path][0], None
     if path == "fog.density" and scene.fog is not None:
         return "density", None
     parts = path.split(".")
@@ -137,9 +138,8 @@ def get_param(params: Params, scene: Scene, path: str):
         d = scene.fog.density
         return jnp.ones((1, 1, 1), params.scattering.dtype) if d is None else jnp.asarray(
             d, params.scattering.dtype)
-    if leaf in ("sun_zenith", "sun_azimuth") and v is None:  # the scene's own
-        return jnp.asarray(getattr(scene.sun, _SUN_PATHS["sun." + leaf[4:] + "_deg"][1]),
-                           params.scattering.dtype)
+    if leaf in _SUN_FIELDS and v is None:  # the scene's own
+        return jnp.asarray(getattr(scene.sun, _SUN_FIELDS[leaf]), params.scattering.dtype)
     return v if idx is None else v[idx]
 
 
@@ -147,7 +147,7 @@ def set_param(params: Params, scene: Scene, path: str, value) -> Params:
     leaf, idx = _locate(scene, path)
     if leaf == "density":
         return with_density(params, value)
-    if leaf in ("sun_zenith", "sun_azimuth"):
+    if leaf in _SUN_FIELDS:
         new = jnp.asarray(value, dtype=params.scattering.dtype)
         return eqx.tree_at(lambda p: getattr(p, leaf), params, new, is_leaf=lambda x: x is None)
     if idx is None:

@@ -20,7 +20,7 @@ from ..._numerics import FOUR_PI
 from ...geometry._hits import casts_exactly
 from ..._errors import SceneError
 from ...geometry._lattice import SOLID, SURFACE, Lattice, apply_density_map, voxelize
-from ...scene._description import Camera, Scene
+from ...scene._description import Camera, Scene, sun_vector
 from ...scene._params import Params, get_param, sun_direction_of
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
@@ -108,6 +108,13 @@ def _sun_path(scene: Scene, lattice, fog_box, ranges, sun_dir=None) -> np.ndarra
     return _continue_past_box(path, ranges, np)
 
 
+def _camera_visibility(vis, near_fluid, sharp) -> np.ndarray:
+    """The light solve's sun visibility at the nodes (nx, ny, nz) as the cameras read it:
+    extended into solids from the nearest fluid node, then past the fog's box (``sharp``)."""
+    v = np.asarray(vis).reshape(-1)[np.asarray(near_fluid)].reshape(-1)
+    return v[np.asarray(sharp)].reshape(np.shape(vis))
+
+
 def _continue_past_box(path, ranges, xp):
     """``path`` continued linearly past the fog's box (node index ``ranges`` per axis) from its
     last two nodes inside, axis by axis (NumPy or jax.numpy)."""
@@ -180,8 +187,7 @@ class CameraGeometry(eqx.Module):
                 # the light solve's (``SweepGeometry.sun_vis``); None only without shapes (exact
                 # hits exist only where the host casts exactly), where nothing shadows
                 vis = np.ones(nt.shape) if visibility is None else np.asarray(visibility)
-                vis = vis.reshape(-1)[near_fluid].reshape(-1)[sharp]
-                sun_vis = jnp.asarray(vis.reshape(nt.shape))
+                sun_vis = jnp.asarray(_camera_visibility(vis, near_fluid, sharp))
         return cls(
             fog_box=fog_box, support_index=support_index, sun_path=sun_path, sun_vis=sun_vis,
             support_ranges=None if ranges is None else tuple(
@@ -324,6 +330,16 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     )
 
 
+def _hit_points(hits: RayHits) -> tuple[np.ndarray, np.ndarray]:
+    """(points (R, 3) where each ray meets a shape (its origin where it meets none), the rays
+    that meet one (R,) bool), on the host in float64."""
+    t = np.asarray(hits.t, np.float64)
+    m = np.isfinite(t)
+    p = (np.asarray(hits.origins, np.float64)
+         + np.where(m, t, 0.0)[:, None] * np.asarray(hits.directions, np.float64))
+    return p, m
+
+
 class HitSunPlan(eqx.Module):
     """One camera's exact hits: the samples of their path towards the sun
     (``geometry._hits.sun_depth_plan``), for a traced density."""
@@ -364,9 +380,7 @@ class DensityOperators(eqx.Module):
         if hits is not None and sun_dir is not None:
             plans = []
             for h in hits:
-                t = np.asarray(h.t, np.float64)
-                p = (np.asarray(h.origins, np.float64) + np.where(np.isfinite(t), t, 0.0)[:, None]
-                     * np.asarray(h.directions, np.float64))
+                p, _ = _hit_points(h)
                 q, j0, n, te = sun_depth_plan(p, np.asarray(h.sun_cos) > 0, sun_dir, fog,
                                               lattice.origin, lattice.h, box=fog_box)
                 plans.append(HitSunPlan(start=jnp.asarray(q), j0=jnp.asarray(j0, jnp.int32),
@@ -423,11 +437,6 @@ class SunLinearization(eqx.Module):
     zenith: float = eqx.field(static=True)
     azimuth: float = eqx.field(static=True)
     step: float = eqx.field(static=True)
-
-
-def _sun_vector(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
-    t, p = math.radians(zenith_deg), math.radians(azimuth_deg)
-    return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
 
 
 class SweepModel(AbstractForwardModel):
@@ -576,8 +585,7 @@ class SweepModel(AbstractForwardModel):
                 vis = sun_visibility(self.scene, lat.shape, lat.origin, lat.h, s)
                 out["vis"] = vis
                 if cg.sun_vis is not None:
-                    v = vis.reshape(-1)[np.asarray(cg.near_fluid)].reshape(-1)
-                    out["cam_vis"] = v[np.asarray(cg.support_index)].reshape(lat.shape)
+                    out["cam_vis"] = _camera_visibility(vis, cg.near_fluid, cg.support_index)
             elif cg.sun_vis is not None:
                 out["cam_vis"] = np.asarray(cg.sun_vis)  # no shapes: nothing shadows
             if cg.sun_path is not None:
@@ -585,14 +593,12 @@ class SweepModel(AbstractForwardModel):
             if self.hits is not None:
                 cos, depth = [], []
                 for h in self.hits:
-                    t = np.asarray(h.t, np.float64)
-                    m = np.isfinite(t)
-                    p = (np.asarray(h.origins, np.float64)[m]
-                         + t[m, None] * np.asarray(h.directions, np.float64)[m])
-                    c, d = np.zeros(len(t)), np.zeros(len(t))
+                    p, m = _hit_points(h)
+                    c, d = np.zeros(len(m)), np.zeros(len(m))
                     if m.any():
-                        c[m], d[m] = sun_depth(self.scene, p, np.asarray(h.normal, np.float64)[m],
-                                               s, self.host.hit_fog, lat.origin, lat.h,
+                        c[m], d[m] = sun_depth(self.scene, p[m],
+                                               np.asarray(h.normal, np.float64)[m], s,
+                                               self.host.hit_fog, lat.origin, lat.h,
                                                box=cg.fog_box)
                     cos.append(c)
                     depth.append(d)
@@ -600,7 +606,7 @@ class SweepModel(AbstractForwardModel):
             return out
 
         z, a = float(sun.zenith_deg), float(sun.azimuth_deg)
-        q = {k: quantities(_sun_vector(z + dz, a + da))
+        q = {k: quantities(sun_vector(z + dz, a + da))
              for k, (dz, da) in {"z+": (step, 0), "z-": (-step, 0), "a+": (0, step),
                                  "a-": (0, -step)}.items()}
 
