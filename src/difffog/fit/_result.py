@@ -152,8 +152,9 @@ class FitResult:
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
         if self.sun_rounds:
-            lines.append(f"the sun: {len(self.sun_rounds)} rounds, each on a model built at the "
-                         f"last estimated sun")
+            n = len(self.sun_rounds)
+            lines.append("the sun: 1 round, on a model built at the starting sun" if n == 1 else
+                         f"the sun: {n} rounds, each on a model built at the last estimated sun")
         for cam, f in self.target_files.items():
             lines.append(f"target {cam}: {f['path']} ({f['dtype']}, transfer {f['transfer']}, "
                          f"{f['channel']})")
