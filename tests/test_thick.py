@@ -2,7 +2,9 @@
 and a thick conservative fog reflects like a semi-infinite conservative medium.
 
 Independent truths: adding-doubling (iadpython) for slabs, Chandrasekhar's H-function for the
-semi-infinite medium.  Figures in docs/validation.md.
+semi-infinite medium, and for issue 14's thick cube its own image by a float64 Monte Carlo
+random walk (``THICK_CUBE_REFERENCE``, ``benchmarks/thick_cube_mc.py``; checked against
+Mitsuba 3).  Figures in docs/validation.md.
 """
 
 import math
@@ -17,7 +19,7 @@ import pytest
 
 import difffog as df
 from difffog import Params, SweepSolver
-from difffog.study._semi_infinite import semi_infinite_radiance, semi_infinite_value
+from difffog.study._semi_infinite import THICK_CUBE_REFERENCE, semi_infinite_radiance
 from difffog.study._semi_infinite import thick_cube as _thick_cube
 from difffog.study._slab import slab_absorption, slab_exits, slab_problem, slab_reflectance
 from helpers import adding_doubling, assert_light_gradient, slab_table_reference
@@ -135,7 +137,7 @@ def test_the_lattice_conserves_a_sunlit_slab_on_thick_steps(x64):
 
 
 def test_semi_infinite_value():
-    # H(1) = 2.9078 (Chandrasekhar's table); the reference value the tests below use
+    # H(1) = 2.9078 (Chandrasekhar's table); the limit the thick cube's image tends to
     assert semi_infinite_radiance(4 * math.pi, 1.0, 1.0, 0.0) == pytest.approx(
         0.5 * 2.9078 ** 2, rel=2e-3)
 
@@ -160,21 +162,39 @@ def _mean_image(zeta: float, N: int, scheme: str = "auto") -> float:
 def test_thick_conservative_fog_is_bright_not_black_or_blown():
     """ζ = 1000 (a step depth of ~180 at N = 12): 0 with 0.1's scheme, and 10× too bright at
     ζ = 100; now (the linear scheme, which the default takes there, and the cameras' sun along
-    its own profile) within 3% of the semi-infinite value at this coarse lattice (measured
-    +1.2%)."""
-    expected = semi_infinite_value()
-    assert _mean_image(1000.0, 12) == pytest.approx(expected, rel=0.03)
+    its own profile) within 3% of the cube's own image (an independent float64 Monte Carlo,
+    0.7668 ± 0.0016, within 1% of the semi-infinite value) at this coarse lattice (measured
+    +2.0%)."""
+    assert _mean_image(1000.0, 12) == pytest.approx(THICK_CUBE_REFERENCE[1000.0][0], rel=0.03)
+
+
+_CUBE_AT_100_XFAIL = pytest.mark.xfail(strict=True, reason=(
+    "issue 14 open: at ζ = 100 the default reads the cube +5.1% over its own image at N = 32 "
+    "(a step depth of 6), just over the issue's 5%; first_collision=\"deposit\" reads it "
+    "−2.8% there but −13% at ζ = 1000"))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("zeta", [100.0, 1000.0, 10000.0])
-def test_thick_conservative_fog_reflects_like_a_semi_infinite_medium(zeta):
-    """N = 32, the default scheme (linear at these step depths of 6, 62 and 625): within 3% of
-    the semi-infinite value (measured −1.2%, +2.7%, +1.3%; the step scheme +1.8%, +12.6%,
-    +13.3% since the cameras scatter the sun along its own profile, which showed its earlier
-    −2.6%, +3.7%, +3.8% to be a cancellation)."""
-    expected = semi_infinite_value()
-    assert _mean_image(zeta, 32) == pytest.approx(expected, rel=0.03)
+@pytest.mark.parametrize("zeta", [pytest.param(100.0, marks=_CUBE_AT_100_XFAIL), 1000.0,
+                                  10000.0])
+def test_thick_cube_reads_as_an_independent_monte_carlo(zeta):
+    """N = 32, the default scheme (linear at these step depths of 6, 62 and 625): within the
+    issue's 5% of the cube's own image by a float64 Monte Carlo (``THICK_CUBE_REFERENCE``;
+    measured +5.1%, +3.5%, +1.8%).  Until stop 47 this test held the semi-infinite value
+    (0.773) within 3% (−1.2%, +2.7%, +1.3%), which the cube itself misses by 6% at ζ = 100:
+    the default's −1.2% there was light it creates (a thick step's sunlit face re-emits more
+    than its beam loses) meeting light the finite cube loses."""
+    assert _mean_image(zeta, 32) == pytest.approx(THICK_CUBE_REFERENCE[zeta][0], rel=0.05)
+
+
+@pytest.mark.slow
+def test_the_thick_cube_converges_to_the_independent_monte_carlo():
+    """ζ = 100: the default's error against the cube's own image falls as the lattice is
+    refined and is within 2% at N = 64 (measured +5.1% at N = 32, +1.5% at N = 64; 0.727 at
+    N = 128 against the Monte Carlo's 0.7271 ± 0.0007)."""
+    ref = THICK_CUBE_REFERENCE[100.0][0]
+    e32, e64 = (abs(_mean_image(100.0, n) / ref - 1.0) for n in (32, 64))
+    assert e64 < 0.5 * e32 and e64 < 0.02
 
 
 def test_side_slopes_blend_one_linear_field_and_stop_where_the_fog_does():
@@ -221,7 +241,7 @@ def test_a_density_grid_falling_to_zero_reflects_like_the_fogs_sharp_face():
                          max_iterations=2000, supersample=1)
     with pytest.warns(df.ThickStepWarning):
         grid = float(df.render(m).images["top"].mean())
-    assert grid == pytest.approx(semi_infinite_value(), rel=0.03)
+    assert grid == pytest.approx(THICK_CUBE_REFERENCE[1000.0][0], rel=0.03)
 
 
 # -- the diffusion preconditioner (issue 14, part 2) ------------------------------------------
