@@ -180,7 +180,7 @@ _CUBE_AT_100_XFAIL = pytest.mark.xfail(strict=True, reason=(
 def test_thick_cube_reads_as_an_independent_monte_carlo(zeta):
     """N = 32, the default scheme (linear at these step depths of 6, 62 and 625): within the
     issue's 5% of the cube's own image by a float64 Monte Carlo (``THICK_CUBE_REFERENCE``;
-    measured +5.1%, +3.5%, +1.8%).  Until stop 47 this test held the semi-infinite value
+    measured +5.1%, +3.5%, +1.7%).  Until stop 47 this test held the semi-infinite value
     (0.773) within 3% (−1.2%, +2.7%, +1.3%), which the cube itself misses by 6% at ζ = 100:
     the default's −1.2% there was light it creates (a thick step's sunlit face re-emits more
     than its beam loses) meeting light the finite cube loses."""

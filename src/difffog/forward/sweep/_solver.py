@@ -844,8 +844,8 @@ class SweepSolver(eqx.Module):
         and cloud-plane's oblique view 8.6 → 7.7% from Mitsuba at N = 32; issue 14's thick
         cube against its own image (a float64 Monte Carlo, ``THICK_CUBE_REFERENCE``) at
         N = 32: −2.8% at ζ = 100 but −13% at ζ = 1000, where one node spans 60 mean free
-        paths, against "beam"'s +5.1% and +3.5%.  The same in thin fog.  The linear scheme's first-collision
-        slope stays the beam's own.
+        paths, against "beam"'s +5.1% and +3.5%.  The same in thin fog.  The linear scheme's
+        first-collision slope stays the beam's own.
     """
 
     M: int = eqx.field(static=True, default=3)
