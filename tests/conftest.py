@@ -53,6 +53,35 @@ def pytest_collection_finish(session):
         notebook_runs.start(names)
 
 
+def _memory_maps() -> tuple[int, int] | None:
+    """(this process's memory mappings, the kernel's limit per process), or None off Linux."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f), limit
+    except (OSError, ValueError):
+        return None
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    """After a test, drop JAX's compiled programs when they hold more than half the memory
+    mappings a process may have.  Each XLA CPU executable maps its own code and data (~1,100
+    mappings for a small render), and a worker that compiles most of the suite passed Linux's
+    default limit (65,530) near its end: LLVM then failed to map memory for the next program
+    and the worker died of a segmentation fault inside XLA's compiler (stop 47, on a clean
+    clone; once in stop 45). Programs compiled again later load from the session's persistent
+    cache."""
+    yield
+    maps = _memory_maps()
+    if maps is not None and maps[0] > maps[1] // 2:
+        import gc
+
+        jax.clear_caches()
+        gc.collect()
+
+
 @pytest.fixture
 def x64():
     """Run a test in float64 (and restore the previous setting afterwards)."""
