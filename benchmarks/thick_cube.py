@@ -7,8 +7,8 @@ H-functions plus the sky, 0.773), but at ζ = 100 it is 6% under it.  Renders it
 at each N, scheme, first collision and ζ (M = 2, float32, tol 1e-4, one ray per pixel) and
 reports the image mean, its error against the cube's own image by an independent float64
 Monte Carlo (``THICK_CUBE_REFERENCE``, ``benchmarks/thick_cube_mc.py``) and against the
-semi-infinite value, the GMRES steps and the wall time (compile included).  The step depth σ_t·h·M of each
-row says how many mean free paths one lattice step spans.
+semi-infinite value, the GMRES steps and the wall time (compile included).  The step depth
+σ_t·h·M of each row says how many mean free paths one lattice step spans.
 
 Writes ``thick_cube.csv`` and ``thick_cube.md`` (with the machine) to ``--out`` (default
 ``benchmarks/results``).
@@ -22,8 +22,8 @@ Writes ``thick_cube.csv`` and ``thick_cube.md`` (with the machine) to ``--out`` 
 from __future__ import annotations
 
 import argparse
-import math
 import csv
+import math
 import time
 import warnings
 from pathlib import Path

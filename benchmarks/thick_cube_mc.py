@@ -31,51 +31,73 @@ wide slab (``--slab 5``) at ζ = 100 reads 0.7577 ± 0.0011 here (4 × 10⁵ pat
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
 
 import numpy as np
 
-from difffog.study._semi_infinite import CUBE_SKY, CUBE_SUN
+from difffog.study._semi_infinite import thick_cube
 
-ALBEDO_BALL, CENTRE, RADIUS, ABSORPTION = 0.6, np.array([0.5, 0.5, 0.5]), 0.2, 0.001
 ROULETTE = 0.05
 
 
-def _to_sun() -> np.ndarray:
-    z = math.radians(CUBE_SUN[1])
-    return np.array([math.sin(z), 0.0, math.cos(z)])  # azimuth 0: the scene's Sun default
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """What the walk needs of ``thick_cube(zeta)`` (read from the scene, not repeated here): the
+    fog's box (lo, hi), its ζ and γ, the ball (None: a slab without it), the sun, the sky and
+    the camera's view window on the top face."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    zeta: float
+    absorption: float
+    ball: object  # the scene's Sphere, or None
+    to_sun: np.ndarray
+    irradiance: float
+    sky: float
+    view_lo: np.ndarray  # (x, y) corner of the camera's window
+    view_size: np.ndarray
 
 
-#: the fog's box (lo, hi) and whether the ball is in it: the unit cube, or with ``--slab W`` the
-#: slab [0.5 − W, 0.5 + W]² × [0, 1] without the ball (what Mitsuba's float32 check renders)
-BOX = [np.zeros(3), np.ones(3), True]
+def setting(zeta: float, slab: float | None = None) -> Setting:
+    """The cube (or with ``slab`` = W the slab [0.5 − W, 0.5 + W]² × [0, 1] of the same fog
+    without the ball: what Mitsuba's float32 check renders)."""
+    sc = thick_cube(zeta)
+    cam = sc.cameras[0]
+    lo, hi = np.array(sc.domain.min, float), np.array(sc.domain.max, float)
+    if slab is not None:
+        lo[:2], hi[:2] = 0.5 - slab, 0.5 + slab
+    return Setting(lo=lo, hi=hi, zeta=sc.fog.scattering, absorption=sc.fog.absorption,
+                   ball=None if slab is not None else sc.shapes[0], to_sun=sc.sun.direction,
+                   irradiance=sc.sun.irradiance, sky=sc.sky.radiance,
+                   view_lo=np.array(cam.position[:2]) - 0.5 * np.array(cam.extent),
+                   view_size=np.array(cam.extent, float))
 
 
-def _exit_distance(x: np.ndarray, d: np.ndarray) -> np.ndarray:
+def _exit_distance(st: Setting, x: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Distance from ``x`` (inside the fog's box) along ``d`` to its boundary."""
-    lo, hi, _ = BOX
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d > 0, (hi - x) / d, np.where(d < 0, (lo - x) / d, np.inf))
+        t = np.where(d > 0, (st.hi - x) / d, np.where(d < 0, (st.lo - x) / d, np.inf))
     return t.min(axis=1)
 
 
-def _ball_distance(x: np.ndarray, d: np.ndarray) -> np.ndarray:
+def _ball_distance(st: Setting, x: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Distance along ``d`` to the ball (inf where the ray misses it); ``x`` outside it."""
-    if not BOX[2]:
+    if st.ball is None:
         return np.full(x.shape[0], np.inf)
-    oc = x - CENTRE
+    oc = x - np.asarray(st.ball.center)
     b = np.einsum("ij,ij->i", oc, d)
-    disc = b * b - (np.einsum("ij,ij->i", oc, oc) - RADIUS * RADIUS)
+    disc = b * b - (np.einsum("ij,ij->i", oc, oc) - st.ball.radius ** 2)
     t = -b - np.sqrt(np.maximum(disc, 0.0))
     return np.where((disc > 0) & (t > 0), t, np.inf)
 
 
-def _free(x: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Distance out of the cube along ``d``, inf where the ball is in the way."""
-    t = _exit_distance(x, d)
-    return np.where(_ball_distance(x, d) < t, np.inf, t)
+def _free(st: Setting, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Distance out of the fog along ``d``, inf where the ball is in the way."""
+    t = _exit_distance(st, x, d)
+    return np.where(_ball_distance(st, x, d) < t, np.inf, t)
 
 
 def _sphere_directions(n: int, rng) -> np.ndarray:
@@ -96,21 +118,20 @@ def _lambert_directions(normal: np.ndarray, rng) -> np.ndarray:
         + np.sqrt(1.0 - u1)[:, None] * normal
 
 
-def camera_paths(zeta: float, n: int, seed: int) -> np.ndarray:
-    """(n,) radiance estimates of camera paths through the middle 0.8 × 0.8 of the top face."""
+def camera_paths(st: Setting, n: int, seed: int) -> np.ndarray:
+    """(n,) radiance estimates of camera paths through the camera's window on the top face."""
     rng = np.random.default_rng(seed)
-    sigma_t = zeta + ABSORPTION
-    ssa = zeta / sigma_t
-    sun = _to_sun()
-    irradiance, sky = CUBE_SUN[0], CUBE_SKY
-    x = np.stack([0.1 + 0.8 * rng.random(n), 0.1 + 0.8 * rng.random(n), np.ones(n)], 1)
+    sigma_t = st.zeta + st.absorption
+    ssa = st.zeta / sigma_t
+    xy = st.view_lo + st.view_size * rng.random((n, 2))
+    x = np.concatenate([xy, np.full((n, 1), st.hi[2])], 1)
     d = np.tile([0.0, 0.0, -1.0], (n, 1))
     w, out = np.ones(n), np.zeros(n)
     live = np.arange(n)
     while live.size:
         xs, ds = x[live], d[live]
         t = -np.log(rng.random(live.size)) / sigma_t
-        t_exit, t_ball = _exit_distance(xs, ds), _ball_distance(xs, ds)
+        t_exit, t_ball = _exit_distance(st, xs, ds), _ball_distance(st, xs, ds)
         ball = (t_ball < t_exit) & (t_ball < t)
         escape = (t_exit <= t) & ~ball
         coll = ~escape & ~ball
@@ -118,22 +139,23 @@ def camera_paths(zeta: float, n: int, seed: int) -> np.ndarray:
         if i.size:  # a collision: the sun's and the sky's light scattered here, then scatter
             p = xs[coll] + t[coll, None] * ds[coll]
             x[i] = p
-            est = irradiance * np.exp(-sigma_t * _free(p, np.broadcast_to(sun, p.shape))) \
-                / (4.0 * np.pi)
+            est = st.irradiance * np.exp(
+                -sigma_t * _free(st, p, np.broadcast_to(st.to_sun, p.shape))) / (4.0 * np.pi)
             mu, phi = rng.random(i.size), 2.0 * np.pi * rng.random(i.size)
             s = np.sqrt(1.0 - mu * mu)
             to_sky = np.stack([s * np.cos(phi), s * np.sin(phi), mu], 1)  # pdf 1/(2π)
-            est += sky * np.exp(-sigma_t * _free(p, to_sky)) / 2.0  # (1/4π)·2π
+            est += st.sky * np.exp(-sigma_t * _free(st, p, to_sky)) / 2.0  # (1/4π)·2π
             out[i] += w[i] * ssa * est
             w[i] *= ssa
             d[i] = _sphere_directions(i.size, rng)
         j = live[ball]
         if j.size:  # the ball (≥ 0.3·ζ mean free paths deep: no light of its own reaches it)
+            centre, radius = np.asarray(st.ball.center), st.ball.radius
             p = xs[ball] + t_ball[ball, None] * ds[ball]
-            normal = (p - CENTRE) / RADIUS
-            x[j] = CENTRE + normal * RADIUS * (1.0 + 1e-12)
+            normal = (p - centre) / radius
+            x[j] = centre + normal * radius * (1.0 + 1e-12)
             d[j] = _lambert_directions(normal, rng)
-            w[j] *= ALBEDO_BALL
+            w[j] *= st.ball.albedo
         live = live[~escape]
         small = w[live] < ROULETTE
         if small.any():
@@ -144,11 +166,12 @@ def camera_paths(zeta: float, n: int, seed: int) -> np.ndarray:
     return out
 
 
-def estimate(zeta: float, paths: int, reps: int) -> dict:
+def estimate(zeta: float, paths: int, reps: int, slab: float | None = None) -> dict:
     t0 = time.perf_counter()
+    st = setting(zeta, slab)
     means, path_se = [], []
     for r in range(reps):
-        v = camera_paths(zeta, paths, seed=r)
+        v = camera_paths(st, paths, seed=r)
         means.append(float(v.mean()))
         path_se.append(float(v.std() / math.sqrt(paths)))
     stderr_paths = math.sqrt(sum(s * s for s in path_se)) / reps
@@ -167,11 +190,8 @@ def main(argv=None):
     ap.add_argument("--slab", type=float, default=None,
                     help="half-width W of a slab of the same fog without the ball instead")
     a = ap.parse_args(argv)
-    if a.slab is not None:
-        BOX[:] = [np.array([0.5 - a.slab, 0.5 - a.slab, 0.0]),
-                  np.array([0.5 + a.slab, 0.5 + a.slab, 1.0]), False]
     for z in a.zetas:
-        print(json.dumps({**estimate(z, a.paths, a.reps), "slab": a.slab}), flush=True)
+        print(json.dumps({**estimate(z, a.paths, a.reps, a.slab), "slab": a.slab}), flush=True)
 
 
 if __name__ == "__main__":

@@ -1,3 +1,4 @@
+import functools
 import os
 import tempfile
 
@@ -53,14 +54,25 @@ def pytest_collection_finish(session):
         notebook_runs.start(names)
 
 
-def _memory_maps() -> tuple[int, int] | None:
-    """(this process's memory mappings, the kernel's limit per process), or None off Linux."""
+@functools.cache
+def _map_limit() -> int | None:
+    """The kernel's limit on a process's memory mappings (read once), or None off Linux."""
     try:
         with open("/proc/sys/vm/max_map_count") as f:
-            limit = int(f.read())
+            return int(f.read())
+    except (OSError, ValueError):
+        return None
+
+
+def _memory_maps() -> tuple[int, int] | None:
+    """(this process's memory mappings, the kernel's limit per process), or None off Linux."""
+    limit = _map_limit()
+    if limit is None:
+        return None
+    try:
         with open("/proc/self/maps", "rb") as f:
             return sum(1 for _ in f), limit
-    except (OSError, ValueError):
+    except OSError:
         return None
 
 
