@@ -294,3 +294,37 @@ def test_more_edge_samples_place_an_outline_finer():
                       model_settings={"M": 1, "edge_samples": 16}).edge_samples == 16
     with pytest.raises(df.SceneError, match="edge_samples=0"):
         df.forward_model(scene, "sweep", resolution=12, M=1, edge_samples=0)
+
+
+@pytest.mark.parametrize("name", ["fog-balls", "ring-box", "translucent-cube"])
+def test_shadow_rays_along_one_direction_see_what_first_hits_sees(name):
+    """``_sun_lit`` (the sun's visibility's caster: one direction, spheres and boxes on the
+    lattice's broadcast axes, tori and triangles only where a ray reaches their bounds) gives
+    exactly ``first_hits``' answers (no hit; origin outside every shape) on a grid and on points
+    lying in the planes of box faces and triangle vertices, for the scene's sun and directions with zero components
+    (the slab test's 0·inf)."""
+    from difffog.geometry._hits import _hit_geometry, _sun_lit
+
+    scene = df.load_scene(name)
+    lo, hi = np.asarray(scene.domain.min, float), np.asarray(scene.domain.max, float)
+    n = 29
+    axes = [lo[c] + (np.arange(n) + 0.5) * (hi[c] - lo[c]) / n for c in range(3)]
+    grid = (axes[0][:, None, None], axes[1][None, :, None], axes[2][None, None, :])
+    rng = np.random.default_rng(3)
+    pts = lo + rng.uniform(size=(3000, 3)) * (hi - lo)
+    boxes, tris = _hit_geometry(scene)
+    faces = np.concatenate([np.stack([b_lo, b_hi]) for _, b_lo, b_hi in boxes]
+                           + [tris.corners.reshape(-1, 3)])
+    for c in range(3):  # a third of the points in a box face's (or a vertex's) plane
+        pts[c * 1000:(c + 1) * 1000, c] = rng.choice(faces[:, c], 1000)
+    seen = np.zeros(3, int)
+    for s in (scene.sun.direction, (0.0, 0.6, 0.8), (0.0, 0.0, 1.0), (0.6, 0.0, -0.8)):
+        s = np.asarray(s, float) / np.linalg.norm(s)
+        for xs, p in ((grid, np.stack(np.broadcast_arrays(*grid), -1).reshape(-1, 3)),
+                      ((pts[:, 0], pts[:, 1], pts[:, 2]), pts)):
+            lit, fluid = _sun_lit(scene, xs, s, 1e-9)
+            ref = first_hits(scene, p, np.broadcast_to(s, p.shape), t_min=1e-9)
+            np.testing.assert_array_equal(lit.reshape(-1), np.isinf(ref.t))
+            np.testing.assert_array_equal(fluid.reshape(-1), ~ref.inside)
+            seen += [lit.sum(), (~lit & fluid).sum(), (~fluid).sum()]
+    assert np.all(seen > 0), seen  # lit, shadowed and inside points were all tested

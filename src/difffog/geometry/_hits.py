@@ -18,6 +18,7 @@ The normal at a hit is the shape's exact outward normal (a quad's: the side the 
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass
 
@@ -395,13 +396,109 @@ def sun_depth_plan(points, lit, sun_dir, density, origin, h: float, *, step: flo
     return q, j0.astype(np.int64), n.astype(np.int64), t_end / ds
 
 
+def _sun_lit(scene: Scene, xs, s, t_min: float):
+    """(lit, fluid) of rays from the points ``xs`` = (x, y, z) (arrays that broadcast together,
+    e.g. a lattice's three axes) along the one direction ``s`` (unit): whether the ray meets no
+    shape (t > t_min) and whether its origin lies outside every shape.  The same tests, to the
+    rounding, as :func:`first_hits` (``isinf(t)``, ``~inside``), without what a visibility
+    does not need (which shape, the normal, the distance) and, for spheres and boxes, on the
+    broadcast axes: the lattice's centres as three 1-D axes cost O(n) per shape, not O(n³)
+    (fog-balls N = 128, M = 5, 2 cores: 2.0 s → 0.5 s, measured).  Tori and triangles take
+    the general casts on the points made explicit."""
+    shape = np.broadcast_shapes(*(np.shape(x) for x in xs))
+    blocked = np.zeros(shape, bool)
+    inside = np.zeros(shape, bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for sh in scene.shapes:
+            if not isinstance(sh, Sphere):
+                continue
+            oc = [x - c for x, c in zip(xs, sh.center)]
+            b = oc[0] * s[0] + oc[1] * s[1] + oc[2] * s[2]  # the quadratic of _sphere_hits
+            q = oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2] - float(sh.radius) ** 2
+            disc = b * b - q
+            ok = disc >= 0
+            sq = np.sqrt(np.where(ok, disc, 0.0))
+            near, far = ok & (-b - sq > t_min), ok & (-b + sq > t_min)
+            blocked |= near | far
+            inside |= far & ~near & (sq > 0)  # it leaves through its far root: n·d = √disc
+        boxes, tris = _hit_geometry(scene)
+        inv = [1.0 / float(c) if c != 0 else math.copysign(math.inf, float(c)) for c in s]
+        for _, lo, hi in boxes:  # _box_hits' slab test
+            tn, tf = -math.inf, math.inf
+            for c in range(3):
+                t1, t2 = (lo[c] - xs[c]) * inv[c], (hi[c] - xs[c]) * inv[c]
+                # NaN (0·inf: a ray in a face's plane) compares false: no bound
+                near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+                tn, tf = np.where(near > tn, near, tn), np.where(far < tf, far, tf)
+            crosses = tn <= tf
+            entry = crosses & (tn > t_min) & np.isfinite(tn)
+            leave = crosses & ~(tn > t_min) & (tf > t_min) & np.isfinite(tf)
+            blocked |= entry | leave
+            inside |= leave
+    # tori and triangles: the general casts, only for the rays that reach the shape's padded
+    # bounds (a torus's bounding sphere, each triangle shape's box)
+    tori = [sh for sh in scene.shapes if isinstance(sh, Torus)]
+    if tori or len(tris):
+        pad = 1e-6 * max(1.0, float(np.max(np.abs(np.concatenate(
+            [np.ravel(x) for x in xs])))))
+        reach = np.zeros(shape, bool)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for sh in tori:
+                c, _, R, r = _torus_frame(sh)
+                oc = [x - cc for x, cc in zip(xs, c)]
+                b = oc[0] * s[0] + oc[1] * s[1] + oc[2] * s[2]
+                disc = b * b - (oc[0] ** 2 + oc[1] ** 2 + oc[2] ** 2 - (R + r + pad) ** 2)
+                reach |= (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0.0)) > t_min - pad)
+            if len(tris):
+                for k in np.unique(tris.shape):
+                    corners = tris.corners[tris.shape == k].reshape(-1, 3)
+                    reach |= _reaches_box(xs, inv, corners.min(0) - pad, corners.max(0) + pad,
+                                          t_min)
+        rows = np.flatnonzero(reach.reshape(-1))
+        if len(rows):
+            pts = np.stack([np.broadcast_to(x, shape).reshape(-1)[rows] for x in xs], -1)
+            d = np.broadcast_to(np.asarray(s, np.float64), pts.shape)
+            hit_any = np.zeros(len(rows), bool)
+            in_any = np.zeros(len(rows), bool)
+            for sh in tori:
+                t, n = _torus_hits(sh, pts, d, t_min)
+                hit = np.isfinite(t)
+                hit_any |= hit
+                in_any |= hit & (n @ np.asarray(s, np.float64) > 0)
+            if len(tris):
+                t, face, _, _ = cast_rays(tris, pts, d, t_min=t_min)
+                hit = face >= 0
+                n = tris.face_normals[np.where(hit, face, 0)]
+                closed = ~np.array([isinstance(x, Quad) for x in scene.shapes] + [False])
+                hit_any |= hit
+                in_any |= (hit & closed[np.where(hit, tris.shape[face], -1)]
+                           & (n @ np.asarray(s, np.float64) > 0))
+            blocked.reshape(-1)[rows] |= hit_any
+            inside.reshape(-1)[rows] |= in_any
+    return ~blocked, ~inside
+
+
+def _reaches_box(xs, inv, lo, hi, t_min: float):
+    """Whether rays from the points ``xs`` (broadcasting axes) with the inverse direction
+    ``inv`` (3 floats) cross the box [lo, hi] somewhere beyond ``t_min`` (a slab test; a ray in
+    a face's plane counts as crossing)."""
+    tn, tf = -math.inf, math.inf
+    with np.errstate(invalid="ignore"):
+        for c in range(3):
+            t1, t2 = (lo[c] - xs[c]) * inv[c], (hi[c] - xs[c]) * inv[c]
+            near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+            tn = np.where(near > tn, near, tn)
+            tf = np.where(far < tf, far, tf)
+    return (tn <= tf) & (tf > t_min)
+
+
 def sun_visibility(scene: Scene, shape, origin, h: float, sun_dir, *, sub: int = 3) -> np.ndarray:
     """The sun's visibility at every lattice node, box-filtered over its cell's fluid: the share
     of the cell's points outside the shapes (of ``sub``³ stratified points) from which a ray
-    towards the sun meets no shape — one exact ray each (:func:`first_hits`: no hit, lit; its
-    origin inside a shape, not fluid).  ``shape``: the lattice's (nx, ny, nz), node (i, j, k) at
-    origin + (idx + 0.5)·h.  Returns (nx, ny, nz) in [0, 1]; 0 at a node whose centre lies in a
-    shape.
+    towards the sun meets no shape — one exact ray each (:func:`_sun_lit`, the tests of
+    :func:`first_hits`: no hit, lit; its origin inside a shape, not fluid).  ``shape``: the
+    lattice's (nx, ny, nz), node (i, j, k) at origin + (idx + 0.5)·h.  Returns (nx, ny, nz) in
+    [0, 1]; 0 at a node whose centre lies in a shape.
 
     The lattice's shadow buffer instead marches the SOLID node mask towards the sun: a shape is
     as thick and as high as its nodes, and the edge is smeared over several spacings (fog-balls'
@@ -417,11 +514,10 @@ def sun_visibility(scene: Scene, shape, origin, h: float, sun_dir, *, sub: int =
     s = s / np.linalg.norm(s)
     lo = np.asarray(origin, np.float64)
     size = h * max(shape)
-    idx = np.indices(shape).reshape(3, -1).T
-    centre = lo + (idx + 0.5) * h
-    hit = first_hits(scene, centre, np.broadcast_to(s, centre.shape), t_min=1e-9 * size)
-    vis = np.isinf(hit.t).reshape(shape)
-    wet = ~hit.inside.reshape(shape)  # the centre is outside the shapes
+    t_min = 1e-9 * size
+    axes = [lo[c] + (np.arange(shape[c]) + 0.5) * h for c in range(3)]
+    axes = [axes[0][:, None, None], axes[1][None, :, None], axes[2][None, None, :]]
+    vis, wet = _sun_lit(scene, axes, s, t_min)  # the centres, on the lattice's axes
     # a 26-neighbour with another value (3×3×3 max and min filters); only cells whose centre
     # is fluid: a SOLID node's value is never read (the light solve masks it, the cameras take
     # their nearest fluid node's)
@@ -431,6 +527,7 @@ def sun_visibility(scene: Scene, shape, origin, h: float, sun_dir, *, sub: int =
     near = np.flatnonzero((wet & mixed).reshape(-1))
     out = (vis & wet).astype(np.float64)
     if len(near):
+        centre = lo + (np.stack(np.unravel_index(near, shape), -1) + 0.5) * h
         g = (np.arange(sub) + 0.5) / sub - 0.5
         offs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) * h
         corner = np.all(np.abs(offs) == np.abs(offs).max(), axis=1)
@@ -439,10 +536,10 @@ def sun_visibility(scene: Scene, shape, origin, h: float, sun_dir, *, sub: int =
 
         def cast(offsets, rows):
             for o in offsets:
-                p = centre[near[rows]] + o
-                hit = first_hits(scene, p, np.broadcast_to(s, p.shape), t_min=1e-9 * size)
-                fluid[rows] += ~hit.inside
-                lit[rows] += np.isinf(hit.t)
+                p = centre[rows] + o
+                lit_o, fluid_o = _sun_lit(scene, tuple(p[:, c] for c in range(3)), s, t_min)
+                fluid[rows] += fluid_o
+                lit[rows] += lit_o
 
         # the cell's 8 corner points first: where all are fluid and all lit or all shadowed,
         # so are the points between them (one plane cannot part those without parting the
