@@ -1,4 +1,3 @@
-import functools
 import os
 import tempfile
 
@@ -7,6 +6,7 @@ import pytest
 
 import notebook_runs
 from difffog import enable_compilation_cache
+from difffog._cache import memory_maps
 from helpers import MODELS, build_fit_model, build_model
 
 
@@ -54,28 +54,6 @@ def pytest_collection_finish(session):
         notebook_runs.start(names)
 
 
-@functools.cache
-def _map_limit() -> int | None:
-    """The kernel's limit on a process's memory mappings (read once), or None off Linux."""
-    try:
-        with open("/proc/sys/vm/max_map_count") as f:
-            return int(f.read())
-    except (OSError, ValueError):
-        return None
-
-
-def _memory_maps() -> tuple[int, int] | None:
-    """(this process's memory mappings, the kernel's limit per process), or None off Linux."""
-    limit = _map_limit()
-    if limit is None:
-        return None
-    try:
-        with open("/proc/self/maps", "rb") as f:
-            return sum(1 for _ in f), limit
-    except OSError:
-        return None
-
-
 @pytest.fixture(autouse=True)
 def _release_compiled_programs():
     """After a test, drop JAX's compiled programs when they hold more than half the memory
@@ -84,9 +62,10 @@ def _release_compiled_programs():
     default limit (65,530) near its end: LLVM then failed to map memory for the next program
     and the worker died of a segmentation fault inside XLA's compiler (stop 47, on a clean
     clone; once in stop 45). Programs compiled again later load from the session's persistent
-    cache."""
+    cache.  (The library does the same above 60% when it builds a model, with a warning:
+    ``difffog._cache.release_if_crowded``; half keeps the suite clear of that warning.)"""
     yield
-    maps = _memory_maps()
+    maps = memory_maps()
     if maps is not None and maps[0] > maps[1] // 2:
         import gc
 

@@ -128,6 +128,31 @@ def test_cache_folder_setting(monkeypatch, tmp_path):
     assert default_cache_dir() == tmp_path / "difffog" / "xla"
 
 
+def test_a_model_built_near_the_mapping_limit_drops_compiled_programs(monkeypatch):
+    """A process near Linux's limit on memory mappings (each compiled XLA program holds ~1,100)
+    drops JAX's compiled programs before the next model is built, with a MemoryWarning that
+    says what happened and how to raise the limit; below it, nothing is dropped."""
+    import jax.numpy as jnp
+
+    import difffog as df
+    from difffog import _cache
+
+    real = _cache.memory_maps()
+    if real is None:
+        pytest.skip("no /proc/self/maps here")
+    f = jax.jit(lambda x: x + 1.0)
+    f(jnp.ones(3))
+    assert f._cache_size() == 1
+    scene = df.load_scene("furnace")
+    monkeypatch.setattr(_cache, "memory_maps", lambda: (int(0.5 * real[1]), real[1]))
+    df.forward_model(scene, "sweep", accuracy="draft")
+    assert f._cache_size() == 1  # half the limit: kept
+    monkeypatch.setattr(_cache, "memory_maps", lambda: (int(0.9 * real[1]), real[1]))
+    with pytest.warns(df.MemoryWarning, match="memory mappings.*sysctl vm.max_map_count"):
+        df.forward_model(scene, "sweep", accuracy="draft")
+    assert f._cache_size() == 0  # dropped
+
+
 def test_render_fixed_iterations_and_override(tmp_path):
     out = tmp_path / "o"
     args = ["render", "furnace", "-N", "12", "-M", "2", "--iterations", "3", "-q",

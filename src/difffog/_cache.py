@@ -58,3 +58,50 @@ def enable_default_cache() -> Path | None:
     if jax.config.jax_compilation_cache_dir:
         return None
     return enable_compilation_cache()
+
+
+#: the share of the kernel's per-process memory-mapping limit above which a new model drops
+#: JAX's compiled programs (:func:`release_if_crowded`)
+CROWDED = 0.6
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """(this process's memory mappings, the kernel's limit per process: vm.max_map_count), or
+    None where the system does not say (not Linux)."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f), limit
+    except (OSError, ValueError):
+        return None
+
+
+def release_if_crowded(share: float = CROWDED) -> bool:
+    """Drop JAX's compiled programs (``jax.clear_caches()``) when this process holds more than
+    ``share`` of the memory mappings Linux allows it, with a :class:`difffog.MemoryWarning`;
+    True if it did.  Each XLA CPU program maps its own code and data (~1,100 mappings for a
+    small render), so a long session that compiles many models (a notebook rendering many
+    lattice sizes: ~60 of them at the default limit of 65,530) would otherwise die inside
+    XLA's compiler when the next one cannot be mapped.  Programs needed again compile anew, or
+    load from the persistent cache.  Called before every model is built."""
+    maps = memory_maps()
+    if maps is None or maps[0] <= share * maps[1]:
+        return False
+    import gc
+    import warnings
+
+    import jax
+
+    from ._errors import MemoryWarning
+
+    jax.clear_caches()
+    gc.collect()
+    after = memory_maps()
+    warnings.warn(
+        f"this process held {maps[0]:,} of the {maps[1]:,} memory mappings Linux allows it "
+        f"(compiled programs: ~1,100 each), so difffog dropped JAX's compiled programs "
+        f"({after[0] if after else '?':,} left); they compile again (or load from the "
+        f"persistent cache) when needed. For long sessions raise the limit: sudo sysctl "
+        f"vm.max_map_count=262144", MemoryWarning, stacklevel=3)
+    return True

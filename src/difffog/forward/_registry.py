@@ -30,6 +30,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+from .._cache import release_if_crowded
 from .._cost import EDGE_SAMPLES, estimate_splat, estimate_sweep
 from .._errors import DifffogError
 from ..scene._description import Scene
@@ -201,6 +202,7 @@ def forward_model(scene: Scene, solver: str = "sweep", accuracy: str | None = "d
     base = {} if accuracy is None else preset(solver, accuracy)
     full = {**base, **settings}
     guard(scene, solver, cameras=cameras, force=force, **full)
+    release_if_crowded()
     return entry.build(scene, cameras=cameras, **full)
 
 
