@@ -72,6 +72,15 @@ def main(argv=None):
         lines.append(f"| {path} | {v:g} | {est:.4g} | {100 * (est / v - 1):+.2f} | "
                      f"{100 * se / v:.2f} | {100 * me_p / v:.2f} | {100 * tot / v:.2f} |")
     lines += ["", f"{res.result}, {res.iterations} steps, fit {fit_s:.0f} s"]
+    if res.model_error_parts:
+        lines += ["", "model error parts (% of the truth): " + "; ".join(
+            f"{p.split('.')[-1]} " + ", ".join(f"{k} {100 * v / truth[p]:.2f}"
+                                              for k, v in parts.items())
+            for p, parts in res.model_error_parts.items())]
+    if res.fitted and res.fitted != res.estimates:
+        lines += ["", "the fit itself (before the correction): " + ", ".join(
+            f"{p.split('.')[-1]} {100 * (res.fitted[p] / truth[p] - 1):+.2f}%" for p in truth)]
+    lines += [f"- warning: {w}" for w in res.warnings]
     text = "\n".join(lines)
     print(text)
     if a.out:

@@ -854,8 +854,36 @@ def test_refine_says_which_check_it_left_out():
     res = df.fit(Toy().scene, target, start, forward=UnconvergedBetweenToy(10), model_error=15)
     assert res.estimates == res.fitted or not res.fitted  # not corrected
     assert math.isnan(res.model_error["fog.scattering"])
+    # the total is unknown too, not the noise's standard error alone
+    assert math.isnan(res.uncertainty["fog.scattering"]) and res.stderr["fog.scattering"] > 0
     assert any("the estimate is not corrected and the model error not estimated: at N = 15, "
                "that light solve did not converge" in w for w in res.warnings), res.warnings
+
+
+class TooBigToy(LatticeToy):
+    """The LatticeToy whose lattices finer than 15 do not fit in memory."""
+
+    def at_resolution(self, n):
+        if n > 15:
+            raise df.ResourceError(f"N = {n} needs more memory than this machine has")
+        return TooBigToy(n)
+
+
+def test_refine_falls_back_to_a_lattice_that_fits():
+    """When the doubled lattice (N = 20) is refused for memory, "refine" estimates the model
+    error at 1.5 N (15) instead, says so, and its total uncertainty is of the error's size
+    (the Toy's error is not only first order: 0.094 against 0.084 stated)."""
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3}
+    target = _toy_target(LatticeToy(10**9), **truth)
+    res = df.fit(Toy().scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0},
+                 forward=TooBigToy(10), model_error="refine")
+    assert res.ladder[1]["resolution"] == 15
+    assert any("estimated at N = 15, not 20" in w and "more memory" in w
+               for w in res.warnings), res.warnings
+    err = abs(res.estimates["fog.scattering"] - 1.5)
+    assert 0.5 * err < res.uncertainty["fog.scattering"] and err < 3 * res.uncertainty[
+        "fog.scattering"]
+    assert res.uncertainty["fog.scattering"] > 10 * res.stderr["fog.scattering"]
 
 
 @pytest.mark.slow  # two fits and two compiled models (~4 min on 2 cores)

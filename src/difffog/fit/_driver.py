@@ -659,6 +659,15 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
             + ([check(n, m)] if m is not None else []))
 
 
+def _unknown_model_error(res: FitResult) -> FitResult:
+    """A fit whose model error could not be estimated: the model error and the total
+    uncertainty are NaN (unknown; fit.json writes null), not the noise's standard error alone,
+    which would understate it (the warnings say why)."""
+    res.model_error = {p: float("nan") for p in res.paths}
+    res.uncertainty = {p: float("nan") for p in res.paths}
+    return res
+
+
 def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                         downsample: int, model_settings, progress=None) -> FitResult:
     """``res`` corrected to the lattice ``fine_n``, with its model error and total uncertainty
@@ -666,8 +675,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     lin = getattr(res, "_linear", None)
     if lin is None or not res.converged:
         res.warnings.append("the model error is not estimated: the fit did not converge")
-        res.model_error = {p: float("nan") for p in res.paths}
-        return res
+        return _unknown_model_error(res)
     st, u, J, y = lin["setup"], lin["u"], lin["J"], lin["y"]
     n = int(st.model.resolution)
     sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
@@ -684,6 +692,13 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
             model = build()
         except ResourceError as e:  # a finer model this machine cannot hold
             model, name = None, f"{e}"
+            smaller = round(1.5 * n)
+            if not moved and n < smaller < fine_n:  # a less fine lattice that may fit
+                meter.close()
+                res.warnings.append(f"the model error is estimated at N = {smaller}, not "
+                                    f"{fine_n}: {name}")
+                return _with_refined_error(res, scene, forward, smaller, downsample,
+                                           model_settings, progress)
         if model is not None:
             y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u),
                                                                    (model, st.data)))
@@ -693,9 +708,8 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
             if not moved:  # the correction itself
                 res.warnings.append(f"the estimate is not corrected and the model error not "
                                     f"estimated: at {label}, {name}")
-                res.model_error = {p: float("nan") for p in res.paths}
                 meter.close()
-                return res
+                return _unknown_model_error(res)
             res.warnings.append(f"the model error leaves out its check at {label}: {name}; "
                                 f"the uncertainty may be too small")
             continue
