@@ -73,8 +73,8 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
     if "edge_samples" in entry.settings and "edge_samples" not in settings:
         full["edge_samples"] = fit_edge_samples(downsample)
     # the memory guard: a fit's Jacobian holds one tangent solve's Krylov vectors per unknown
-    # besides the forward solve
-    guard(small, forward, force=force, tangent_solves=max(1, int(unknowns)),
+    # besides the forward solve (0 unknowns: a model that only renders, the model error's)
+    guard(small, forward, force=force, tangent_solves=max(0, int(unknowns)),
           what=f"the fit's {forward} model", **full)
     if sun and not entry.traces_sun:  # before building it
         raise _fixed_sun(f"the {forward} forward model")
@@ -621,8 +621,8 @@ def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_
     return int(model_error)
 
 
-def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, model_settings,
-                    n_unknowns: int) -> list[tuple[dict, Callable]]:
+def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int,
+                    model_settings) -> list[tuple[dict, Callable]]:
     """The finer models the model error renders, as (what, a function that builds it): the
     correction's, on the lattice ``fine_n`` with one more direction (M + 1) where the model has
     a direction set; a lattice between the fit's and ``fine_n`` (the lattice error's erratic
@@ -637,9 +637,10 @@ def _refined_models(scene: Scene, forward, st, fine_n: int, downsample: int, mod
 
         def build(resolution, M=None):
             extra = {} if M is None else {"M": M}
+            # (it only renders, at the estimate: no Jacobian, no tangent solves)
             return make_model(scene, forward, cameras=st.names, downsample=downsample,
                               resolution=resolution, model_settings={**settings, **extra},
-                              unknowns=n_unknowns,
+                              unknowns=0,
                               sun=_has_sun([c.path for c in st.coords]))
     else:
         solver = getattr(forward, "solver", None)
@@ -681,8 +682,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
     fitted = dict(res.estimates)
     moved = []  # (what, {path: the estimate the finer model would reach, to first order})
-    checks = _refined_models(scene, forward, st, fine_n, downsample, model_settings,
-                             len(res.paths))
+    checks = _refined_models(scene, forward, st, fine_n, downsample, model_settings)
     meter = sibling(progress, "model error")
     for i, (what, build) in enumerate(checks):
         label = level_label(what)
