@@ -152,7 +152,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="+", default=[32], help="fog nodes across the slab")
     ap.add_argument("--m", type=int, nargs="+", default=[2], help="direction half-widths M")
-    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear"])
+    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear", "substep"])
     ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
                     help="SweepSolver.first_collision")
     ap.add_argument("--albedos", type=float, nargs="+", default=None)

@@ -228,7 +228,7 @@ def main(argv=None):
     ap.add_argument("--references", type=Path, default=None,
                     help="folder of the references (default: the shipped ones)")
     ap.add_argument("--out", type=Path, default=C.RESULTS)
-    ap.add_argument("--scheme", choices=("step", "linear"), default="step",
+    ap.add_argument("--scheme", choices=("step", "linear", "substep"), default="step",
                     help="SweepSolver.scheme (default step)")
     ap.add_argument("--name", default="slab_convergence",
                     help="stem of the result files (default slab_convergence)")

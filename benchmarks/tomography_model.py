@@ -2,7 +2,7 @@
 half-width M, against the Mitsuba 3 images, and where its light is off: the forward model's
 own error, which a density fit cannot get below.
 
-Prints, for each ``N:M``, the relative RMS difference (RMS of the difference over the RMS of
+Prints, for each ``N:M[:scheme]`` (scheme default step), the relative RMS difference (RMS of the difference over the RMS of
 the targets, all six views) of the truth's images (full size, 2² rays per pixel, step scheme,
 then averaged 2×2 as the fit's final level sees them) from the Mitsuba images, and between
 the settings; then the collided fluence Λ of the light solve at the cloud's cells (its nodes
@@ -49,12 +49,13 @@ def main(argv=None):
     centres = (cells + 0.5) / n  # the unit domain of both clouds
     imgs, flu = {}, {}
     for spec in args.settings.split(","):
-        N, M = (int(x) for x in spec.split(":"))
+        N, M, *rest = spec.split(":")  # N:M[:scheme]
+        N, M, scheme = int(N), int(M), (rest[0] if rest else "step")
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", df.ThickStepWarning)
             m = df.forward_model(truth_scene, "sweep", resolution=N, M=M, supersample=2,
-                                 accuracy=None, cameras=VIEWS, scheme="step",
+                                 accuracy=None, cameras=VIEWS, scheme=scheme,
                                  first_collision=args.first_collision)
             p = m.params()
             light = m.light(p)
@@ -63,7 +64,7 @@ def main(argv=None):
         u = (centres - np.asarray(light.origin)) / float(light.h) - 0.5
         flu[spec] = map_coordinates(np.asarray(light.fluence, np.float64), u.T, order=1)
         d = np.concatenate([(imgs[spec][v] - T[v]).ravel() for v in VIEWS])
-        print(f"N = {N}, M = {M} (M·h = 1/{N / M:.0f}): {np.sqrt(np.mean(d ** 2)) / bright:.2%} "
+        print(f"N = {N}, M = {M}, {scheme} (M·h = 1/{N / M:.0f}): {np.sqrt(np.mean(d ** 2)) / bright:.2%} "
               f"from Mitsuba ({time.perf_counter() - t0:.0f} s)", flush=True)
     specs = list(imgs)
     print("\nbetween settings (relative RMS of the difference):")
@@ -71,7 +72,8 @@ def main(argv=None):
         for b in specs[i + 1:]:
             d = np.concatenate([(imgs[a][v] - imgs[b][v]).ravel() for v in VIEWS])
             print(f"  {a} vs {b}: {np.sqrt(np.mean(d ** 2)) / bright:.2%}")
-    ref = max(specs, key=lambda s: int(s.split(":")[0]) / int(s.split(":")[1]))
+    ref = max(specs, key=lambda s: (int(s.split(":")[0]) / int(s.split(":")[1]),
+                                    s.endswith("substep")))
     print(f"\ncollided fluence Λ at the cloud's cells against {ref}'s, by depth in cells below "
           f"the cloud's surface (density > 0.05):")
     bands = [(depth >= lo) & (depth < hi) for lo, hi in ((0, 1.5), (1.5, 2.5), (2.5, np.inf))]

@@ -165,7 +165,7 @@ def main(argv=None):
                     help="folder of the Mitsuba references (default: the shipped ones)")
     ap.add_argument("--out", type=Path, default=C.RESULTS)
     ap.add_argument("--no-png", action="store_true")
-    ap.add_argument("--scheme", default="auto", choices=("auto", "step", "linear"),
+    ap.add_argument("--scheme", default="auto", choices=("auto", "step", "linear", "substep"),
                     help="SweepSolver.scheme")
     ap.add_argument("--first-collision", default="beam", choices=("beam", "deposit"),
                     help="SweepSolver.first_collision")

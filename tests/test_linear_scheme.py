@@ -83,7 +83,8 @@ def _solve(scene, lat, solver):
     return geom, p, jax.jit(solver.solve)(geom, p)
 
 
-@pytest.mark.parametrize("scheme", [pytest.param("step", marks=pytest.mark.slow), "linear"])
+@pytest.mark.parametrize("scheme", [pytest.param("step", marks=pytest.mark.slow), "linear",
+                                    "substep"])
 def test_conservative_slab_returns_what_it_receives(scheme, x64):
     """A purely scattering slab neither creates nor destroys light, whatever its optical depth:
     the sky light leaving through the top and the bottom (the sweep's own exit radiance) sums
@@ -170,7 +171,7 @@ def test_gradients_match_finite_differences(x64):
 
 
 def test_scheme_is_checked_and_reaches_the_command_line():
-    with pytest.raises(df.SceneError, match="scheme must be one of auto, step, linear"):
+    with pytest.raises(df.SceneError, match="scheme must be one of auto, step, linear, substep"):
         SweepSolver(scheme="cubic")
     from difffog.cli._main import build_parser, model_settings
 

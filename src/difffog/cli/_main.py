@@ -36,10 +36,12 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                    help="sweep: order of a Henyey-Greenstein fog's phase in the light solve "
                         "((L+1)^2 angular moments per node, delta-M; 0: delta-isotropic; default: "
                         "0 for an isotropic fog, 3 otherwise)")
-    p.add_argument("--scheme", choices=("auto", "step", "linear"), default=None,
+    p.add_argument("--scheme", choices=("auto", "step", "linear", "substep"), default=None,
                    help="sweep: the transport scheme along lattice rays: step (a constant "
                         "source per node), linear (the source linear along each segment: the "
-                        "right diffusion limit where a lattice step is optically thick) or auto "
+                        "right diffusion limit where a lattice step is optically thick), "
+                        "substep (each segment crossed plane by plane through the nearest "
+                        "nodes: clouds' edges and thick fog at a coarse lattice; slower) or auto "
                         "(default: linear where one lattice step is thicker than a mean free "
                         "path; see docs/validation.md)")
     p.add_argument("--first-collision", choices=("beam", "deposit"), default=None,

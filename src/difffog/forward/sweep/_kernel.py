@@ -216,6 +216,9 @@ class SweepConsts(eqx.Module):
     #                                     direction's cell (the first-collision sun's channel)
     slope: jax.Array | None = None  # (D, 3) the lattice vectors L in world (x, y, z)
     #                                 components: the linear-source scheme (None: step scheme)
+    sub: jax.Array | None = None  # (M − 1, D, 2) int: the sub-stepped scheme's in-plane
+    #                               offsets of each direction's intermediate points from the
+    #                               node it arrives at (``substep_offsets``); None: not it
 
 
 def _source_table(consts: SweepConsts, dt):
@@ -312,6 +315,9 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
 def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, B, tau_half_unit,
                 bc, geo, consts):
     del recompute  # the values' programs keep nothing
+    if consts.sub is not None:  # the sub-stepped scheme has one program (batched)
+        return _sweep_face_substep(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
+                                   warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo)
     if kernel == "batched":
         return _sweep_face_batched(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
                                    warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo)
@@ -323,9 +329,14 @@ def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, 
 def _sweep_face_jvp(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, primals,
                     tangents):
     out = _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, *primals)
-    batched = functools.partial(_sweep_face_batched, M=M, periodic=periodic, warmup=warmup,
-                                surfaces=surfaces, fluence=vol[1], halo=halo,
-                                recompute=recompute)
+    if primals[-1].sub is not None:
+        batched = functools.partial(_sweep_face_substep, M=M, periodic=periodic, warmup=warmup,
+                                    surfaces=surfaces, fluence=vol[1], halo=halo,
+                                    recompute=recompute)
+    else:
+        batched = functools.partial(_sweep_face_batched, M=M, periodic=periodic, warmup=warmup,
+                                    surfaces=surfaces, fluence=vol[1], halo=halo,
+                                    recompute=recompute)
     _, t_out = jax.jvp(batched, primals, tangents)
     return out, t_out
 
@@ -669,8 +680,188 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     return lam, irr, exit_
 
 
+def substep_offsets(pq: np.ndarray, M: int) -> np.ndarray:
+    """(M − 1, D, 2) int: for j = 1 … M − 1, the in-plane offset from a node y of the point
+    where direction (p, q, M)'s segment arriving at y crosses the plane M − j before y's:
+    (p, q)·(M − j)/M, rounded half away from zero (the nearest node; symmetric in ±p)."""
+    pq = np.asarray(pq, np.int64)
+    j = np.arange(1, M)[:, None, None]
+    return (np.sign(pq)[None] * ((2 * np.abs(pq)[None] * (M - j) + M) // (2 * M))).astype(
+        np.int32)
+
+
+def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
+                        M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
+                        fluence: bool = True, halo: Halo | None = None, recompute: bool = False):
+    """``sweep_face`` with each segment (y − L → y, across M planes) in M sub-steps, one per
+    plane it crosses: at the M − 1 planes between its end nodes the ray takes the extinction
+    and source of the node nearest to where it crosses (``substep_offsets``) over one plane's
+    length |L|/M, and that node's Λ gets the radiance averaged over it; the end nodes own half
+    a plane's length each.  Every node then owns, per direction, M sub-steps of volume h³/M
+    (its own two halves and one crossing of each of M − 1 other chains: the nearest-node map
+    of a plane is a shift, one to one), so a purely scattering node re-emits what its
+    sub-steps remove and the transport resolves the lattice's spacing h, not the segment's
+    M·h.  ``tau_half_unit`` is then the node's own σ_t·h/2 (not box-filtered).  Λ of a
+    slab's planes is finished one slab later (the next slab's segments cross them), so the
+    scan carries the previous slab's fields and partial Λ.  Blocked segments (a solid between
+    y − L and y): the radiance starts from B(y) at the first intermediate plane and arrives
+    as B(y), as in the step scheme.  Values and derivatives come from this one program."""
+    nw, nu, nv = Q.shape[:3]
+    P = 2 * M + 1
+    D = P * P
+    per_w, per_u, per_v = periodic
+    dt = Q.dtype
+    aniso = Q.ndim == 4
+    if consts.slope is not None:
+        raise SolverError("the sub-stepped scheme has no linear-source variant")
+    if halo is not None:
+        raise SolverError("the sub-stepped scheme does not run on a device mesh yet")
+
+    slabs, ns = _slabber(nw, M, per_w, warmup)
+    total = ns * M
+    xs = (slabs(Q), slabs(B), slabs(tau_half_unit), slabs(geo.free), slabs(geo.surf),
+          jnp.moveaxis(slabs(geo.normal), -1, 0).swapaxes(0, 1),
+          jnp.moveaxis(slabs(geo.blocked), -1, 2))
+    unit = consts.unit.astype(dt)
+    length = consts.length.astype(dt)
+    weight = consts.weight.astype(dt)
+    bc_d = bc.astype(dt)
+    pq = jnp.asarray(consts.pq, jnp.int32)
+    sub = jnp.asarray(consts.sub, jnp.int32)  # (M − 1, D, 2)
+    byte_of = np.arange(D) // 8
+    bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))[None, :, None, None]
+    w4 = weight[None, :, None, None]
+    nk = 0
+    if aniso:
+        table, nk = _source_table(consts, dt)
+        nj = table.shape[1]
+        harm = table[:, :nk]
+    # Λ's channels per direction: the fluence weight, then the moments' (D, 1 + K)
+    chan = w4[0, :, 0, 0][:, None] if not nk else jnp.concatenate(
+        [weight[:, None], weight[:, None] * harm], axis=1)
+    nc = 1 + nk
+
+    def source(Qs):  # (m, nu, nv[, 1 + J]) → (m, D or 1, nu, nv)
+        if not aniso:
+            return Qs[:, None]
+        return Qs[..., 0][:, None] + jnp.einsum("muvk,dk->mduv", Qs[..., 1 : 1 + nj], table)
+    len4 = length[None, :, None, None]
+    u4 = [unit[None, :, c, None, None] for c in range(3)]
+    zero_d = jnp.zeros((D,), dt)
+
+    def shifted(x, off):  # x (m, D, nu, nv) → x[m, d, u − off_u, v − off_v] (0 / wrap outside)
+        return _shift_plane(x, zero_d, off, M, per_u, per_v)
+
+    def per_d(x):  # (m, 1 or D, nu, nv) → (m, D, nu, nv)
+        return jnp.broadcast_to(x, (x.shape[0], D) + x.shape[2:])
+
+    def node_field(x, off):  # x (m, nu, nv), one value per node → x[m, u − off_u, v − off_v]
+        # for every direction (m, D, nu, nv): one padded copy of the plane, read D times
+        xp = _pad_plane(x, M, per_u, per_v, jnp.zeros((), x.dtype))
+        start = M - off
+
+        def window(su, sv):
+            return jax.lax.dynamic_slice(xp, (jnp.zeros_like(su), su, sv), x.shape)
+
+        return jax.vmap(window, out_axes=1)(start[:, 0], start[:, 1])
+
+    def step(carry, slab):
+        r_prev, t_prev, q_prev, solid_prev, lam_prev = carry
+        Qs, Bs, ts, fs, ss, ns_, bits = slab
+        solid = ~(fs | ss)
+        r = _shift_plane(r_prev, bc_d, pq, M, per_u, per_v)  # leaving y − L, arriving here
+        # a chain is valid where its radiance is known: it left a fluid node, or a surface
+        # emitted it (blocked: y's radiosity)
+        valid = 1.0 - node_field(solid_prev.astype(dt), pq)
+        q4 = source(Qs)
+        b4 = Bs[:, None]
+        surf4 = ss[:, None]
+        if surfaces:
+            blocked = (jnp.take(bits, byte_of, axis=1) >> bit_of) & 1
+            r = jnp.where(blocked > 0, b4, r)
+            valid = jnp.where(blocked > 0, 1.0, valid)
+        tw = jnp.concatenate([t_prev, ts])  # (2M, nu, nv): the previous slab's planes, then these
+        qw = (jnp.concatenate([q_prev, q4]) if not aniso  # (2M, 1 or D, nu, nv)
+              else jnp.concatenate([per_d(q_prev), per_d(q4)]))
+        sw = jnp.concatenate([solid_prev, solid]).astype(dt)
+        lam_w = jnp.zeros((2 * M, nu, nv, nc + 1), dt)
+        for j in range(1, M):  # the plane M − j before the arrival: window plane m + j
+            off = sub[j - 1]
+            if surfaces:  # crossing a solid node: inside a shape; a surface arrival's chain
+                # leaves it with y's radiosity, any other is unknown until it arrives
+                sj = node_field(sw[j : j + M], off) > 0
+                r = jnp.where(sj & surf4, b4, r)
+                valid = jnp.where(sj, surf4.astype(dt), valid)
+            tj = node_field(tw[j : j + M], off) * (2.0 / M) * len4  # sub-step depth
+            qj = (node_field(qw[j : j + M, 0], off) if not aniso
+                  else shifted(qw[j : j + M], off))
+            rbar = qj + (r - qj) * one_minus_exp_over(tj)
+            r = r + jnp.expm1(-tj) * (r - qj)
+            if fluence:  # deposited at the node crossed: the shift back (−off); its weight too
+                dep = jnp.einsum("mduv,dc->muvc", shifted(valid * rbar, -off), chan) / M
+                wdep = jnp.einsum("mduv,d->muv", shifted(valid, -off), weight) / M
+                lam_w = lam_w.at[j : j + M].add(jnp.concatenate([dep, wdep[..., None]], -1))
+        tau = ts[:, None] * len4 / M  # the node's own half sub-steps
+        em = jnp.expm1(-tau)
+        r_arr = r + em * (r - q4)
+        r_avg = q4 + (r - q4) * one_minus_exp_over(2.0 * tau)
+        if surfaces:
+            r_arr = jnp.where(blocked > 0, b4, r_arr)
+            r_avg = jnp.where(blocked > 0, q4 + (b4 - q4) * one_minus_exp_over(tau), r_avg)
+        r_through = r_arr + em * (r_arr - q4)
+        if fluence:
+            own = jnp.einsum("mduv,dc->muvc", r_avg, chan) / M
+            wown = jnp.broadcast_to(weight.sum() / M, own.shape[:-1] + (1,)).astype(dt)
+            lam_w = lam_w.at[M:].add(jnp.concatenate([own, wown], -1))
+        done = lam_prev + lam_w[:M]  # the previous slab's planes: no later segment crosses them
+        if surfaces:
+            ldotn = ns_[0][:, None] * u4[0] + ns_[1][:, None] * u4[1] + ns_[2][:, None] * u4[2]
+            irr = (r_arr * jnp.maximum(-ldotn, 0.0) * w4).sum(1)
+            r_out = jnp.where(fs[:, None] | ss[:, None], r_through, 0.0)
+        else:
+            irr = jnp.zeros(ts.shape, dt)
+            r_out = jnp.where(fs[:, None], r_through, 0.0)
+        return (r_out, ts, q4, solid, lam_w[M:]), (done, irr)
+
+    Qs0 = xs[0][0]
+    q_shape = source(Qs0).shape
+    if per_w:
+        r0 = jnp.broadcast_to(source(Qs0), (M, D, nu, nv)).astype(dt)
+    else:
+        r0 = jnp.broadcast_to(bc_d[None, :, None, None], (M, D, nu, nv))
+    init = (r0, jnp.zeros((M, nu, nv), dt), jnp.zeros(q_shape, dt),
+            jnp.zeros((M, nu, nv), bool), jnp.zeros((M, nu, nv, nc + 1), dt))
+    body = jax.checkpoint(step, prevent_cse=False) if recompute else step
+    carry, (lam, irr) = jax.lax.scan(body, init, xs)
+    exit_, lam_last = carry[0], carry[4]
+    if per_w:  # the rays go on past the last slab (wrapping): its planes' Λ is finished by
+        # the crossings of the slab after it, the first M planes in wrap order
+        order = np.arange(M) % nw
+        nxt = tuple(jnp.take(a, order, axis=0) for a in (
+            Q, B, tau_half_unit, geo.free, geo.surf))
+        nxt = nxt + (jnp.moveaxis(jnp.take(geo.normal, order, axis=0), -1, 0),
+                     jnp.moveaxis(jnp.take(geo.blocked, order, axis=0), -1, 1))
+        _, (lam_last, _) = body(carry, nxt)
+    lam = jnp.concatenate([lam[1:], lam_last[None]])  # step s finished slab s − 1's Λ
+    lam = lam.reshape((total,) + lam.shape[2:])
+    irr = irr.reshape((total,) + irr.shape[2:])
+    # each node's Λ over the sub-steps whose radiance is known: per direction M of them (its
+    # own two halves and M − 1 crossings) weigh Σ_d w_d; a crossing of a chain inside a
+    # shape does not count, and the others stand in for it
+    wsum = lam[..., nc:]
+    lam = lam[..., :nc] * jnp.where(wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0),
+                                    0.0)
+    if not nk:
+        lam = lam[..., 0]
+    if per_w:
+        lam, irr = lam[total - nw :], irr[total - nw :]
+    else:
+        lam, irr = lam[:nw], irr[:nw]
+    return lam, irr, exit_
+
+
 def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None,
-                linear: bool = False) -> SweepConsts:
+                linear: bool = False, substep: bool = False) -> SweepConsts:
     """The constants of ``face``; ``harm``: (6, D, K) the anisotropic basis at every face's
     directions (``_harmonics.Basis.faces``), or None (isotropic); ``linear``: the
     linear-source scheme's slope table."""
@@ -685,6 +876,7 @@ def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None,
         weight=jnp.asarray(dirs.weights[face]),
         harm=None if harm is None else jnp.asarray(harm[face]),
         slope=jnp.asarray(vec * np.asarray(dirs.length)[:, None]) if linear else None,
+        sub=jnp.asarray(substep_offsets(dirs.pq, dirs.M)) if substep and dirs.M > 1 else None,
     )
 
 
