@@ -703,9 +703,14 @@ def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     sub-steps remove and the transport resolves the lattice's spacing h, not the segment's
     M·h.  ``tau_half_unit`` is then the node's own σ_t·h/2 (not box-filtered).  Λ of a
     slab's planes is finished one slab later (the next slab's segments cross them), so the
-    scan carries the previous slab's fields and partial Λ.  Blocked segments (a solid between
-    y − L and y): the radiance starts from B(y) at the first intermediate plane and arrives
-    as B(y), as in the step scheme.  Values and derivatives come from this one program."""
+    scan carries the previous slab's fields and partial Λ (and on a periodic sweep axis one
+    more slab, the first in wrap order, finishes the last).  Blocked segments (a solid between
+    y − L and y): the radiance starts from B(y) at the first intermediate plane (and again
+    after each solid node it crosses) and arrives as B(y), as in the step scheme.  A chain
+    whose light is unknown (it left a solid node, or crossed one on its way to a node that is
+    not a surface) deposits nothing, and each node's Λ is taken over the sub-steps whose
+    light is known (their weight is a last channel of the accumulator).  Values and
+    derivatives come from this one program."""
     nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
     D = P * P
@@ -737,7 +742,7 @@ def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         nj = table.shape[1]
         harm = table[:, :nk]
     # Λ's channels per direction: the fluence weight, then the moments' (D, 1 + K)
-    chan = w4[0, :, 0, 0][:, None] if not nk else jnp.concatenate(
+    chan = weight[:, None] if not nk else jnp.concatenate(
         [weight[:, None], weight[:, None] * harm], axis=1)
     nc = 1 + nk
 

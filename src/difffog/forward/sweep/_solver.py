@@ -1059,7 +1059,9 @@ class SweepSolver(eqx.Module):
             fog_mask = sum(tau_world) > 0
         sun_fluence = jnp.where(geom.solid, 0.0, sun_fluence)
         sun_beam, sky_beam, sky_moments_beam = sun_fluence, sky_fluence, sky_moments
-        if self.first_collision == "deposit":
+        # (the sub-stepped scheme re-emits at each node's own σ_t, as the beams lose it: its
+        # beam is its deposit)
+        if self.first_collision == "deposit" and not geom.substep:
             # Σ_a box_a(σ_t), from the + faces' σ̄·h/2 (0 in solids, where the average is 0)
             sigma_box = sum(tau_world[FACE_AXES.index((a, 1))] for a in range(3)) / (geom.h / 2)
 
