@@ -57,9 +57,11 @@ def test_sub_steps_bring_the_thick_cube_closer_to_its_independent_value():
             warnings.simplefilter("ignore", df.ThickStepWarning)
             out = df.render(m)
         assert out.result == df.RESULTS.successful
+        assert out.settings["solver_options"]["scheme"] == scheme  # the report names it
         got[scheme] = float(out.images["top"].mean()) / ref - 1
     assert got["step"] > 0.04  # the step scheme's surplus
     assert -0.10 < got["substep"] < 0.0, got
+    assert m.settings()["solver_options"]["kernel"] == "batched"  # its one program
 
 
 @pytest.mark.slow

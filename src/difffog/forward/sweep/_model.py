@@ -787,9 +787,12 @@ class SweepModel(AbstractForwardModel):
                                "terms": s.terms, "devices": s.devices,
                                "precondition": s.resolved_precondition(self.geometry),
                                "phase_order": self.geometry.order,
-                               "scheme": "linear" if self.geometry.linear else "step",
+                               "scheme": ("linear" if self.geometry.linear else
+                                          "substep" if self.geometry.substep else "step"),
                                "first_collision": s.first_collision,
-                               "kernel": s.resolved_kernel()},
+                               # (the sub-stepped scheme has one program, the batched)
+                               "kernel": ("batched" if self.geometry.substep
+                                          else s.resolved_kernel())},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides
             "voxel_size": lat.h,
