@@ -94,3 +94,25 @@ def test_jvp_matches_finite_differences(x64):
     eps = 1e-4 * float(z0)
     fd = (float(jax.jit(f)(z0 + eps)) - float(jax.jit(f)(z0 - eps))) / (2 * eps)
     assert float(t) == pytest.approx(fd, rel=1e-6)
+
+
+@pytest.mark.parametrize("zeta", [100.0, 1000.0, 10000.0])
+def test_the_thick_cube_at_n32_is_within_5_percent_of_its_monte_carlo_value(zeta):
+    """Issue 14's thick conservative limit, judged against the cube's own float64 Monte Carlo
+    image (``THICK_CUBE_REFERENCE``: 0.7271 ± 0.0007, 0.7668 ± 0.0016, 0.770 ± 0.007): with
+    sub-stepped segments N = 32, M = 2 (one lattice step 6, 62 and 625 mean free paths) reads
+    −3.0%, −2.5% and −2.4% (measured), where the default scheme reads +5.1%, +3.5% and +1.7%
+    (its ζ = 100 case is test_thick.py's strict xfail).  Within 5%, and below the
+    semi-infinite medium's 0.773 (the cube's open sides lose light)."""
+    from difffog.study._semi_infinite import THICK_CUBE_REFERENCE, semi_infinite_value, thick_cube
+
+    ref, err = THICK_CUBE_REFERENCE[zeta]
+    m = df.forward_model(thick_cube(zeta), "sweep", accuracy=None, resolution=32, M=2,
+                         tol=1e-4, max_iterations=2000, supersample=1, scheme="substep")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", df.ThickStepWarning)
+        out = df.render(m)
+    assert out.result == df.RESULTS.successful
+    v = float(out.images["top"].mean())
+    assert abs(v / ref - 1) < 0.05, (v, ref)
+    assert v < semi_infinite_value()
