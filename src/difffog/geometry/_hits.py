@@ -402,9 +402,10 @@ def _sun_lit(scene: Scene, xs, s, t_min: float):
     shape (t > t_min) and whether its origin lies outside every shape.  The same tests, to the
     rounding, as :func:`first_hits` (``isinf(t)``, ``~inside``), without what a visibility
     does not need (which shape, the normal, the distance) and, for spheres and boxes, on the
-    broadcast axes: the lattice's centres as three 1-D axes cost O(n) per shape, not O(n³)
-    (fog-balls N = 128, M = 5, 2 cores: 2.0 s → 0.5 s, measured).  Tori and triangles take
-    the general casts on the points made explicit."""
+    broadcast axes: the lattice's centres as three 1-D axes cost O(n) per shape, not O(n³).
+    Tori and triangles take the general casts, only for the rays that reach their bounds.
+    ``sun_visibility`` at N = 128 on 2 busy cores, the old and the new code one after the
+    other: fog-balls 2.9 → 0.39 s, ring-box 7.2 → 1.4 s, identical values."""
     shape = np.broadcast_shapes(*(np.shape(x) for x in xs))
     blocked = np.zeros(shape, bool)
     inside = np.zeros(shape, bool)
