@@ -143,10 +143,12 @@ SETUP_S_PER_NODE_DIRECTION_STEP = 3.1e-10
 SETUP_S_PER_SEGMENT_SAMPLE = 6.6e-6
 SETUP_S_PER_RAY = 1.7e-6
 #: the sun's visibility from exact shadow rays (open domains with shapes and a sun): a ray per
-#: node and 8-27 more per cell near a shadow's edge; 2.1-3.6 µs per node measured for
-#: fog-balls, ring-box and translucent-cube at N = 32, 64, 128 on this 2-core CPU (the larger
-#: per node at N = 32), added after the constants above were fitted
-SETUP_S_PER_NODE_SHADOW = 2.5e-6
+#: node and 8-27 more per cell near a shadow's edge, added after the constants above were
+#: fitted.  Since stop 48 (rays along the one sun direction, spheres and boxes on the
+#: lattice's axes) 0.14-0.20 µs per node for fog-balls, 0.41-0.50 ring-box, 0.65-0.96
+#: translucent-cube, 0.97-1.37 cloud-plane at N = 128 / 64 (this 2-core CPU; 2.1-3.6 µs
+#: before); on two cores it runs beside the faces' masks
+SETUP_S_PER_NODE_SHADOW = 0.5e-6
 #: the splat's set-up: a fixed part (its footprint and kernel programs) and a part per voxel
 #: (bench_cost.py: 3.1 / 3.9 / 4.9 s at N = 32 / 64 / 96)
 SPLAT_SETUP_S = 2.6
