@@ -697,8 +697,14 @@ class SweepModel(AbstractForwardModel):
         if depth <= THICK_STEP:
             return None
         need = math.ceil(self.resolution * depth / THICK_STEP)
-        how = ("a sunlit one gains light, which first_collision=deposit conserves"
-               if self.solver.first_collision == "beam" else "a sunlit one reads dark")
+        if self.geometry.substep:
+            how = ("with sub-stepped segments a thick cube of fog 32 nodes across reads 2-3% "
+                   "dark")
+        elif self.solver.first_collision == "beam":
+            how = ("a sunlit one gains light, which first_collision=deposit conserves, and "
+                   "scheme=\"substep\" (slower) resolves")
+        else:
+            how = "a sunlit one reads dark; scheme=\"substep\" (slower) resolves it"
         return (f"one lattice step is optically thick (σ_t·h·M = {depth:.3g} > {THICK_STEP:g} at "
                 f"resolution {self.resolution}, M = {self.solver.M}): the light is coarse inside "
                 f"the fog, and thick fog's surface can be off by 5-30% ({how}; "
