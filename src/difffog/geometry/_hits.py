@@ -425,12 +425,7 @@ def _sun_lit(scene: Scene, xs, s, t_min: float):
         boxes, tris = _hit_geometry(scene)
         inv = [1.0 / float(c) if c != 0 else math.copysign(math.inf, float(c)) for c in s]
         for _, lo, hi in boxes:  # _box_hits' slab test
-            tn, tf = -math.inf, math.inf
-            for c in range(3):
-                t1, t2 = (lo[c] - xs[c]) * inv[c], (hi[c] - xs[c]) * inv[c]
-                # NaN (0·inf: a ray in a face's plane) compares false: no bound
-                near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-                tn, tf = np.where(near > tn, near, tn), np.where(far < tf, far, tf)
+            tn, tf = _slab_bounds(xs, inv, lo, hi)
             crosses = tn <= tf
             entry = crosses & (tn > t_min) & np.isfinite(tn)
             leave = crosses & ~(tn > t_min) & (tf > t_min) & np.isfinite(tf)
@@ -456,40 +451,32 @@ def _sun_lit(scene: Scene, xs, s, t_min: float):
                     reach |= _reaches_box(xs, inv, corners.min(0) - pad, corners.max(0) + pad,
                                           t_min)
         rows = np.flatnonzero(reach.reshape(-1))
-        if len(rows):
+        if len(rows):  # first_hits on them (their spheres and boxes again: the same answers)
             pts = np.stack([np.broadcast_to(x, shape).reshape(-1)[rows] for x in xs], -1)
-            d = np.broadcast_to(np.asarray(s, np.float64), pts.shape)
-            hit_any = np.zeros(len(rows), bool)
-            in_any = np.zeros(len(rows), bool)
-            for sh in tori:
-                t, n = _torus_hits(sh, pts, d, t_min)
-                hit = np.isfinite(t)
-                hit_any |= hit
-                in_any |= hit & (n @ np.asarray(s, np.float64) > 0)
-            if len(tris):
-                t, face, _, _ = cast_rays(tris, pts, d, t_min=t_min)
-                hit = face >= 0
-                n = tris.face_normals[np.where(hit, face, 0)]
-                closed = ~np.array([isinstance(x, Quad) for x in scene.shapes] + [False])
-                hit_any |= hit
-                in_any |= (hit & closed[np.where(hit, tris.shape[face], -1)]
-                           & (n @ np.asarray(s, np.float64) > 0))
-            blocked.reshape(-1)[rows] |= hit_any
-            inside.reshape(-1)[rows] |= in_any
+            hit = first_hits(scene, pts, np.broadcast_to(np.asarray(s, np.float64), pts.shape),
+                             t_min=t_min)
+            blocked.reshape(-1)[rows] |= np.isfinite(hit.t)
+            inside.reshape(-1)[rows] |= hit.inside
     return ~blocked, ~inside
 
 
-def _reaches_box(xs, inv, lo, hi, t_min: float):
-    """Whether rays from the points ``xs`` (broadcasting axes) with the inverse direction
-    ``inv`` (3 floats) cross the box [lo, hi] somewhere beyond ``t_min`` (a slab test; a ray in
-    a face's plane counts as crossing)."""
+def _slab_bounds(xs, inv, lo, hi):
+    """(t_near, t_far) of rays from the points ``xs`` (broadcasting axes) with the inverse
+    direction ``inv`` (3 floats) through the box [lo, hi], as :func:`_box_hits` bounds them: a
+    NaN slab bound (0·inf, a ray in a face's plane) compares false and bounds nothing."""
     tn, tf = -math.inf, math.inf
     with np.errstate(invalid="ignore"):
         for c in range(3):
             t1, t2 = (lo[c] - xs[c]) * inv[c], (hi[c] - xs[c]) * inv[c]
             near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-            tn = np.where(near > tn, near, tn)
-            tf = np.where(far < tf, far, tf)
+            tn, tf = np.where(near > tn, near, tn), np.where(far < tf, far, tf)
+    return tn, tf
+
+
+def _reaches_box(xs, inv, lo, hi, t_min: float):
+    """Whether the rays cross the box [lo, hi] somewhere beyond ``t_min`` (a ray in a face's
+    plane counts as crossing)."""
+    tn, tf = _slab_bounds(xs, inv, lo, hi)
     return (tn <= tf) & (tf > t_min)
 
 
