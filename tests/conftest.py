@@ -6,7 +6,7 @@ import pytest
 
 import notebook_runs
 from difffog import enable_compilation_cache
-from difffog._cache import memory_maps
+from difffog._cache import release_if_crowded
 from helpers import MODELS, build_fit_model, build_model
 
 
@@ -65,12 +65,7 @@ def _release_compiled_programs():
     cache.  (The library does the same above 60% when it builds a model, with a warning:
     ``difffog._cache.release_if_crowded``; half keeps the suite clear of that warning.)"""
     yield
-    maps = memory_maps()
-    if maps is not None and maps[0] > maps[1] // 2:
-        import gc
-
-        jax.clear_caches()
-        gc.collect()
+    release_if_crowded(0.5, warn=False)
 
 
 @pytest.fixture

@@ -77,14 +77,14 @@ def memory_maps() -> tuple[int, int] | None:
         return None
 
 
-def release_if_crowded(share: float = CROWDED) -> bool:
+def release_if_crowded(share: float = CROWDED, warn: bool = True) -> bool:
     """Drop JAX's compiled programs (``jax.clear_caches()``) when this process holds more than
-    ``share`` of the memory mappings Linux allows it, with a :class:`difffog.MemoryWarning`;
-    True if it did.  Each XLA CPU program maps its own code and data (~1,100 mappings for a
+    ``share`` of the memory mappings Linux allows it, with a :class:`difffog.MemoryWarning`
+    (unless ``warn`` is False: the test suite's own guard); True if it did.  Each XLA CPU program maps its own code and data (~1,100 mappings for a
     small render), so a long session that compiles many models (a notebook rendering many
     lattice sizes: ~60 of them at the default limit of 65,530) would otherwise die inside
     XLA's compiler when the next one cannot be mapped.  Programs needed again compile anew, or
-    load from the persistent cache.  Called before every model is built."""
+    load from the persistent cache.  Called before every model is built (``forward._registry.guard``)."""
     maps = memory_maps()
     if maps is None or maps[0] <= share * maps[1]:
         return False
@@ -97,11 +97,13 @@ def release_if_crowded(share: float = CROWDED) -> bool:
 
     jax.clear_caches()
     gc.collect()
+    if not warn:
+        return True
     after = memory_maps()
     warnings.warn(
         f"this process held {maps[0]:,} of the {maps[1]:,} memory mappings Linux allows it "
         f"(compiled programs: ~1,100 each), so difffog dropped JAX's compiled programs "
         f"({after[0] if after else '?':,} left); they compile again (or load from the "
         f"persistent cache) when needed. For long sessions raise the limit: sudo sysctl "
-        f"vm.max_map_count=262144", MemoryWarning, stacklevel=3)
+        f"vm.max_map_count=262144", MemoryWarning, stacklevel=4)
     return True

@@ -26,7 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._cache import release_if_crowded
 from .._cost import fit_edge_samples
 from .._errors import (AdjointWarning, DifffogError, ResourceError, ThickStepWarning,
                        ThinLayerWarning)
@@ -78,7 +77,6 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
           what=f"the fit's {forward} model", **full)
     if sun and not entry.traces_sun:  # before building it
         raise _fixed_sun(f"the {forward} forward model")
-    release_if_crowded()
     model = entry.build(small, **full)
     return _with_sun(model, sun) if sun else model
 

@@ -202,7 +202,6 @@ def forward_model(scene: Scene, solver: str = "sweep", accuracy: str | None = "d
     base = {} if accuracy is None else preset(solver, accuracy)
     full = {**base, **settings}
     guard(scene, solver, cameras=cameras, force=force, **full)
-    release_if_crowded()
     return entry.build(scene, cameras=cameras, **full)
 
 
@@ -220,7 +219,8 @@ def model_estimate(scene: Scene, solver: str, *, cameras=None, **settings):
 def guard(scene: Scene, solver: str, *, cameras=None, force: bool = False, what=None,
           **settings):
     """Refuse (ResourceError) or warn (MemoryWarning) before building a model that will not
-    fit; returns the estimate."""
+    fit, and drop JAX's compiled programs first where the process nears its limit on memory
+    mappings (``_cache.release_if_crowded``); returns the estimate."""
     import warnings
 
     from .._cost import check_fits
@@ -233,4 +233,5 @@ def guard(scene: Scene, solver: str, *, cameras=None, force: bool = False, what=
     note = check_fits(est, force=force, what=label)
     if note:
         warnings.warn(note, MemoryWarning, stacklevel=3)
+    release_if_crowded()
     return est
