@@ -46,7 +46,7 @@ def _args(argv=None):
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver(phase_order=...) values (anisotropic scattering; \"auto\": "
                          "the scene's)")
-    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear"],
+    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear", "substep"],
                     help="SweepSolver(scheme=...): the transport along a segment")
     ap.add_argument("--grad-size", type=int, default=None, help="N of the forward/gradient case")
     ap.add_argument("--no-grad", action="store_true")

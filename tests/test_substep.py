@@ -61,7 +61,7 @@ def test_sub_steps_bring_the_thick_cube_closer_to_its_independent_value():
         got[scheme] = float(out.images["top"].mean()) / ref - 1
     assert got["step"] > 0.04  # the step scheme's surplus
     assert -0.10 < got["substep"] < 0.0, got
-    assert m.settings()["solver_options"]["kernel"] == "batched"  # its one program
+    assert m.settings()["solver_options"]["kernel"] == "loop"  # a CPU's direction loop
 
 
 @pytest.mark.slow
@@ -117,3 +117,60 @@ def test_the_thick_cube_at_n32_is_within_5_percent_of_its_monte_carlo_value(zeta
     v = float(out.images["top"].mean())
     assert abs(v / ref - 1) < 0.05, (v, ref)
     assert v < semi_infinite_value()
+
+
+
+def _loop_matches_batched(cases):
+    """The CPU's direction loop (``_sweep_face_substep_loop``: the values on a CPU) against
+    the batched program (the values on a GPU, and the derivatives everywhere) on random faces
+    with surfaces and blocked segments: ``cases`` = (M, face shape, periodic sides, L)."""
+    from difffog.forward.sweep._harmonics import basis
+    from difffog.forward.sweep._kernel import (_sweep_face_substep, _sweep_face_substep_loop,
+                                               face_consts)
+    from helpers import random_face_geometry
+
+    rng = np.random.default_rng(3)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    for M, shape, periodics, L in cases:
+        D = (2 * M + 1) ** 2
+        harm = basis(L, M).faces if L else None
+        consts = face_consts(direction_set(M), 0, harm=harm, substep=True)
+        Q = rng.random(shape + ((1 + harm.shape[-1],) if L else ()))
+        if L:
+            Q[..., 1:] *= 0.1
+        args = (f32(Q), f32(rng.random(shape)), f32(0.8 * rng.random(shape)),
+                f32(rng.random(D)), random_face_geometry(rng, shape, D), consts)
+
+        @jax.jit
+        def both(*a, M=M, periodics=periodics):
+            out = []
+            for periodic in periodics:
+                kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0,
+                          surfaces=True)
+                out.append((_sweep_face_substep_loop(*a, **kw), _sweep_face_substep(*a, **kw)))
+            return out
+
+        for periodic, (a, b) in zip(periodics, both(*args)):
+            for x, y in zip(a, b):
+                assert x.shape == y.shape
+                np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-6, atol=2e-6,
+                                           err_msg=f"M={M} {shape} {periodic}")
+            assert float(jnp.max(a[0])) > 0.1  # the fluence was accumulated
+
+
+def test_loop_program_matches_batched_program():
+    """All sides open, and all periodic (the deposits folded back across u and v), at M = 3;
+    per-direction (anisotropic) sources at M = 2 with a periodic sweep axis and u side."""
+    _loop_matches_batched([(3, (9, 8, 10), [(False,) * 3, (True,) * 3], 0),
+                           (2, (6, 7, 5), [(True, True, False)], 2)])
+
+
+@pytest.mark.slow
+def test_loop_program_matches_batched_program_everywhere():
+    """Every combination of periodic sides at M = 3, a plane thinner than M, and more
+    anisotropic cases."""
+    import itertools
+
+    combos = list(itertools.product([False, True], repeat=3))  # (w, u, v) periodic
+    _loop_matches_batched([(3, (9, 8, 10), combos, 0), (3, (7, 1, 5), combos, 0),
+                           (2, (6, 7, 5), combos, 2), (3, (5, 6, 7), combos[::3], 1)])

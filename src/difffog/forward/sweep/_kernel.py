@@ -315,9 +315,11 @@ def sweep_face(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, 
 def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, B, tau_half_unit,
                 bc, geo, consts):
     del recompute  # the values' programs keep nothing
-    if consts.sub is not None:  # the sub-stepped scheme has one program (batched)
-        return _sweep_face_substep(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
-                                   warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo)
+    if consts.sub is not None:  # the sub-stepped scheme's two programs
+        kw = dict(M=M, periodic=periodic, warmup=warmup, surfaces=surfaces, fluence=vol[1])
+        if kernel == "loop" and halo is None:
+            return _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo, consts, **kw)
+        return _sweep_face_substep(Q, B, tau_half_unit, bc, geo, consts, halo=halo, **kw)
     if kernel == "batched":
         return _sweep_face_batched(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
                                    warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo)
@@ -853,6 +855,205 @@ def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     # each node's Λ over the sub-steps whose radiance is known: per direction M of them (its
     # own two halves and M − 1 crossings) weigh Σ_d w_d; a crossing of a chain inside a
     # shape does not count, and the others stand in for it
+    wsum = lam[..., nc:]
+    lam = lam[..., :nc] * jnp.where(wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0),
+                                    0.0)
+    if not nk:
+        lam = lam[..., 0]
+    if per_w:
+        lam, irr = lam[total - nw :], irr[total - nw :]
+    else:
+        lam, irr = lam[:nw], irr[:nw]
+    return lam, irr, exit_
+
+
+def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts,
+                             *, M: int, periodic: tuple[bool, bool, bool], warmup: int,
+                             surfaces: bool, fluence: bool = True):
+    """``_sweep_face_substep``'s values (same arguments and results, to rounding) as a loop
+    over the D directions, each on its own (M, nu, nv) block, as ``_sweep_face_loop`` does for
+    the step scheme: what a CPU wants.  Per slab the 2M planes a segment can cross (the
+    previous slab's, then this one's) are padded once: the sub-step factors e^(−τ) − 1 and
+    (1 − e^(−τ))/τ of every distinct |L| (10 at M = 3 instead of one per direction and
+    crossing), the source, the solid flags; a crossing then reads its block of each at its
+    offset with a ``dynamic_slice`` and adds its deposit into a padded Λ window at the same
+    offset (on periodic sides the window's margins are folded back after the loop).  The
+    batched program (``_sweep_face_substep``) gives the derivatives."""
+    nw, nu, nv = Q.shape[:3]
+    P = 2 * M + 1
+    D = P * P
+    per_w, per_u, per_v = periodic
+    dt = Q.dtype
+    aniso = Q.ndim == 4
+    if consts.slope is not None:
+        raise SolverError("the sub-stepped scheme has no linear-source variant")
+
+    slabs, ns = _slabber(nw, M, per_w, warmup)
+    total = ns * M
+    pq_host = direction_set(M).pq
+    ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
+    uniq, kidx = np.unique(ssq, return_inverse=True)
+    first = np.array([np.flatnonzero(ssq == v)[0] for v in uniq])
+    length_k = consts.length.astype(dt)[first]  # (K,) distinct |L|
+    len_k4 = length_k[:, None, None, None]
+    kidx = jnp.asarray(kidx, jnp.int32)
+    unit = consts.unit.astype(dt)
+    weight = consts.weight.astype(dt)
+    bc_d = bc.astype(dt)
+    start = M - jnp.asarray(consts.pq, jnp.int32)  # arrival window origin in the padded plane
+    sub_start = M - jnp.asarray(consts.sub, jnp.int32)  # (M − 1, D, 2) crossings' origins
+    byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)
+    bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))
+    nk = nj = 0
+    table = None
+    if aniso:
+        table, nk = _source_table(consts, dt)  # (D, J)
+        nj = table.shape[1]
+    # Λ's channels per direction: the fluence weight, then the moments' (D, 1 + K)
+    chan = weight[:, None] if not nk else jnp.concatenate(
+        [weight[:, None], weight[:, None] * table[:, :nk]], axis=1)
+    nc = 1 + nk
+    zero = jnp.zeros((), dt)
+
+    def pad(x):  # (..., nu, nv) → (..., nu + 2M, nv + 2M): wrapped on periodic sides, else 0
+        return _pad_plane(x, M, per_u, per_v, zero)
+
+    def fold(x, axis, n, periodic_axis):  # a padded axis back to its n nodes
+        if not periodic_axis:
+            return jax.lax.slice_in_dim(x, M, M + n, axis=axis)
+        idx = (np.arange(n + 2 * M) - M) % n
+        xm = jnp.moveaxis(x, axis, 0)
+        return jnp.moveaxis(jnp.zeros((n,) + xm.shape[1:], dt).at[idx].add(xm), 0, axis)
+
+    def source_d(q, d):  # q (1 + J, m, ...) channels → direction d's source (m, ...)
+        if not aniso:
+            return q
+        hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
+        return q[0] + sum(hd[j] * q[1 + j] for j in range(nj))
+
+    Qs, Bs, ts = slabs(Q), slabs(B), slabs(tau_half_unit)
+    if aniso:  # channels first: (ns, 1 + J, M, nu, nv)
+        Qs = jnp.moveaxis(Qs, -1, 1)[:, : 1 + nj]
+    fs, ss = slabs(geo.free), slabs(geo.surf)
+    if surfaces:
+        nrm = jnp.moveaxis(slabs(geo.normal), -1, 1)  # (ns, 3, M, nu, nv)
+        bits = jnp.moveaxis(slabs(geo.blocked), -1, 1)  # (ns, ceil(D/8), M, nu, nv)
+    else:
+        nrm = jnp.zeros((ns, 1), dt)
+        bits = jnp.zeros((ns, 1), jnp.uint8)
+
+    def step(carry, slab):
+        (src, dst), t_prev, q_prev, solid_prev, lam_prev = carry
+        Qs_, Bs_, ts_, fs_, ss_, nrm_s, bits_s = slab
+        solid = ~(fs_ | ss_)
+        pass_s = (fs_ | ss_) if surfaces else fs_
+        surf_f = ss_.astype(dt)
+        # the window of 2M planes the crossings read: previous slab's planes, then these
+        twp = pad(jnp.concatenate([t_prev, ts_])) * (2.0 / M)
+        tk = twp[None] * len_k4  # (K, 2M, nu + 2M, nv + 2M) sub-step depth per |L|
+        em_w, avg_w = jnp.expm1(-tk), one_minus_exp_over(tk)
+        qwp = pad(jnp.concatenate([q_prev, Qs_], axis=-3))  # ([1 + J,] 2M, ...)
+        swp = pad(jnp.concatenate([solid_prev, solid]).astype(dt))
+        own = ts_[None] * len_k4 / M  # (K, M, nu, nv) the node's own half sub-steps
+        em_own, avg2_own, avg1_own = jnp.expm1(-own), one_minus_exp_over(2.0 * own), None
+        if surfaces:
+            avg1_own = one_minus_exp_over(own)
+        lamp0 = tuple(jnp.zeros((2 * M, nu + 2 * M, nv + 2 * M), dt) for _ in range(nc + 1))
+        acc0 = jnp.zeros((nc, M, nu, nv), dt)
+        irr0 = jnp.zeros((M, nu, nv), dt)
+
+        def direction(d, c):
+            dst, lamp, acc, irr = c
+            d = jnp.asarray(d, jnp.int32)
+            k = kidx[d]
+            su, sv = start[d, 0], start[d, 1]
+            r = jax.lax.dynamic_slice(src, (d, _I0, su, sv), (1, M, nu, nv))[0]
+            valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), (M, nu, nv))
+            if surfaces:
+                byte = jax.lax.dynamic_index_in_dim(bits_s, byte_of[d], 0, keepdims=False)
+                blocked = ((byte >> bit_of[d]) & 1) > 0
+                r = jnp.where(blocked, Bs_, r)
+                valid = jnp.where(blocked, 1.0, valid)
+            for j in range(1, M):  # the plane M − j before the arrival: window plane m + j
+                o = (jnp.asarray(j, jnp.int32), sub_start[j - 1, d, 0], sub_start[j - 1, d, 1])
+                if surfaces:
+                    sj = jax.lax.dynamic_slice(swp, o, (M, nu, nv)) > 0
+                    r = jnp.where(sj & ss_, Bs_, r)
+                    valid = jnp.where(sj, surf_f, valid)
+                em = jax.lax.dynamic_slice(em_w, (k,) + o, (1, M, nu, nv))[0]
+                av = jax.lax.dynamic_slice(avg_w, (k,) + o, (1, M, nu, nv))[0]
+                if aniso:
+                    qj = source_d(jax.lax.dynamic_slice(
+                        qwp, (_I0,) + o, (1 + nj, M, nu, nv)), d)
+                else:
+                    qj = jax.lax.dynamic_slice(qwp, o, (M, nu, nv))
+                rbar = qj + (r - qj) * av
+                r = r + em * (r - qj)
+                if fluence:  # deposited at the node crossed (y − offset): the same window
+                    x = valid * rbar
+                    adds = [chan[d, c] * x for c in range(nc)] + [weight[d] * valid]
+                    lamp = tuple(
+                        jax.lax.dynamic_update_slice(
+                            a, jax.lax.dynamic_slice(a, o, (M, nu, nv)) + v / M, o)
+                        for a, v in zip(lamp, adds))
+            q4 = source_d(Qs_, d)
+            at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
+            em = at_k(em_own)
+            r_arr = r + em * (r - q4)
+            r_avg = q4 + (r - q4) * at_k(avg2_own)
+            if surfaces:
+                r_arr = jnp.where(blocked, Bs_, r_arr)
+                r_avg = jnp.where(blocked, q4 + (Bs_ - q4) * at_k(avg1_own), r_avg)
+                ldotn = nrm_s[0] * unit[d, 0] + nrm_s[1] * unit[d, 1] + nrm_s[2] * unit[d, 2]
+                irr = irr + r_arr * jnp.maximum(-ldotn, 0.0) * weight[d]
+            r_through = r_arr + em * (r_arr - q4)
+            if fluence:
+                acc = acc + jnp.stack([chan[d, c] * r_avg for c in range(nc)])
+            r_out = jnp.where(pass_s, r_through, 0.0)
+            dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, _I0 + M, _I0 + M))
+            return dst, lamp, acc, irr
+
+        dst, lamp, acc, irr = jax.lax.fori_loop(0, D, direction, (dst, lamp0, acc0, irr0))
+        lam_w = fold(fold(jnp.stack(lamp), 2, nu, per_u), 3, nv, per_v)  # (nc + 1, 2M, nu, nv)
+        wown = jnp.full((1, M, nu, nv), weight.sum() / M, dt)
+        lam_w = lam_w.at[:, M:].add(jnp.concatenate([acc / M, wown]))
+        done = lam_prev + lam_w[:, :M]  # the previous slab's planes: no later segment crosses
+        if per_u:
+            dst = _wrap_border(dst, 2, nu, M)
+        if per_v:
+            dst = _wrap_border(dst, 3, nv, M)
+        return ((dst, src), ts_, Qs_, solid, lam_w[:, M:]), (done, irr)
+
+    bc4 = bc_d[:, None, None, None]
+    if per_w:  # equilibrium guess for horizontal rays, each direction with its own source
+        q0 = Qs[0]
+        r0 = (q0[None] if not aniso else
+              q0[0][None] + jnp.einsum("dk,kmuv->dmuv", table, q0[1 : 1 + nj])).astype(dt)
+        r0 = jnp.broadcast_to(r0, (D, M, nu, nv))
+    else:
+        r0 = jnp.broadcast_to(bc4, (D, M, nu, nv))
+    r0 = _pad_plane(r0, M, per_u, per_v, bc4)
+    q_shape = Qs.shape[1:]
+    init = ((r0, r0), jnp.zeros((M, nu, nv), dt), jnp.zeros(q_shape, dt),
+            jnp.zeros((M, nu, nv), bool), jnp.zeros((nc + 1, M, nu, nv), dt))
+    xs = (Qs, Bs, ts, fs, ss, nrm, bits)
+    carry, (lam, irr) = jax.lax.scan(step, init, xs, unroll=2)
+    lam_last = carry[4]
+    if per_w:  # the slab after the last, in wrap order, finishes the last slab's Λ
+        order = np.arange(M) % nw
+        take = lambda a: jnp.take(a, order, axis=0)  # noqa
+        qn = take(Q)
+        if aniso:
+            qn = jnp.moveaxis(qn, -1, 0)[: 1 + nj]
+        nxt = (qn, take(B), take(tau_half_unit), take(geo.free), take(geo.surf),
+               jnp.moveaxis(take(geo.normal), -1, 0) if surfaces else nrm[0],
+               jnp.moveaxis(take(geo.blocked), -1, 0) if surfaces else bits[0])
+        _, (lam_last, _) = step(carry, nxt)
+    exit_ = jnp.swapaxes(carry[0][0][..., M : M + nu, M : M + nv], 0, 1)
+    lam = jnp.concatenate([lam[1:], lam_last[None]])  # step s finished slab s − 1's Λ
+    lam = jnp.moveaxis(lam, 1, -1)  # (ns, M, nu, nv, nc + 1)
+    lam = lam.reshape((total,) + lam.shape[2:])
+    irr = irr.reshape((total,) + irr.shape[2:])
     wsum = lam[..., nc:]
     lam = lam[..., :nc] * jnp.where(wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0),
                                     0.0)

@@ -826,8 +826,9 @@ class SweepSolver(eqx.Module):
         radiance 10 at every node).  Measured at N = 32, M = 3 (docs/validation.md): cloud-tomo from Mitsuba 1.84 → 1.17%, its skin's collided light
         +8% → −1.7%, cloud-plane's oblique view 8.6 → 6.7%, issue 14's cube (ζ = 100, N = 32,
         M = 2) +8.3% → −3.0% against its Monte Carlo value; fog-balls 2.1 → 2.6% (its walls
-        and balls: a crossing inside a shape does not count); slower (one batched program,
-        also on a CPU, with M − 1 more gathers and deposits per direction).  Opt-in.
+        and balls: a crossing inside a shape does not count); slower (M − 1 more reads and
+        deposits per direction and node; on a CPU a direction loop like "step"'s,
+        ``_kernel._sweep_face_substep_loop``).  Opt-in.
         "auto" (default):
         "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH`` (the
         scene's values at ``prepare``), else "step" (``resolved_scheme``).  Measured
