@@ -159,9 +159,10 @@ def _loop_matches_batched(cases):
 
 
 def test_loop_program_matches_batched_program():
-    """All sides open, and all periodic (the deposits folded back across u and v), at M = 3;
+    """All sides open, and all periodic (the deposits folded back across u and v), at M = 3
+    with the plane's rows in three tiles (deposits cross the tiles' edges);
     per-direction (anisotropic) sources at M = 2 with a periodic sweep axis and u side."""
-    _loop_matches_batched([(3, (9, 8, 10), [(False,) * 3, (True,) * 3], 0),
+    _loop_matches_batched([(3, (5, 36, 6), [(False,) * 3, (True,) * 3], 0),  # 3 row tiles
                            (2, (6, 7, 5), [(True, True, False)], 2)])
 
 

@@ -914,6 +914,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         [weight[:, None], weight[:, None] * table[:, :nk]], axis=1)
     nc = 1 + nk
     zero = jnp.zeros((), dt)
+    tu = _tile_rows(nu)
 
     def pad(x):  # (..., nu, nv) → (..., nu + 2M, nv + 2M): wrapped on periodic sides, else 0
         return _pad_plane(x, M, per_u, per_v, zero)
@@ -962,58 +963,75 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         acc0 = jnp.zeros((nc, M, nu, nv), dt)
         irr0 = jnp.zeros((M, nu, nv), dt)
 
-        def direction(d, c):
-            dst, lamp, acc, irr = c
-            d = jnp.asarray(d, jnp.int32)
-            k = kidx[d]
-            su, sv = start[d, 0], start[d, 1]
-            r = jax.lax.dynamic_slice(src, (d, _I0, su, sv), (1, M, nu, nv))[0]
-            valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), (M, nu, nv))
+        def tile(t, c):  # rows [u0, u0 + tu) of the arrival plane, every direction
+            dst, lamp, acc_s, irr_s = c
+            u0 = jnp.asarray(t * tu, jnp.int32)
+            rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
+            Bt, st, sft, pt = rows(Bs_), rows(ss_), rows(surf_f), rows(pass_s)
+            Qt = rows(Qs_)
+            em_t, avg2_t = rows(em_own), rows(avg2_own)
             if surfaces:
-                byte = jax.lax.dynamic_index_in_dim(bits_s, byte_of[d], 0, keepdims=False)
-                blocked = ((byte >> bit_of[d]) & 1) > 0
-                r = jnp.where(blocked, Bs_, r)
-                valid = jnp.where(blocked, 1.0, valid)
-            for j in range(1, M):  # the plane M − j before the arrival: window plane m + j
-                o = (jnp.asarray(j, jnp.int32), sub_start[j - 1, d, 0], sub_start[j - 1, d, 1])
-                if surfaces:
-                    sj = jax.lax.dynamic_slice(swp, o, (M, nu, nv)) > 0
-                    r = jnp.where(sj & ss_, Bs_, r)
-                    valid = jnp.where(sj, surf_f, valid)
-                em = jax.lax.dynamic_slice(em_w, (k,) + o, (1, M, nu, nv))[0]
-                av = jax.lax.dynamic_slice(avg_w, (k,) + o, (1, M, nu, nv))[0]
-                if aniso:
-                    qj = source_d(jax.lax.dynamic_slice(
-                        qwp, (_I0,) + o, (1 + nj, M, nu, nv)), d)
-                else:
-                    qj = jax.lax.dynamic_slice(qwp, o, (M, nu, nv))
-                rbar = qj + (r - qj) * av
-                r = r + em * (r - qj)
-                if fluence:  # deposited at the node crossed (y − offset): the same window
-                    x = valid * rbar
-                    adds = [chan[d, c] * x for c in range(nc)] + [weight[d] * valid]
-                    lamp = tuple(
-                        jax.lax.dynamic_update_slice(
-                            a, jax.lax.dynamic_slice(a, o, (M, nu, nv)) + v / M, o)
-                        for a, v in zip(lamp, adds))
-            q4 = source_d(Qs_, d)
-            at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
-            em = at_k(em_own)
-            r_arr = r + em * (r - q4)
-            r_avg = q4 + (r - q4) * at_k(avg2_own)
-            if surfaces:
-                r_arr = jnp.where(blocked, Bs_, r_arr)
-                r_avg = jnp.where(blocked, q4 + (Bs_ - q4) * at_k(avg1_own), r_avg)
-                ldotn = nrm_s[0] * unit[d, 0] + nrm_s[1] * unit[d, 1] + nrm_s[2] * unit[d, 2]
-                irr = irr + r_arr * jnp.maximum(-ldotn, 0.0) * weight[d]
-            r_through = r_arr + em * (r_arr - q4)
-            if fluence:
-                acc = acc + jnp.stack([chan[d, c] * r_avg for c in range(nc)])
-            r_out = jnp.where(pass_s, r_through, 0.0)
-            dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, _I0 + M, _I0 + M))
-            return dst, lamp, acc, irr
+                avg1_t, nt, bt = rows(avg1_own), rows(nrm_s), rows(bits_s)
+            blk = (M, tu, nv)
 
-        dst, lamp, acc, irr = jax.lax.fori_loop(0, D, direction, (dst, lamp0, acc0, irr0))
+            def direction(d, c):
+                dst, lamp, acc, irr = c
+                d = jnp.asarray(d, jnp.int32)
+                k = kidx[d]
+                su, sv = u0 + start[d, 0], start[d, 1]
+                r = jax.lax.dynamic_slice(src, (d, _I0, su, sv), (1,) + blk)[0]
+                valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), blk)
+                if surfaces:
+                    byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
+                    blocked = ((byte >> bit_of[d]) & 1) > 0
+                    r = jnp.where(blocked, Bt, r)
+                    valid = jnp.where(blocked, 1.0, valid)
+                for j in range(1, M):  # the plane M − j before the arrival: window plane m + j
+                    o = (jnp.asarray(j, jnp.int32), u0 + sub_start[j - 1, d, 0],
+                         sub_start[j - 1, d, 1])
+                    if surfaces:
+                        sj = jax.lax.dynamic_slice(swp, o, blk) > 0
+                        r = jnp.where(sj & st, Bt, r)
+                        valid = jnp.where(sj, sft, valid)
+                    em = jax.lax.dynamic_slice(em_w, (k,) + o, (1,) + blk)[0]
+                    av = jax.lax.dynamic_slice(avg_w, (k,) + o, (1,) + blk)[0]
+                    if aniso:
+                        qj = source_d(jax.lax.dynamic_slice(qwp, (_I0,) + o, (1 + nj,) + blk), d)
+                    else:
+                        qj = jax.lax.dynamic_slice(qwp, o, blk)
+                    rbar = qj + (r - qj) * av
+                    r = r + em * (r - qj)
+                    if fluence:  # deposited at the node crossed (y − offset): the same window
+                        x = valid * rbar
+                        adds = [chan[d, c] * x for c in range(nc)] + [weight[d] * valid]
+                        lamp = tuple(
+                            jax.lax.dynamic_update_slice(
+                                a, jax.lax.dynamic_slice(a, o, blk) + v / M, o)
+                            for a, v in zip(lamp, adds))
+                q4 = source_d(Qt, d)
+                at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
+                em = at_k(em_t)
+                r_arr = r + em * (r - q4)
+                r_avg = q4 + (r - q4) * at_k(avg2_t)
+                if surfaces:
+                    r_arr = jnp.where(blocked, Bt, r_arr)
+                    r_avg = jnp.where(blocked, q4 + (Bt - q4) * at_k(avg1_t), r_avg)
+                    ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
+                    irr = irr + r_arr * jnp.maximum(-ldotn, 0.0) * weight[d]
+                r_through = r_arr + em * (r_arr - q4)
+                if fluence:
+                    acc = acc + jnp.stack([chan[d, c] * r_avg for c in range(nc)])
+                r_out = jnp.where(pt, r_through, 0.0)
+                dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
+                return dst, lamp, acc, irr
+
+            c0 = (dst, lamp, jnp.zeros((nc,) + blk, dt), jnp.zeros(blk, dt))
+            dst, lamp, acc, irr = jax.lax.fori_loop(0, D, direction, c0)
+            acc_s = jax.lax.dynamic_update_slice_in_dim(acc_s, acc, u0, axis=2)
+            irr_s = jax.lax.dynamic_update_slice_in_dim(irr_s, irr, u0, axis=1)
+            return dst, lamp, acc_s, irr_s
+
+        dst, lamp, acc, irr = jax.lax.fori_loop(0, nu // tu, tile, (dst, lamp0, acc0, irr0))
         lam_w = fold(fold(jnp.stack(lamp), 2, nu, per_u), 3, nv, per_v)  # (nc + 1, 2M, nu, nv)
         wown = jnp.full((1, M, nu, nv), weight.sum() / M, dt)
         lam_w = lam_w.at[:, M:].add(jnp.concatenate([acc / M, wown]))
