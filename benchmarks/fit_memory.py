@@ -206,7 +206,8 @@ def scaling(settings, downsample: int, info):
 
         mib = C.xla_mib(jax.jit(light_jacobian).lower(u0).compile())
         n, D = math.prod(model.geometry.shape), (2 * M + 1) ** 2
-        rows.append([str(L), str(N), str(M), "linear" if model.geometry.linear else "step",
+        rows.append([str(L), str(N), str(M), ("linear" if model.geometry.linear else
+                                             "substep" if model.geometry.substep else "step"),
                      residuals, str(n), f"{mib:.0f}", f"{mib * 2**20 / (n * D):.0f}"])
         print(rows[-1], flush=True)
     print("\n".join([*C.machine_lines(info), "", *C.md_table(

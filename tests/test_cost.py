@@ -146,6 +146,20 @@ def test_estimate_follows_the_scheme_the_solver_will_run():
     thin = thick_cube(0.5)  # a step of 0.03 mean free paths
     assert (df.estimate(thin, "sweep", resolution=32, M=2).seconds_per_iteration
             == df.estimate(thin, "sweep", resolution=32, M=2, scheme="step").seconds_per_iteration)
+    # the opt-in sub-stepped scheme: its measured cost per program (the CPU's loop here), more
+    # temporaries, and a linearised sweep that keeps more per node and direction
+    from difffog._cost import SUBSTEP_COST_BATCHED, SUBSTEP_COST_LOOP
+
+    sub = df.estimate(thick, "sweep", resolution=32, M=2, scheme="substep", kernel="loop")
+    assert sub.seconds_per_iteration == pytest.approx(step.seconds_per_iteration
+                                                      * SUBSTEP_COST_LOOP, rel=1e-9)
+    assert sub.peak_bytes > step.peak_bytes
+    kw = dict(resolution=32, M=2, kernel="batched", gradient=True, sweep_residuals="keep")
+    sub_b = df.estimate(thick, "sweep", scheme="substep", **kw)
+    step_b = df.estimate(thick, "sweep", scheme="step", **kw)
+    assert sub_b.seconds_per_iteration == pytest.approx(step_b.seconds_per_iteration
+                                                        * SUBSTEP_COST_BATCHED, rel=1e-9)
+    assert sub_b.memory["linearised sweeps"] > 1.5 * step_b.memory["linearised sweeps"]
 
 
 def test_a_gradient_estimate_counts_the_linearised_sweeps():

@@ -78,6 +78,14 @@ CPU_COST_PER_MOMENT = 0.22
 LINEAR_COST = 0.256 / 0.216
 LINEAR_BYTES_PER_NODE = (171 - 144) * 2**20 / 72**3
 CPU_SECONDS_PER_NODE = 6.5e-7
+#: the sub-stepped scheme (``SweepSolver(scheme="substep")``, opt-in): its light iteration
+#: against the step scheme's, per program, and its extra XLA temporaries per lattice node:
+#: fog-balls and cloud-tomo N = 64 and 128, M = 3, this 2-core CPU (bench_sweep.py --kernel
+#: loop|batched --scheme step|substep; benchmarks/results/bench_substep.md): loop 2.7-3.8×,
+#: batched 13.5× (N = 64), temporaries +17 MiB (N = 64) and +184-206 MiB (N = 128)
+SUBSTEP_COST_LOOP = 3.3
+SUBSTEP_COST_BATCHED = 13.5
+SUBSTEP_BYTES_PER_NODE = 100.0
 #: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
 #: (``lx.linearise`` in ``KrylovSolver.init``; a fit's forward-mode tangents, since stop 42,
 #: apply it matrix-free and keep none of this), which keeps the sweeps' residuals: XLA
@@ -95,6 +103,11 @@ LINEARISED_PER_MOMENT = 0.011
 RECOMPUTED_BYTES_STEP = 200
 RECOMPUTED_BYTES_LINEAR = 390
 RECOMPUTED_PER_MOMENT = 0.043
+#: the sub-stepped scheme's linearised sweep (its batched program's residuals: the M − 1
+#: crossings' factors per node and direction), kept and recomputed (``fit_memory.py --scaling
+#: 0:24:3:substep 0:24:3:substep:recompute``, stop 49: 1616 and 207 B, step 817 B beside it)
+LINEARISED_BYTES_SUBSTEP = 1650
+RECOMPUTED_BYTES_SUBSTEP = 210
 #: a fit's Jacobian: the light field's tangents by forward mode, all unknowns at once, their
 #: products matrix-free (``SweepSolver.tangents``): XLA temporaries per number of the solve's
 #: state (Λ, its K moments, E) and tangent (float32, cloud-plane, 3 tangents at N = 16-32,
@@ -111,7 +124,8 @@ TANGENT_BYTES_PER_STATE = 600
 CAMERA_VJP_BYTES_PER_RAY_STEP = 1300
 
 
-def linearised_sweep_bytes(nodes: int, M: int, linear: bool, K: int, residuals: str) -> int:
+def linearised_sweep_bytes(nodes: int, M: int, linear: bool, K: int, residuals: str,
+                           substep: bool = False) -> int:
     """What one linearised Jacobi step keeps (a gradient's adjoint works on it): per lattice
     node and direction, by scheme, moments and ``SweepSolver.sweep_residuals`` ("keep" or
     "recompute"; resolved)."""
@@ -119,6 +133,9 @@ def linearised_sweep_bytes(nodes: int, M: int, linear: bool, K: int, residuals: 
                               RECOMPUTED_PER_MOMENT) if residuals == "recompute" else
                              (LINEARISED_BYTES_STEP, LINEARISED_BYTES_LINEAR,
                               LINEARISED_PER_MOMENT))
+    if substep:
+        step = (RECOMPUTED_BYTES_SUBSTEP if residuals == "recompute"
+                else LINEARISED_BYTES_SUBSTEP)
     D = (2 * int(M) + 1) ** 2
     return int(nodes * D * (lin if linear else step) * (1.0 + per_moment * K))
 
@@ -324,7 +341,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         "face carries": CARRY_COPIES * M * D * nu * nv * f,
         "cameras": rays * RAY_BYTES,
     }
-    linear = _linear(scene, resolution, M, phase_order, scheme)
+    resolved = _scheme(scene, resolution, M, phase_order, scheme)
+    linear, substep = resolved == "linear", resolved == "substep"
     if gradient or tangent_solves:
         mem["cameras' VJP"] = int(CAMERA_VJP_BYTES_PER_RAY_STEP * rays * 2 * max(shape))
     if tangent_solves:
@@ -336,8 +354,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if gradient or (tangent_solves and tangents == "linearised"):
         from .forward.sweep._solver import sweep_residuals_for
 
-        residuals = sweep_residuals_for(sweep_residuals, n, M, linear, K)
-        mem["linearised sweeps"] = linearised_sweep_bytes(n, M, linear, K, residuals)
+        residuals = sweep_residuals_for(sweep_residuals, n, M, linear, K, substep)
+        mem["linearised sweeps"] = linearised_sweep_bytes(n, M, linear, K, residuals, substep)
     if backend == "gpu" and kernel == "batched":
         per_iter = 6 * D * n / GPU_BATCHED_UPDATES_PER_S
     elif backend == "gpu":
@@ -353,6 +371,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if linear:
         per_iter *= LINEAR_COST
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
+    if substep:  # (measured on a CPU; the GPU's batched program assumed to grow alike)
+        per_iter *= SUBSTEP_COST_LOOP if kernel == "loop" else SUBSTEP_COST_BATCHED
+        mem["light solve"] += int(n * SUBSTEP_BYTES_PER_NODE)
     from .geometry._hits import shadows_exactly
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
@@ -372,6 +393,12 @@ def _density_max(fog) -> float:
 def _linear(scene, resolution: int, M: int, phase_order, scheme: str) -> bool:
     """Whether the sweep will run the linear-source scheme (``SweepSolver.resolved_scheme``,
     judged from the scene's density grid and domain instead of the lattice)."""
+    return _scheme(scene, resolution, M, phase_order, scheme) == "linear"
+
+
+def _scheme(scene, resolution: int, M: int, phase_order, scheme: str) -> str:
+    """The transport scheme the sweep will run (``SweepSolver.resolved_scheme``, judged from
+    the scene's density grid and domain instead of the lattice)."""
     from types import SimpleNamespace
 
     from .forward.sweep._solver import SweepSolver
@@ -381,7 +408,7 @@ def _linear(scene, resolution: int, M: int, phase_order, scheme: str) -> bool:
     lat = SimpleNamespace(peak_density=_density_max(fog) if fog is not None else 0.0,
                           h=extent / int(resolution))
     solver = SweepSolver(M=int(M), phase_order=phase_order, scheme=scheme)
-    return solver.resolved_scheme(scene, lat) == "linear"
+    return solver.resolved_scheme(scene, lat)
 
 
 def _diffusive(scene) -> bool:

@@ -731,7 +731,8 @@ SWEEP_RESIDUALS = ("auto", "keep", "recompute")
 RECOMPUTE_ABOVE_BYTES = 2**30
 
 
-def sweep_residuals_for(setting: str, nodes: int, M: int, linear: bool, K: int) -> str:
+def sweep_residuals_for(setting: str, nodes: int, M: int, linear: bool, K: int,
+                        substep: bool = False) -> str:
     """What ``SweepSolver.sweep_residuals`` = ``setting`` stands for on a lattice of ``nodes``
     nodes with half-width M, the linear scheme or not and K moments ("auto": "recompute" where
     the kept residuals of one linearised Jacobi step would take more than
@@ -740,7 +741,7 @@ def sweep_residuals_for(setting: str, nodes: int, M: int, linear: bool, K: int) 
         return setting
     from ..._cost import linearised_sweep_bytes
 
-    kept = linearised_sweep_bytes(nodes, M, linear, K, "keep")
+    kept = linearised_sweep_bytes(nodes, M, linear, K, "keep", substep)
     return "recompute" if kept > RECOMPUTE_ABOVE_BYTES else "keep"
 
 
@@ -954,7 +955,7 @@ class SweepSolver(eqx.Module):
     def resolved_sweep_residuals(self, geom: "SweepGeometry") -> str:
         """What ``sweep_residuals`` stands for on ``geom``'s lattice."""
         return sweep_residuals_for(self.sweep_residuals, math.prod(geom.shape), geom.M,
-                                   geom.linear, geom.n_moments)
+                                   geom.linear, geom.n_moments, geom.substep)
 
     def resolved_scheme(self, scene=None, lattice=None) -> str:
         """The transport scheme ``scheme`` stands for in ``scene`` on ``lattice`` ("auto":
