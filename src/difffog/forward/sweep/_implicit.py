@@ -40,7 +40,8 @@ from ._krylov import gmres
 
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
-                precondition: Callable | None = None, linear: Callable | None = None):
+                precondition: Callable | None = None, linear: Callable | None = None,
+                transposed: Callable | None = None):
     """``solve(inputs) -> (root, aux)``, differentiated implicitly through ``rewrite``.
 
     solve: inputs → (root, aux); root is the fixed point, aux anything (no gradient flows
@@ -58,8 +59,12 @@ def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.Ab
         linearisation for the whole solve (the sweep's: ~1 KB per lattice node and direction);
         the adjoint solve (reverse mode) still linearises, to transpose.  A module-level
         function (it is a static field).
+    transposed: (v, inputs) → (∂G/∂x)ᵀ·v computed directly (or None), with ``linear``: the
+        adjoint solve (reverse mode) then applies it, matrix-free, instead of transposing
+        ``linear``'s linearisation.  A module-level function.
     """
-    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear)
+    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear,
+                             transposed)
     return root, jax.tree.map(jax.lax.stop_gradient, aux)
 
 
@@ -76,8 +81,8 @@ class Preconditioner(eqx.Module):
 
 
 @eqx.filter_custom_jvp
-def _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear):
-    del rewrite, linear_solver, precondition, linear
+def _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear, transposed):
+    del rewrite, linear_solver, precondition, linear, transposed
     return jax.tree.map(jnp.asarray, solve(inputs))
 
 
@@ -88,9 +93,10 @@ def _for_operator(root, args):
 
 @_fixed_point.def_jvp
 def _fixed_point_jvp(primals, tangents):
-    solve, rewrite, inputs, linear_solver, precondition, linear = primals
-    _, _, t_inputs, _, _, _ = tangents
-    root, aux = fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear)
+    solve, rewrite, inputs, linear_solver, precondition, linear, transposed = primals
+    _, _, t_inputs, _, _, _, _ = tangents
+    root, aux = fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear,
+                            transposed)
     # inputs without a tangent (integer masks, static geometry) are held fixed
     no_tangent = jax.tree.map(lambda t: t is None, t_inputs, is_leaf=lambda t: t is None)
     fixed, moving = eqx.partition(inputs, no_tangent, is_leaf=lambda t: t is None)
@@ -101,7 +107,7 @@ def _fixed_point_jvp(primals, tangents):
     _, g_dot = jax.jvp(g_of_inputs, (moving,), (t_inputs,))
     operator = lx.JacobianLinearOperator(_for_operator, root, (rewrite, inputs))
     if linear is not None:
-        operator = AffineJacobian(linear, inputs, operator)
+        operator = AffineJacobian(linear, inputs, operator, transposed)
     pre = None if precondition is None else precondition(inputs)
     options = {} if pre is None else {"preconditioner": pre}
     x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
@@ -113,12 +119,14 @@ def _fixed_point_jvp(primals, tangents):
 class AffineJacobian(lx.AbstractLinearOperator):
     """∂G/∂x of a G affine in x, applied matrix-free: ``mv(v) = linear(v, inputs)``, which
     stores nothing between products (``lx.linearise`` of the ``JacobianLinearOperator`` keeps
-    the residuals of one linearised G for as long as the solve runs).  ``transpose()``
-    linearises that Jacobian operator and transposes it (the adjoint's route, unchanged)."""
+    the residuals of one linearised G for as long as the solve runs).  ``transpose()``: with
+    ``transposed``, the operator that applies it (matrix-free too); without, that Jacobian
+    operator linearised and transposed."""
 
     linear: Callable = eqx.field(static=True)
     inputs: object
     jacobian: lx.JacobianLinearOperator
+    transposed: Callable | None = eqx.field(static=True, default=None)
 
     def mv(self, vector):
         return self.linear(vector, self.inputs)
@@ -127,6 +135,8 @@ class AffineJacobian(lx.AbstractLinearOperator):
         return self.jacobian.as_matrix()
 
     def transpose(self):
+        if self.transposed is not None:
+            return AffineJacobianT(self)
         return lx.linearise(self.jacobian).transpose()
 
     def in_structure(self):
@@ -136,26 +146,50 @@ class AffineJacobian(lx.AbstractLinearOperator):
         return self.jacobian.out_structure()
 
 
-@lx.linearise.register(AffineJacobian)
-def _(operator):
-    return operator  # already a product without a primal pass
+class AffineJacobianT(lx.AbstractLinearOperator):
+    """(∂G/∂x)ᵀ of an :class:`AffineJacobian` with a ``transposed`` product: ``mv(v) =
+    transposed(v, inputs)`` (the sweep's: hand-written transposed face sweeps,
+    ``_solver._rewrite_linear_transposed``), nothing kept between products."""
+
+    of: AffineJacobian
+
+    def mv(self, vector):
+        return self.of.transposed(vector, self.of.inputs)
+
+    def as_matrix(self):
+        return self.of.as_matrix().T
+
+    def transpose(self):
+        return self.of
+
+    def in_structure(self):
+        return self.of.out_structure()
+
+    def out_structure(self):
+        return self.of.in_structure()
 
 
-@lx.materialise.register(AffineJacobian)
-def _(operator):
-    return lx.materialise(operator.jacobian)
+for _cls in (AffineJacobian, AffineJacobianT):
+    lx.linearise.register(_cls)(lambda operator: operator)  # already a matrix-free product
+    lx.conj.register(_cls)(lambda operator: operator)  # real
 
-
-@lx.conj.register(AffineJacobian)
-def _(operator):
-    return operator  # real
-
+lx.materialise.register(AffineJacobian)(lambda operator: lx.materialise(operator.jacobian))
+lx.materialise.register(AffineJacobianT)(
+    lambda operator: lx.materialise(operator.of.jacobian).transpose())
 
 # what lineax asks of an operator's structure (and its diagonals): that of the Jacobian
+# (the diagonals and these properties are those of its transpose too)
 for _query in (lx.is_symmetric, lx.is_diagonal, lx.is_tridiagonal, lx.has_unit_diagonal,
-               lx.is_lower_triangular, lx.is_upper_triangular, lx.is_positive_semidefinite,
-               lx.is_negative_semidefinite, lx.diagonal, lx.tridiagonal):
+               lx.is_positive_semidefinite, lx.is_negative_semidefinite, lx.diagonal):
     _query.register(AffineJacobian)(lambda operator, _q=_query: _q(operator.jacobian))
+    _query.register(AffineJacobianT)(lambda operator, _q=_query: _q(operator.of.jacobian))
+for _query, _flip in ((lx.is_lower_triangular, lx.is_upper_triangular),
+                      (lx.is_upper_triangular, lx.is_lower_triangular)):
+    _query.register(AffineJacobian)(lambda operator, _q=_query: _q(operator.jacobian))
+    _query.register(AffineJacobianT)(lambda operator, _f=_flip: _f(operator.of.jacobian))
+lx.tridiagonal.register(AffineJacobian)(lambda operator: lx.tridiagonal(operator.jacobian))
+lx.tridiagonal.register(AffineJacobianT)(
+    lambda operator: (lambda d, lo, up: (d, up, lo))(*lx.tridiagonal(operator.of.jacobian)))
 
 
 def _zero_tangent(x):

@@ -682,6 +682,184 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     return lam, irr, exit_
 
 
+def _unslabber(nw: int, M: int, periodic_w: bool, warmup: int):
+    """The transpose of ``_slabber``'s ``slabs``: (ns, M, ...) → (nw, ...), the planes a
+    periodic sweep visits more than once summed, the open sweep's padding dropped."""
+    slabs_, ns = _slabber(nw, M, periodic_w, warmup)
+    total = ns * M
+
+    def unslabs(x):
+        x = x.reshape((total,) + x.shape[2:])
+        if periodic_w:
+            order = np.arange(nw - total, nw) % nw
+            return jnp.zeros((nw,) + x.shape[1:], x.dtype).at[order].add(x)
+        return x[:nw]
+
+    return unslabs, ns
+
+
+def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
+                          consts: SweepConsts, *, M: int, periodic: tuple[bool, bool, bool],
+                          warmup: int, surfaces: bool, fluence: bool = True,
+                          q_channels: int = 0):
+    """The transpose of one face sweep's linear map (Q, B) → (Λ, E) at fixed τ and zero
+    boundary radiance (the map a light solve's adjoint needs, ``_solver._adjoint_step``):
+    (Λ̄, Ē) → (Q̄, B̄), the step scheme (``_sweep_face_batched``'s arithmetic, whose transpose
+    by JAX it equals to rounding) as a loop like ``_sweep_face_loop``: the slabs in reverse,
+    each direction's radiance cotangent carried back one slab (the shift's transpose: written
+    into the previous slab's padded plane at the window the forward read, periodic margins
+    folded back), per row tile and direction the node's update transposed.  Nothing is kept
+    between calls (the JAX transpose of a linearised sweep keeps ~0.8-1.6 KB per node and
+    direction, or recomputes the step's factors per product).
+
+    ``q_channels``: 0 for an isotropic source Q (nw, nu, nv), else 1 + J (the channels of
+    ``_source_table``); Λ̄ then has 1 + K channels when the table has K moments."""
+    nw, nu, nv = tau_half_unit.shape
+    P = 2 * M + 1
+    D = P * P
+    per_w, per_u, per_v = periodic
+    dt = tau_half_unit.dtype
+    aniso = q_channels > 0
+    if consts.slope is not None or consts.sub is not None:
+        raise SolverError("sweep_face_transposed: the step scheme only")
+    slabs, ns = _slabber(nw, M, per_w, warmup)
+    unslabs, _ = _unslabber(nw, M, per_w, warmup)
+    total = ns * M
+    pq_host = direction_set(M).pq
+    ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
+    uniq, kidx = np.unique(ssq, return_inverse=True)
+    first = np.array([np.flatnonzero(ssq == v)[0] for v in uniq])
+    length_k = consts.length.astype(dt)[first]
+    kidx = jnp.asarray(kidx, jnp.int32)
+    unit = consts.unit.astype(dt)
+    weight = consts.weight.astype(dt)
+    start = M - jnp.asarray(consts.pq, jnp.int32)
+    byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)
+    bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))
+    nk = nj = 0
+    if aniso:
+        table, nk = _source_table(consts, dt)  # (D, J)
+        nj = table.shape[1]
+        if 1 + nj != q_channels:
+            raise SolverError(f"sweep_face_transposed: {q_channels} source channels, the "
+                              f"table has {1 + nj}")
+        wharm = table[:, :nk] * weight[:, None]
+    tu = _tile_rows(nu)
+
+    # the outputs' cotangents over the planes swept (warm-up and padding get none)
+    def full(x):
+        z = jnp.zeros((total,) + x.shape[1:], dt)
+        return z.at[total - nw :].set(x) if per_w else z.at[:nw].set(x)
+
+    lam_bar = lam_bar.astype(dt) if fluence else jnp.zeros(lam_bar.shape, dt)
+    if aniso and nk:  # channels first: (ns, 1 + K, M, nu, nv)
+        lbs = jnp.moveaxis(full(lam_bar).reshape((ns, M) + lam_bar.shape[1:]), -1, 1)
+    else:
+        lbs = full(lam_bar).reshape((ns, M, nu, nv))
+    ebs = full(irr_bar.astype(dt)).reshape((ns, M, nu, nv))
+    ts = slabs(tau_half_unit)
+    passes = (slabs(geo.free) | slabs(geo.surf)) if surfaces else slabs(geo.free)
+    if surfaces:
+        nrm = jnp.moveaxis(slabs(geo.normal), -1, 1)
+        bits = jnp.moveaxis(slabs(geo.blocked), -1, 1)
+    else:
+        nrm = jnp.zeros((ns, 1), dt)
+        bits = jnp.zeros((ns, 1), jnp.uint8)
+    nq = q_channels if aniso else 1
+
+    def fold(x):  # Wᵀ of the padded carry: interior + the periodic margins wrapped back
+        for axis, n, per in ((2, nu, per_u), (3, nv, per_v)):
+            if per:
+                idx = (np.arange(n + 2 * M) - M) % n
+                xm = jnp.moveaxis(x, axis, 0)
+                x = jnp.moveaxis(jnp.zeros((n,) + xm.shape[1:], dt).at[idx].add(xm), 0, axis)
+            else:
+                x = jax.lax.slice_in_dim(x, M, M + n, axis=axis)
+        return x
+
+    def step(abar, slab):
+        lb, eb, ts_, nrm_s, bits_s, pass_s = slab
+        rbo = fold(abar)  # (D, M, nu, nv): the cotangent of this slab's outgoing radiance
+        tau_k = ts_[None] * length_k[:, None, None, None]
+        em_k = jnp.expm1(-tau_k)
+        avg2_k, avg1_k = one_minus_exp_over(2.0 * tau_k), one_minus_exp_over(tau_k)
+        nxt0 = jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt)
+        qb0 = jnp.zeros((nq, M, nu, nv), dt)
+        bb0 = jnp.zeros((M, nu, nv), dt)
+
+        def tile(t, c):
+            nxt, qb_s, bb_s = c
+            u0 = jnp.asarray(t * tu, jnp.int32)
+            rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
+            pt, lt, et = rows(pass_s), rows(lb), rows(eb)
+            em_t, a2_t, a1_t = rows(em_k), rows(avg2_k), rows(avg1_k)
+            if surfaces:
+                nt, bt = rows(nrm_s), rows(bits_s)
+            blk = (M, tu, nv)
+
+            def direction(d, c):
+                nxt, qb, bb = c
+                d = jnp.asarray(d, jnp.int32)
+                k = kidx[d]
+                at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
+                em, a2 = at_k(em_t), at_k(a2_t)
+                ro = jax.lax.dynamic_slice(rbo, (d, _I0, u0, _I0), (1,) + blk)[0]
+                r_through = jnp.where(pt, ro, 0.0)
+                r_arr = r_through + em * r_through
+                qd = -em * r_through
+                w = weight[d]
+                if aniso and nk:
+                    wh = jax.lax.dynamic_index_in_dim(wharm, d, 0, keepdims=False)
+                    r_avg = w * lt[0] + sum(wh[j] * lt[1 + j] for j in range(nk))
+                else:
+                    r_avg = w * lt
+                if surfaces:
+                    ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
+                    r_arr = r_arr + et * jnp.maximum(-ldotn, 0.0) * w
+                    byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
+                    blocked = ((byte >> bit_of[d]) & 1) > 0
+                    a1 = at_k(a1_t)
+                    bb = bb + jnp.where(blocked, r_arr + a1 * r_avg, 0.0)
+                    qd = qd + jnp.where(blocked, (1.0 - a1) * r_avg,
+                                        -em * r_arr + (1.0 - a2) * r_avg)
+                    r_mid = jnp.where(blocked, 0.0, r_arr + em * r_arr + a2 * r_avg)
+                else:
+                    qd = qd - em * r_arr + (1.0 - a2) * r_avg
+                    r_mid = r_arr + em * r_arr + a2 * r_avg
+                if aniso:
+                    hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
+                    qb = qb + jnp.stack([qd] + [hd[j] * qd for j in range(nj)])
+                else:
+                    qb = qb + qd[None]
+                nxt = jax.lax.dynamic_update_slice(
+                    nxt, r_mid[None], (d, _I0, u0 + start[d, 0], start[d, 1]))
+                return nxt, qb, bb
+
+            c0 = (nxt, jnp.zeros((nq,) + blk, dt), jnp.zeros(blk, dt))
+            nxt, qb, bb = jax.lax.fori_loop(0, D, direction, c0)
+            qb_s = jax.lax.dynamic_update_slice_in_dim(qb_s, qb, u0, axis=2)
+            bb_s = jax.lax.dynamic_update_slice_in_dim(bb_s, bb, u0, axis=1)
+            return nxt, qb_s, bb_s
+
+        nxt, qb, bb = jax.lax.fori_loop(0, nu // tu, tile, (nxt0, qb0, bb0))
+        return nxt, (qb, bb)
+
+    a_last = jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt)  # the exits: no cotangent
+    xs = (lbs, ebs, ts, nrm, bits, passes)
+    a_init, (qbs, bbs) = jax.lax.scan(step, a_last, xs, reverse=True)
+    if per_w:  # the periodic sweep's initial guess: each direction's source of the first slab
+        r0 = fold(a_init)  # (D, M, nu, nv)
+        if aniso:
+            add = jnp.concatenate([r0.sum(0)[None], jnp.einsum("dk,dmuv->kmuv", table, r0)])
+        else:
+            add = r0.sum(0)[None]
+        qbs = qbs.at[0].add(add)
+    q_bar = unslabs(jnp.moveaxis(qbs, 1, -1))  # (nw, nu, nv, nq)
+    if not aniso:
+        q_bar = q_bar[..., 0]
+    return q_bar, unslabs(bbs)
+
+
 def substep_offsets(pq: np.ndarray, M: int) -> np.ndarray:
     """(M − 1, D, 2) int: for j = 1 … M − 1, the in-plane offset from a node y of the point
     where direction (p, q, M)'s segment arriving at y crosses the plane M − j before y's:

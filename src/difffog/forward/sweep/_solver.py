@@ -50,6 +50,7 @@ from ._kernel import (
     kernel_for,
     sweep_face,
     sweep_face_mesh,
+    sweep_face_transposed,
     to_face,
 )
 
@@ -724,6 +725,8 @@ def _rewrite(root, inputs):
 
 #: how a tangent solve applies I − K (``SweepSolver.tangents``)
 TANGENTS = ("matrix-free", "linearised")
+#: how a gradient's adjoint solve applies (I − K)ᵀ (``SweepSolver.adjoint``)
+ADJOINTS = ("auto", "transposed", "linearised")
 #: what a linearised sweep keeps (``SweepSolver.sweep_residuals``)
 SWEEP_RESIDUALS = ("auto", "keep", "recompute")
 #: sweep_residuals="auto" recomputes where the kept residuals would exceed this
@@ -750,6 +753,52 @@ def _rewrite_linear(v, inputs):
     is affine in the root, as the forward GMRES relies on too)."""
     new = _jacobi(v, _with_sources(inputs, False))
     return jax.tree.map(lambda a, b: a - b, v, new)
+
+
+def _rewrite_linear_transposed(v, inputs):
+    """(∂``_rewrite``/∂root)ᵀ·v = (I − K)ᵀv with hand-written transposed face sweeps
+    (``_kernel.sweep_face_transposed``): a gradient's adjoint product without linearising the
+    sweep (``transposable`` says where it applies)."""
+    new = _jacobi_transposed(v, _with_sources(inputs, False))
+    return jax.tree.map(lambda a, b: a - b, v, new)
+
+
+def transposable(pb: "_Problem") -> bool:
+    """Whether ``_rewrite_linear_transposed`` serves ``pb``: the step scheme (no linear-source
+    slope, no sub-steps) on one device."""
+    g = pb.geom
+    return not g.linear and not g.substep and int(np.prod(pb.mesh_shape)) == 1
+
+
+def _jacobi_transposed(v, pb: "_Problem"):
+    """Kᵀv for the Jacobi map K = ``_sweep_all`` ∘ ``_sources`` of ``pb`` with its sources
+    zeroed (linear in the state): the masks ``_sweep_all`` applies, each face's transposed
+    sweep (from_face's transpose is to_face), then ``_sources``' transpose (pointwise, by
+    ``jax.vjp``)."""
+    g = pb.geom
+    lam_bar, irr_bar = v
+    lam_bar = _mask(g.solid, lam_bar)
+    if pb.fog_mask is not None:
+        lam_bar = _mask(~pb.fog_mask, lam_bar)
+    irr_bar = jnp.where(g.surf, irr_bar, 0.0)
+    zero = _zero_state(pb)
+    (q_sd, b_sd), vjp = jax.vjp(lambda s: _sources(s, pb), zero)
+    nq = q_sd.shape[-1] if q_sd.ndim == 4 else 0
+    pl = g.terms
+    fluence = True if pl is None else pl.volume_source
+    q_bar = jnp.zeros(q_sd.shape, q_sd.dtype)
+    b_bar = jnp.zeros(b_sd.shape, b_sd.dtype)
+    for f, (axis, sign) in enumerate(FACE_AXES):
+        consts = g.consts[f]
+        if pb.sun_phase is not None:
+            consts = dataclasses.replace(consts, sun_phase=pb.sun_phase[f])
+        qf, bf = sweep_face_transposed(
+            to_face(lam_bar, axis, sign), to_face(irr_bar, axis, sign), pb.tau_half[f],
+            g.faces[f], consts, M=g.M, periodic=g.periodic(f), warmup=g.warmup,
+            surfaces=g.has_surfaces, fluence=fluence, q_channels=nq)
+        q_bar = q_bar + from_face(qf, axis, sign)
+        b_bar = b_bar + from_face(bf, axis, sign)
+    return vjp((q_bar, b_bar))[0]
 
 
 class SweepSolver(eqx.Module):
@@ -842,6 +891,13 @@ class SweepSolver(eqx.Module):
         "linearised": ``lx.linearise`` of the Jacobi step once, whose residuals (~1-2 KB per
         lattice node and direction) stay for the whole solve.  A gradient's adjoint solve
         (reverse mode) always linearises, to transpose.  Same values (to rounding).
+    adjoint: how a gradient's adjoint solve (reverse mode: ``jax.grad``, the density fit)
+        applies (I − K)ᵀ.  "transposed": hand-written transposed face sweeps
+        (``_kernel.sweep_face_transposed``: the slabs in reverse, a direction loop like the
+        CPU's forward program), nothing kept between products; the step scheme on one device.
+        "linearised": JAX's transpose of the batched program linearised once (its residuals
+        as ``sweep_residuals`` says).  "auto" (default): "transposed" where it applies and
+        the kernel is "loop" (a CPU), else "linearised".  Same values (to rounding).
     sweep_residuals: what a linearised sweep (a gradient's adjoint solve, or tangents
         "linearised") keeps: "keep" every coefficient of its slab steps, ~0.8-2 KB per lattice
         node and direction, or "recompute" only each slab step's inputs (``jax.checkpoint``),
@@ -884,6 +940,7 @@ class SweepSolver(eqx.Module):
     tangents: str = eqx.field(static=True, default="matrix-free")
     sweep_residuals: str = eqx.field(static=True, default="auto")
     first_collision: str = eqx.field(static=True, default="beam")
+    adjoint: str = eqx.field(static=True, default="auto")
 
     def layout(self) -> tuple[int, int, int]:
         """The (faces, u, v) device mesh the sweeps run on."""
@@ -911,7 +968,7 @@ class SweepSolver(eqx.Module):
         for name, allowed in (("method", METHODS), ("terms", TERMS),
                               ("precondition", PRECONDITIONERS), ("kernel", KERNELS),
                               ("sweep_residuals", SWEEP_RESIDUALS), ("tangents", TANGENTS),
-                              ("first_collision", FIRST_COLLISIONS)):
+                              ("first_collision", FIRST_COLLISIONS), ("adjoint", ADJOINTS)):
             value = getattr(self, name)
             if value not in allowed:
                 raise SceneError(f"SweepSolver: {name} must be one of {', '.join(allowed)}, "
@@ -940,6 +997,17 @@ class SweepSolver(eqx.Module):
             return self.precondition
         thick = geom is not None and geom.optical_size >= DIFFUSION_OPTICAL_SIZE
         return "diffusion" if thick and self.resolved_method(geom) == "gmres" else "none"
+
+    def resolved_adjoint(self, pb: "_Problem") -> str:
+        """The adjoint route ``adjoint`` stands for on ``pb`` ("auto": "transposed" where the
+        face sweeps run the CPU's loop program and ``transposable`` holds, else
+        "linearised")."""
+        if self.adjoint == "transposed" and not transposable(pb):
+            raise SceneError("SweepSolver: adjoint=\"transposed\" has the step scheme on one "
+                             "device only; use adjoint=\"auto\"")
+        if self.adjoint != "auto":
+            return self.adjoint
+        return "transposed" if pb.kernel == "loop" and transposable(pb) else "linearised"
 
     def resolved_kernel(self) -> str:
         """The face-sweep program ``kernel`` stands for on JAX's default backend."""
@@ -1126,9 +1194,12 @@ class SweepSolver(eqx.Module):
         linear_solver = CheckedSolver(KrylovSolver(
             rtol=self.adjoint_rtol, restart=40,
             max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2), throw=self.throw)
+        matrix_free = self.tangents == "matrix-free"
         root, (hist, k, err) = fixed_point(
             _solve_fixed_point, _rewrite, pb, linear_solver, precondition=_preconditioner,
-            linear=_rewrite_linear if self.tangents == "matrix-free" else None)
+            linear=_rewrite_linear if matrix_free else None,
+            transposed=(_rewrite_linear_transposed
+                        if matrix_free and self.resolved_adjoint(pb) == "transposed" else None))
         dip = _dip(root[0][..., 0] if geom.channels else root[0], pb.fog_mask)
         root = _non_negative(root, geom.channels)
         q, b = _sources(root, pb)
