@@ -260,7 +260,7 @@ print(f"residual RMS {rms / bright:.1%} of the targets' RMS")
 # cloud, two rays per side of a target pixel, the prior's weight balanced, the line search
 # bounded at 100 mean free paths per cell). The benchmark (`python benchmarks/tomography.py`,
 # the same settings) reached a relative L2 error of 0.142 with the total mass right to 0.7% in
-# 519 s (docs/tomography.md: from a uniform start at 1.46 and +349%); the issue's aim is 15% and
+# 221 s (519 s before stop 49; docs/tomography.md: from a uniform start at 1.46 and +349%); the issue's aim is 15% and
 # 2%. Here the prior's share of the loss ends at 0.84,
 # within the balancing rule's band around 0.8, so the weight stays 3e-5. On two clouds of our
 # own with Mitsuba images the rule lowers the weight and runs the final level again:

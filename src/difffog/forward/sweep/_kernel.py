@@ -903,7 +903,6 @@ def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
         raise SolverError("the sub-stepped scheme does not run on a device mesh yet")
 
     slabs, ns = _slabber(nw, M, per_w, warmup)
-    total = ns * M
     xs = (slabs(Q), slabs(B), slabs(tau_half_unit), slabs(geo.free), slabs(geo.surf),
           jnp.moveaxis(slabs(geo.normal), -1, 0).swapaxes(0, 1),
           jnp.moveaxis(slabs(geo.blocked), -1, 2))
@@ -1028,21 +1027,27 @@ def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
                      jnp.moveaxis(jnp.take(geo.blocked, order, axis=0), -1, 1))
         _, (lam_last, _) = body(carry, nxt)
     lam = jnp.concatenate([lam[1:], lam_last[None]])  # step s finished slab s − 1's Λ
+    return _substep_outputs(lam, irr, exit_, weight, nk, nw, per_w)
+
+
+def _substep_outputs(lam, irr, exit_, weight, nk: int, nw: int, per_w: bool):
+    """The sub-stepped programs' results from their per-slab Λ (ns, M, nu, nv, 2 + K: the
+    fluence, the K moments, the weight of the sub-steps whose light is known) and E: each
+    node's Λ over the sub-steps whose radiance is known (per direction M of them, its own two
+    halves and M − 1 crossings, weigh Σ_d w_d; a crossing of a chain inside a shape does not
+    count, and the others stand in for it), then the swept planes' part."""
+    nc = 1 + nk
+    total = lam.shape[0] * lam.shape[1]
     lam = lam.reshape((total,) + lam.shape[2:])
     irr = irr.reshape((total,) + irr.shape[2:])
-    # each node's Λ over the sub-steps whose radiance is known: per direction M of them (its
-    # own two halves and M − 1 crossings) weigh Σ_d w_d; a crossing of a chain inside a
-    # shape does not count, and the others stand in for it
     wsum = lam[..., nc:]
     lam = lam[..., :nc] * jnp.where(wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0),
                                     0.0)
     if not nk:
         lam = lam[..., 0]
     if per_w:
-        lam, irr = lam[total - nw :], irr[total - nw :]
-    else:
-        lam, irr = lam[:nw], irr[:nw]
-    return lam, irr, exit_
+        return lam[total - nw :], irr[total - nw :], exit_
+    return lam[:nw], irr[:nw], exit_
 
 
 def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts,
@@ -1067,7 +1072,6 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         raise SolverError("the sub-stepped scheme has no linear-source variant")
 
     slabs, ns = _slabber(nw, M, per_w, warmup)
-    total = ns * M
     pq_host = direction_set(M).pq
     ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
     uniq, kidx = np.unique(ssq, return_inverse=True)
@@ -1247,19 +1251,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         _, (lam_last, _) = step(carry, nxt)
     exit_ = jnp.swapaxes(carry[0][0][..., M : M + nu, M : M + nv], 0, 1)
     lam = jnp.concatenate([lam[1:], lam_last[None]])  # step s finished slab s − 1's Λ
-    lam = jnp.moveaxis(lam, 1, -1)  # (ns, M, nu, nv, nc + 1)
-    lam = lam.reshape((total,) + lam.shape[2:])
-    irr = irr.reshape((total,) + irr.shape[2:])
-    wsum = lam[..., nc:]
-    lam = lam[..., :nc] * jnp.where(wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0),
-                                    0.0)
-    if not nk:
-        lam = lam[..., 0]
-    if per_w:
-        lam, irr = lam[total - nw :], irr[total - nw :]
-    else:
-        lam, irr = lam[:nw], irr[:nw]
-    return lam, irr, exit_
+    return _substep_outputs(jnp.moveaxis(lam, 1, -1), irr, exit_, weight, nk, nw, per_w)
 
 
 def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None,
