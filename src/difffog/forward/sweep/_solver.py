@@ -900,9 +900,10 @@ class SweepSolver(eqx.Module):
         kernel is "loop" (a CPU) and the phase is isotropic (with moments the loop's sums
         over them cost more than the batched contractions), else "linearised".  Same values
         (to rounding).  Measured (value and gradient of an image loss, float32, this 2-core
-        CPU, stop 49): fog-balls N = 32 3.74 → 2.27 s, cloud-tomo N = 32 (step) 3.15 → 2.14 s,
+        CPU, stop 49): fog-balls N = 32 3.88 → 2.37 s, cloud-tomo N = 32 (step) 3.17 → 1.72 s,
         the same XLA temporaries (the parameters' cotangent still linearises one step);
-        cloud-plane N = 24, L = 3: 4.15 → 5.91 s, so "auto" keeps "linearised" there.
+        cloud-plane N = 24, L = 3: 4.14 → 5.71 s, so "auto" keeps "linearised" there
+        (``benchmarks/bench_adjoint_route.py``).
     sweep_residuals: what a linearised sweep (a gradient's adjoint solve, or tangents
         "linearised") keeps: "keep" every coefficient of its slab steps, ~0.8-2 KB per lattice
         node and direction, or "recompute" only each slab step's inputs (``jax.checkpoint``),
@@ -1014,7 +1015,7 @@ class SweepSolver(eqx.Module):
             return self.adjoint
         # with moments the loop's per-direction sums over them (K = 15 at L = 3) cost more than
         # the batched program's contractions: cloud-plane N = 24, L = 3, a value and gradient
-        # 5.91 s transposed against 4.15 s linearised (isotropic: 2.14 against 3.15 s)
+        # 5.71 s transposed against 4.14 s linearised (isotropic: 1.72 against 3.17 s)
         iso = not pb.geom.channels
         return ("transposed" if pb.kernel == "loop" and transposable(pb) and iso
                 else "linearised")
