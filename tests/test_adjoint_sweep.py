@@ -124,3 +124,5 @@ def test_auto_takes_the_transposed_adjoint_where_it_applies_and_refuses_it_elsew
         m.solver.resolved_adjoint(m.solver.problem(m.geometry, m.params()))
     with pytest.raises(df.SceneError, match="adjoint must be one of auto, transposed"):
         df.SweepSolver(adjoint="jax")
+    with pytest.raises(df.SceneError, match="needs tangents=\"matrix-free\""):
+        df.SweepSolver(adjoint="transposed", tangents="linearised")

@@ -93,7 +93,10 @@ SUBSTEP_BYTES_PER_NODE = 100.0
 #: Jacobian in 3 unknowns at N = 16-32, M = 2-3; ``benchmarks/fit_memory.py --scaling``,
 #: stop 41): ~820-950 B with the step scheme, ~1700 B with the linear one, ~1% more per
 #: moment (L = 3: ~1980 B).  Before they were counted the estimate said 0.96 GiB for a fit
-#: that peaked at 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).
+#: that peaked at 6.6 GB (N = 24) and 1.9 GiB for one at 20.8 GB (N = 48).  (Since stop 49 a
+#: CPU's adjoint products run transposed sweeps, ``SweepSolver.adjoint``, but the parameters'
+#: cotangent still linearises one step: the same XLA temporaries, measured by
+#: ``benchmarks/bench_adjoint_route.py``.)
 LINEARISED_BYTES_STEP = 950
 LINEARISED_BYTES_LINEAR = 1700
 LINEARISED_PER_MOMENT = 0.011

@@ -57,8 +57,8 @@ def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.Ab
         the root: G(v) − G(0).  The tangent solve (forward mode) then applies it as it is,
         matrix-free, instead of linearising ``rewrite`` once and keeping every residual of that
         linearisation for the whole solve (the sweep's: ~1 KB per lattice node and direction);
-        the adjoint solve (reverse mode) still linearises, to transpose.  A module-level
-        function (it is a static field).
+        the adjoint solve (reverse mode) linearises it to transpose, unless ``transposed`` is
+        given.  A module-level function (it is a static field).
     transposed: (v, inputs) → (∂G/∂x)ᵀ·v computed directly (or None), with ``linear``: the
         adjoint solve (reverse mode) then applies it, matrix-free, instead of transposing
         ``linear``'s linearisation.  A module-level function.

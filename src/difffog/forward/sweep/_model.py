@@ -796,6 +796,7 @@ class SweepModel(AbstractForwardModel):
                                "scheme": ("linear" if self.geometry.linear else
                                           "substep" if self.geometry.substep else "step"),
                                "first_collision": s.first_collision,
+                               "adjoint": s.adjoint,
                                "kernel": s.resolved_kernel()},
             "resolution": self.resolution,
             "lattice_shape": list(lat.shape),  # includes the vacuum margin around open sides

@@ -894,7 +894,8 @@ class SweepSolver(eqx.Module):
     adjoint: how a gradient's adjoint solve (reverse mode: ``jax.grad``, the density fit)
         applies (I − K)ᵀ.  "transposed": hand-written transposed face sweeps
         (``_kernel.sweep_face_transposed``: the slabs in reverse, a direction loop like the
-        CPU's forward program), nothing kept between products; the step scheme on one device.
+        CPU's forward program), nothing kept between products; the step scheme on one device,
+        with tangents="matrix-free".
         "linearised": JAX's transpose of the batched program linearised once (its residuals
         as ``sweep_residuals`` says).  "auto" (default): "transposed" where it applies, the
         kernel is "loop" (a CPU) and the phase is isotropic (with moments the loop's sums
@@ -987,6 +988,9 @@ class SweepSolver(eqx.Module):
         if self.scheme not in SCHEMES:
             raise SceneError(f"SweepSolver: scheme must be one of {', '.join(SCHEMES)}, "
                              f"got {self.scheme!r}")
+        if self.adjoint == "transposed" and self.tangents != "matrix-free":
+            raise SceneError("SweepSolver: adjoint=\"transposed\" needs tangents=\"matrix-free\" "
+                             "(the default)")
         if self.scheme == "substep" and (self.devices > 1 or self.mesh is not None):
             raise SceneError("SweepSolver: scheme=\"substep\" runs on one device; use "
                              "devices=1 (or another scheme on a device mesh)")
@@ -1011,8 +1015,8 @@ class SweepSolver(eqx.Module):
         if self.adjoint == "transposed" and not transposable(pb):
             raise SceneError("SweepSolver: adjoint=\"transposed\" has the step scheme on one "
                              "device only; use adjoint=\"auto\"")
-        if self.adjoint != "auto":
-            return self.adjoint
+        if self.adjoint != "auto" or self.tangents != "matrix-free":
+            return "linearised" if self.tangents != "matrix-free" else self.adjoint
         # with moments the loop's per-direction sums over them (K = 15 at L = 3) cost more than
         # the batched program's contractions: cloud-plane N = 24, L = 3, a value and gradient
         # 5.71 s transposed against 4.14 s linearised (isotropic: 1.72 against 3.17 s)
