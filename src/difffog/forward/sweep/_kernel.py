@@ -261,6 +261,18 @@ def _linear_node(r_mid, q, s, em, omp_half, phi, psi):
 KERNELS = ("auto", "loop", "batched")
 
 
+def _distinct_lengths(consts: SweepConsts, M: int, dt):
+    """(length_k (K,), kidx (D,) int32): the distinct |L| of the face's directions (|L|² =
+    p² + q² + M²: 6 / 10 / 20 values at M = 2 / 3 / 5) and each direction's index into them,
+    so that a node's factors e^(−τ|L|) are computed once per distinct |L|, not per direction.
+    (The host-side direction order d = (p+M)(2M+1) + (q+M), as in ``DirectionSet``.)"""
+    pq_host = direction_set(M).pq
+    ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
+    uniq, kidx = np.unique(ssq, return_inverse=True)
+    first = np.array([np.flatnonzero(ssq == v)[0] for v in uniq])
+    return consts.length.astype(dt)[first], jnp.asarray(kidx, jnp.int32)
+
+
 def kernel_for(backend: str | None = None) -> str:
     """The face-sweep program ``kernel="auto"`` stands for on ``backend`` (default: JAX's
     default backend): "loop" on a CPU, "batched" on an accelerator."""
@@ -404,12 +416,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
     # Direction constants.  The host-side direction order (d = (p+M)(2M+1) + (q+M), as in
     # DirectionSet) gives the distinct |L|² = p² + q² + M²; the values come from ``consts``.
-    pq_host = direction_set(M).pq
-    ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
-    uniq, kidx = np.unique(ssq, return_inverse=True)
-    first = np.array([np.flatnonzero(ssq == v)[0] for v in uniq])
-    length_k = consts.length.astype(dt)[first]  # (K,) distinct |L|
-    kidx = jnp.asarray(kidx, jnp.int32)
+    length_k, kidx = _distinct_lengths(consts, M, dt)  # (K,) distinct |L|; each d's index
     unit = consts.unit.astype(dt)
     weight = consts.weight.astype(dt)
     bc_d = bc.astype(dt)
@@ -725,12 +732,7 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
     slabs, ns = _slabber(nw, M, per_w, warmup)
     unslabs, _ = _unslabber(nw, M, per_w, warmup)
     total = ns * M
-    pq_host = direction_set(M).pq
-    ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
-    uniq, kidx = np.unique(ssq, return_inverse=True)
-    first = np.array([np.flatnonzero(ssq == v)[0] for v in uniq])
-    length_k = consts.length.astype(dt)[first]
-    kidx = jnp.asarray(kidx, jnp.int32)
+    length_k, kidx = _distinct_lengths(consts, M, dt)  # (K,) distinct |L|; each d's index
     unit = consts.unit.astype(dt)
     weight = consts.weight.astype(dt)
     start = M - jnp.asarray(consts.pq, jnp.int32)
@@ -1072,13 +1074,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         raise SolverError("the sub-stepped scheme has no linear-source variant")
 
     slabs, ns = _slabber(nw, M, per_w, warmup)
-    pq_host = direction_set(M).pq
-    ssq = pq_host[:, 0] ** 2 + pq_host[:, 1] ** 2
-    uniq, kidx = np.unique(ssq, return_inverse=True)
-    first = np.array([np.flatnonzero(ssq == v)[0] for v in uniq])
-    length_k = consts.length.astype(dt)[first]  # (K,) distinct |L|
+    length_k, kidx = _distinct_lengths(consts, M, dt)  # (K,) distinct |L|; each d's index
     len_k4 = length_k[:, None, None, None]
-    kidx = jnp.asarray(kidx, jnp.int32)
     unit = consts.unit.astype(dt)
     weight = consts.weight.astype(dt)
     bc_d = bc.astype(dt)
