@@ -97,6 +97,43 @@ def _pad_plane(x, M: int, periodic_u: bool, periodic_v: bool, fill):
     return jnp.where(inside, xp, jnp.asarray(fill, x.dtype))
 
 
+def _fold_plane(x, M: int, periodic_u: bool, periodic_v: bool):
+    """The transpose of ``_pad_plane`` with a zero fill: the last two axes (padded by M) back
+    to their nodes, a periodic side's margins added into the nodes they wrap to, an open
+    side's dropped."""
+    for axis, per in ((x.ndim - 2, periodic_u), (x.ndim - 1, periodic_v)):
+        n = x.shape[axis] - 2 * M
+        if per:
+            idx = (np.arange(n + 2 * M) - M) % n
+            xm = jnp.moveaxis(x, axis, 0)
+            x = jnp.moveaxis(jnp.zeros((n,) + xm.shape[1:], x.dtype).at[idx].add(xm), 0, axis)
+        else:
+            x = jax.lax.slice_in_dim(x, M, M + n, axis=axis)
+    return x
+
+
+def _initial_carry(q0, table, bc, D: int, M: int, periodic: tuple[bool, bool, bool],
+                   halo=None):
+    """The direction loops' padded carry before the first slab (D, M, nu + 2M, nv + 2M): on a
+    periodic sweep axis each direction's source of the first slab ``q0`` ((M, nu, nv), or
+    channels first (1 + J, M, nu, nv) with ``table`` (D, J)), the equilibrium guess for
+    horizontal rays that never leave the domain; else the boundary radiance ``bc`` (D,).
+    Padded with ``bc`` on open sides, wrapped on periodic ones."""
+    per_w, per_u, per_v = periodic
+    bc4 = bc[:, None, None, None]
+    shape = (D,) + q0.shape[-3:]
+    if per_w and table is not None:
+        nj = table.shape[1]
+        init = (q0[0][None] + jnp.einsum("dk,kmuv->dmuv", table, q0[1 : 1 + nj])).astype(bc.dtype)
+    elif per_w:
+        init = jnp.broadcast_to(q0[None], shape).astype(bc.dtype)
+    else:
+        init = jnp.broadcast_to(bc4, shape)
+    if halo is not None:
+        return halo.pad(init, M, per_u, per_v, bc4)
+    return _pad_plane(init, M, per_u, per_v, bc4)
+
+
 def _wrap_border(x, axis: int, n: int, M: int):
     """Rewrite the M border planes on each side of ``axis`` (interior [M, M+n)) by wrapping."""
     if n >= M:
@@ -550,17 +587,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                 dst = _wrap_border(dst, 3, nv, M)
         return (dst, src), (lam, irr)
 
-    bc4 = bc_d[:, None, None, None]
-    if per_w and aniso:  # equilibrium guess (below), each direction with its own source
-        init = (Qs[0][0][None] + jnp.einsum("dk,kmuv->dmuv", table, Qs[0][1 : 1 + nj])).astype(dt)
-    elif per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
-        init = jnp.broadcast_to(Qs[0][None], (D, M, nu, nv)).astype(dt)
-    else:
-        init = jnp.broadcast_to(bc4, (D, M, nu, nv))
-    if halo is not None:
-        init = halo.pad(init, M, per_u, per_v, bc4)
-    else:
-        init = _pad_plane(init, M, per_u, per_v, bc4)
+    init = _initial_carry(Qs[0], table if aniso else None, bc_d, D, M, periodic, halo)
     # unroll=2: the two carry buffers swap roles every slab; unrolled, they keep their buffers
     # (no copy of the carry per slab).
     xs = (Qs, Bs, ts, ns_, bits, passes)
@@ -689,20 +716,16 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     return lam, irr, exit_
 
 
-def _unslabber(nw: int, M: int, periodic_w: bool, warmup: int):
-    """The transpose of ``_slabber``'s ``slabs``: (ns, M, ...) → (nw, ...), the planes a
-    periodic sweep visits more than once summed, the open sweep's padding dropped."""
-    slabs_, ns = _slabber(nw, M, periodic_w, warmup)
-    total = ns * M
-
-    def unslabs(x):
-        x = x.reshape((total,) + x.shape[2:])
-        if periodic_w:
-            order = np.arange(nw - total, nw) % nw
-            return jnp.zeros((nw,) + x.shape[1:], x.dtype).at[order].add(x)
-        return x[:nw]
-
-    return unslabs, ns
+def _unslabs(x, nw: int, periodic_w: bool):
+    """The transpose of ``_slabber``'s ``slabs``: x (ns, M, ...) → (nw, ...), the planes a
+    periodic sweep visits more than once (its warm-up) summed, the open sweep's padding
+    dropped."""
+    total = x.shape[0] * x.shape[1]
+    x = x.reshape((total,) + x.shape[2:])
+    if periodic_w:
+        order = np.arange(nw - total, nw) % nw
+        return jnp.zeros((nw,) + x.shape[1:], x.dtype).at[order].add(x)
+    return x[:nw]
 
 
 def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
@@ -710,7 +733,7 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
                           warmup: int, surfaces: bool, fluence: bool = True,
                           q_channels: int = 0):
     """The transpose of one face sweep's linear map (Q, B) → (Λ, E) at fixed τ and zero
-    boundary radiance (the map a light solve's adjoint needs, ``_solver._adjoint_step``):
+    boundary radiance (the map a light solve's adjoint needs, ``_solver._jacobi_transposed``):
     (Λ̄, Ē) → (Q̄, B̄), the step scheme (``_sweep_face_batched``'s arithmetic, whose transpose
     by JAX it equals to rounding) as a loop like ``_sweep_face_loop``: the slabs in reverse,
     each direction's radiance cotangent carried back one slab (the shift's transpose: written
@@ -730,7 +753,6 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
     if consts.slope is not None or consts.sub is not None:
         raise SolverError("sweep_face_transposed: the step scheme only")
     slabs, ns = _slabber(nw, M, per_w, warmup)
-    unslabs, _ = _unslabber(nw, M, per_w, warmup)
     total = ns * M
     length_k, kidx = _distinct_lengths(consts, M, dt)  # (K,) distinct |L|; each d's index
     unit = consts.unit.astype(dt)
@@ -769,19 +791,11 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
         bits = jnp.zeros((ns, 1), jnp.uint8)
     nq = q_channels if aniso else 1
 
-    def fold(x):  # Wᵀ of the padded carry: interior + the periodic margins wrapped back
-        for axis, n, per in ((2, nu, per_u), (3, nv, per_v)):
-            if per:
-                idx = (np.arange(n + 2 * M) - M) % n
-                xm = jnp.moveaxis(x, axis, 0)
-                x = jnp.moveaxis(jnp.zeros((n,) + xm.shape[1:], dt).at[idx].add(xm), 0, axis)
-            else:
-                x = jax.lax.slice_in_dim(x, M, M + n, axis=axis)
-        return x
-
     def step(abar, slab):
         lb, eb, ts_, nrm_s, bits_s, pass_s = slab
-        rbo = fold(abar)  # (D, M, nu, nv): the cotangent of this slab's outgoing radiance
+        # (D, M, nu, nv): the cotangent of this slab's outgoing radiance (its padded carry's
+        # margins are copies of the interior on periodic sides, the boundary's on open ones)
+        rbo = _fold_plane(abar, M, per_u, per_v)
         tau_k = ts_[None] * length_k[:, None, None, None]
         em_k = jnp.expm1(-tau_k)
         avg2_k, avg1_k = one_minus_exp_over(2.0 * tau_k), one_minus_exp_over(tau_k)
@@ -850,16 +864,16 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
     xs = (lbs, ebs, ts, nrm, bits, passes)
     a_init, (qbs, bbs) = jax.lax.scan(step, a_last, xs, reverse=True)
     if per_w:  # the periodic sweep's initial guess: each direction's source of the first slab
-        r0 = fold(a_init)  # (D, M, nu, nv)
+        r0 = _fold_plane(a_init, M, per_u, per_v)  # (D, M, nu, nv)
         if aniso:
             add = jnp.concatenate([r0.sum(0)[None], jnp.einsum("dk,dmuv->kmuv", table, r0)])
         else:
             add = r0.sum(0)[None]
         qbs = qbs.at[0].add(add)
-    q_bar = unslabs(jnp.moveaxis(qbs, 1, -1))  # (nw, nu, nv, nq)
+    q_bar = _unslabs(jnp.moveaxis(qbs, 1, -1), nw, per_w)  # (nw, nu, nv, nq)
     if not aniso:
         q_bar = q_bar[..., 0]
-    return q_bar, unslabs(bbs)
+    return q_bar, _unslabs(bbs, nw, per_w)
 
 
 def substep_offsets(pq: np.ndarray, M: int) -> np.ndarray:
@@ -1098,13 +1112,6 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
     def pad(x):  # (..., nu, nv) → (..., nu + 2M, nv + 2M): wrapped on periodic sides, else 0
         return _pad_plane(x, M, per_u, per_v, zero)
 
-    def fold(x, axis, n, periodic_axis):  # a padded axis back to its n nodes
-        if not periodic_axis:
-            return jax.lax.slice_in_dim(x, M, M + n, axis=axis)
-        idx = (np.arange(n + 2 * M) - M) % n
-        xm = jnp.moveaxis(x, axis, 0)
-        return jnp.moveaxis(jnp.zeros((n,) + xm.shape[1:], dt).at[idx].add(xm), 0, axis)
-
     def source_d(q, d):  # q (1 + J, m, ...) channels → direction d's source (m, ...)
         if not aniso:
             return q
@@ -1211,7 +1218,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
             return dst, lamp, acc_s, irr_s
 
         dst, lamp, acc, irr = jax.lax.fori_loop(0, nu // tu, tile, (dst, lamp0, acc0, irr0))
-        lam_w = fold(fold(jnp.stack(lamp), 2, nu, per_u), 3, nv, per_v)  # (nc + 1, 2M, nu, nv)
+        lam_w = _fold_plane(jnp.stack(lamp), M, per_u, per_v)  # (nc + 1, 2M, nu, nv)
         wown = jnp.full((1, M, nu, nv), weight.sum() / M, dt)
         lam_w = lam_w.at[:, M:].add(jnp.concatenate([acc / M, wown]))
         done = lam_prev + lam_w[:, :M]  # the previous slab's planes: no later segment crosses
@@ -1221,15 +1228,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
             dst = _wrap_border(dst, 3, nv, M)
         return ((dst, src), ts_, Qs_, solid, lam_w[:, M:]), (done, irr)
 
-    bc4 = bc_d[:, None, None, None]
-    if per_w:  # equilibrium guess for horizontal rays, each direction with its own source
-        q0 = Qs[0]
-        r0 = (q0[None] if not aniso else
-              q0[0][None] + jnp.einsum("dk,kmuv->dmuv", table, q0[1 : 1 + nj])).astype(dt)
-        r0 = jnp.broadcast_to(r0, (D, M, nu, nv))
-    else:
-        r0 = jnp.broadcast_to(bc4, (D, M, nu, nv))
-    r0 = _pad_plane(r0, M, per_u, per_v, bc4)
+    r0 = _initial_carry(Qs[0], table, bc_d, D, M, periodic)
     q_shape = Qs.shape[1:]
     init = ((r0, r0), jnp.zeros((M, nu, nv), dt), jnp.zeros(q_shape, dt),
             jnp.zeros((M, nu, nv), bool), jnp.zeros((nc + 1, M, nu, nv), dt))
