@@ -8,7 +8,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
         [--prior-kind tv|smooth] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
         [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep]
-        [--cloud shared|b|c] [--balance 0.8|off] [--scheme auto|step|linear]
+        [--cloud shared|b|c] [--balance 0.8|off] [--scheme auto|step|linear|substep]
         [--first-collision beam|deposit]
         [--out benchmarks/results/tomography]
 """
@@ -73,7 +73,7 @@ def main(argv=None):
                          "(default: fit_density's: on unless --prior fixes the weight)")
     ap.add_argument("--first-collision", default=None, choices=["beam", "deposit"],
                     help="the light solve's first collision (SweepSolver.first_collision)")
-    ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear"],
+    ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear", "substep"],
                     help="the light solve's transport scheme (default: fit_density's, "
                          "DENSITY_SCHEME; auto: the sweep's choice, linear where a step "
                          "through the level's start's densest cell is optically thicker "

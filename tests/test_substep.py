@@ -123,10 +123,15 @@ def test_the_thick_cube_at_n32_is_within_5_percent_of_its_monte_carlo_value(zeta
 def _loop_matches_batched(cases):
     """The CPU's direction loop (``_sweep_face_substep_loop``: the values on a CPU) against
     the batched program (the values on a GPU, and the derivatives everywhere) on random faces
-    with surfaces and blocked segments: ``cases`` = (M, face shape, periodic sides, L)."""
+    with surfaces and blocked segments: ``cases`` = (M, face shape, periodic sides, L).  The
+    loop takes the host's weight scale (``substep_weight_scale``, as ``prepare_sweep`` makes
+    it), the batched program sums the weights itself; for the first periodic combination the
+    loop also runs without the scale (it then sums them too)."""
+    import equinox as eqx
+
     from difffog.forward.sweep._harmonics import basis
     from difffog.forward.sweep._kernel import (_sweep_face_substep, _sweep_face_substep_loop,
-                                               face_consts)
+                                               face_consts, substep_weight_scale)
     from helpers import random_face_geometry
 
     rng = np.random.default_rng(3)
@@ -141,16 +146,26 @@ def _loop_matches_batched(cases):
         args = (f32(Q), f32(rng.random(shape)), f32(0.8 * rng.random(shape)),
                 f32(rng.random(D)), random_face_geometry(rng, shape, D), consts)
 
+        geo = args[4]
+        scales = [f32(substep_weight_scale(
+            geo.free, geo.surf, geo.blocked, consts.pq, consts.sub, consts.weight, M=M,
+            periodic=p, warmup=4 if p[0] else 0, surfaces=True)) for p in periodics]
+
         @jax.jit
-        def both(*a, M=M, periodics=periodics):
+        def both(scales, *a, M=M, periodics=periodics):
             out = []
-            for periodic in periodics:
+            for i, periodic in enumerate(periodics):
                 kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0,
                           surfaces=True)
-                out.append((_sweep_face_substep_loop(*a, **kw), _sweep_face_substep(*a, **kw)))
+                scaled = eqx.tree_at(lambda g: g.wscale, a[4], scales[i],
+                                     is_leaf=lambda x: x is None)
+                ref = _sweep_face_substep(*a, **kw)
+                out.append((_sweep_face_substep_loop(*a[:4], scaled, a[5], **kw), ref))
+                if i == 0:
+                    out.append((_sweep_face_substep_loop(*a, **kw), ref))
             return out
 
-        for periodic, (a, b) in zip(periodics, both(*args)):
+        for periodic, (a, b) in zip(periodics[:1] + periodics, both(scales, *args)):
             for x, y in zip(a, b):
                 assert x.shape == y.shape
                 np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-6, atol=2e-6,

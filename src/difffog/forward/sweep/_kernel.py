@@ -238,6 +238,8 @@ class FaceGeometry(eqx.Module):
     normal: jax.Array  # (nw, nu, nv, 3) normal in the face frame (u, v, w)
     blocked: jax.Array  # (nw, nu, nv, ceil(D/8)) uint8: bit d set if the segment of direction d
     #                     arriving at this node crosses a SOLID node (SURFACE nodes only)
+    wscale: jax.Array | None = None  # (nw, nu, nv) float32: the sub-stepped scheme's per-node
+    #                                  renormalization (``substep_weight_scale``); else None
 
 
 class SweepConsts(eqx.Module):
@@ -750,8 +752,12 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
     per_w, per_u, per_v = periodic
     dt = tau_half_unit.dtype
     aniso = q_channels > 0
-    if consts.slope is not None or consts.sub is not None:
-        raise SolverError("sweep_face_transposed: the step scheme only")
+    if consts.sub is not None:
+        return _sweep_face_substep_transposed(
+            lam_bar, irr_bar, tau_half_unit, geo, consts, M=M, periodic=periodic, warmup=warmup,
+            surfaces=surfaces, fluence=fluence, q_channels=q_channels)
+    if consts.slope is not None:
+        raise SolverError("sweep_face_transposed: the step and sub-stepped schemes only")
     slabs, ns = _slabber(nw, M, per_w, warmup)
     total = ns * M
     length_k, kidx = _distinct_lengths(consts, M, dt)  # (K,) distinct |L|; each d's index
@@ -884,6 +890,93 @@ def substep_offsets(pq: np.ndarray, M: int) -> np.ndarray:
     j = np.arange(1, M)[:, None, None]
     return (np.sign(pq)[None] * ((2 * np.abs(pq)[None] * (M - j) + M) // (2 * M))).astype(
         np.int32)
+
+
+def substep_weight_scale(free, surf, blocked, pq, sub, weight, *, M: int,
+                         periodic: tuple[bool, bool, bool], warmup: int,
+                         surfaces: bool) -> np.ndarray:
+    """(nw, nu, nv) float64: the sub-stepped programs' per-node renormalization Σ_d w_d / W,
+    W the weight of the node's sub-steps whose light is known (0 where none is): the last
+    channel of their Λ accumulator, which depends on the geometry alone.  Computed once on the
+    host (NumPy, the programs' slab order, blocking and margins) for the transposed sweep
+    (``_sweep_face_substep_transposed``), which needs it before the forward sweep would have
+    finished it.  Arguments in the face frame: ``free``, ``surf`` (nw, nu, nv) bool,
+    ``blocked`` (nw, nu, nv, ceil(D/8)) uint8, ``pq`` (D, 2), ``sub`` (M − 1, D, 2),
+    ``weight`` (D,)."""
+    free, surf = np.asarray(free, bool), np.asarray(surf, bool)
+    blocked = np.asarray(blocked, np.uint8)
+    pq, sub = np.asarray(pq, np.int64), np.asarray(sub, np.int64)
+    weight = np.asarray(weight, np.float64)
+    nw, nu, nv = free.shape
+    D = len(weight)
+    per_w, per_u, per_v = periodic
+    if per_w:
+        total = int(math.ceil((nw + warmup) / M) * M)
+        order = np.arange(nw - total, nw) % nw
+
+        def pick(a):
+            return a[order]
+    else:
+        total = int(math.ceil(nw / M) * M)
+
+        def pick(a):
+            return np.concatenate([a, np.zeros((total - nw,) + a.shape[1:], a.dtype)])
+    ns = total // M
+    solid = pick(~(free | surf)).reshape((ns, M, nu, nv))
+    surf_s = pick(surf).reshape((ns, M, nu, nv))
+    bits = pick(blocked).reshape((ns, M, nu, nv, -1))
+
+    def padded(x):  # (m, nu, nv) → (m, nu + 2M, nv + 2M): wrapped on periodic sides, else 0
+        x = np.pad(x, [(0, 0), (M, M) if per_u else (0, 0), (M, M) if per_v else (0, 0)],
+                   mode="wrap")
+        return np.pad(x, [(0, 0), (0, 0) if per_u else (M, M), (0, 0) if per_v else (M, M)])
+
+    def fold(xp):  # the transpose of ``padded``
+        for axis, per, n in ((1, per_u, nu), (2, per_v, nv)):
+            xm = np.moveaxis(xp, axis, 0)
+            if per:
+                out = np.zeros((n,) + xm.shape[1:])
+                np.add.at(out, (np.arange(n + 2 * M) - M) % n, xm)
+            else:
+                out = xm[M : M + n]
+            xp = np.moveaxis(out, 0, axis)
+        return xp
+
+    def at(xp, off):  # x[u − off_u, v − off_v] of the padded x
+        return xp[:, M - off[0] : M - off[0] + nu, M - off[1] : M - off[1] + nv]
+
+    def step(solid_prev, solid_s, surf_s_, bits_s):
+        swp = padded(np.concatenate([solid_prev, solid_s]).astype(np.float64))
+        acc = np.zeros((2 * M, nu + 2 * M, nv + 2 * M))
+        for d in range(D):
+            valid = 1.0 - at(swp[:M], pq[d])  # the chain left a fluid node
+            if surfaces:
+                blk = ((bits_s[..., d // 8] >> (d % 8)) & 1) > 0
+                valid = np.where(blk, 1.0, valid)
+            for j in range(1, M):
+                off = sub[j - 1, d]
+                if surfaces:
+                    valid = np.where(at(swp[j : j + M], off) > 0, surf_s_.astype(np.float64),
+                                     valid)
+                win = acc[j : j + M, M - off[0] : M - off[0] + nu, M - off[1] : M - off[1] + nv]
+                win += valid * (weight[d] / M)
+        lam_w = fold(acc)
+        lam_w[M:] += weight.sum() / M
+        return lam_w
+
+    prev = np.zeros((M, nu, nv), bool)
+    part = np.zeros((M, nu, nv))
+    done = []
+    for s in range(ns):
+        lam_w = step(prev, solid[s], surf_s[s], bits[s])
+        done.append(part + lam_w[:M])
+        part, prev = lam_w[M:], solid[s]
+    if per_w:  # the slab after the last, in wrap order, finishes the last slab's
+        first = np.arange(M) % nw
+        part = part + step(prev, ~(free | surf)[first], surf[first], blocked[first])[:M]
+    wsum = np.concatenate(done[1:] + [part]).reshape((total, nu, nv))
+    wsum = wsum[total - nw :] if per_w else wsum[:nw]
+    return np.where(wsum > 0, weight.sum() / np.where(wsum > 0, wsum, 1.0), 0.0)
 
 
 def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
@@ -1046,24 +1139,240 @@ def _sweep_face_substep(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     return _substep_outputs(lam, irr, exit_, weight, nk, nw, per_w)
 
 
-def _substep_outputs(lam, irr, exit_, weight, nk: int, nw: int, per_w: bool):
+def _substep_outputs(lam, irr, exit_, weight, nk: int, nw: int, per_w: bool, wscale=None):
     """The sub-stepped programs' results from their per-slab Λ (ns, M, nu, nv, 2 + K: the
     fluence, the K moments, the weight of the sub-steps whose light is known) and E: each
     node's Λ over the sub-steps whose radiance is known (per direction M of them, its own two
     halves and M − 1 crossings, weigh Σ_d w_d; a crossing of a chain inside a shape does not
-    count, and the others stand in for it), then the swept planes' part."""
+    count, and the others stand in for it), then the swept planes' part.  With ``wscale``
+    (the geometry's ``substep_weight_scale``, (nw, nu, nv)) Λ has no weight channel and the
+    scale is applied to the swept planes."""
     nc = 1 + nk
     total = lam.shape[0] * lam.shape[1]
     lam = lam.reshape((total,) + lam.shape[2:])
     irr = irr.reshape((total,) + irr.shape[2:])
-    wsum = lam[..., nc:]
-    lam = lam[..., :nc] * jnp.where(wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0),
-                                    0.0)
-    if not nk:
-        lam = lam[..., 0]
+    if wscale is None:
+        wsum = lam[..., nc:]
+        lam = lam[..., :nc] * jnp.where(
+            wsum > 0, weight.sum() / jnp.where(wsum > 0, wsum, 1.0), 0.0)
+    sel = slice(total - nw, total) if per_w else slice(0, nw)
+    lam, irr = lam[sel, ..., :nc], irr[sel]
+    if wscale is not None:
+        lam = lam * wscale.astype(lam.dtype)[..., None]
+    return (lam[..., 0] if not nk else lam), irr, exit_
+
+
+def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
+                                  consts: SweepConsts, *, M: int,
+                                  periodic: tuple[bool, bool, bool], warmup: int,
+                                  surfaces: bool, fluence: bool = True, q_channels: int = 0):
+    """``sweep_face_transposed`` for the sub-stepped scheme: the transpose of
+    ``_sweep_face_substep``'s linear map (Q, B) → (Λ, E) at fixed τ and zero boundary radiance
+    (to rounding), as ``_sweep_face_substep_loop``'s direction loop run backwards.  Λ̄ first
+    takes the per-node renormalization (``geo.wscale``, ``substep_weight_scale``: geometry
+    only, so the map stays linear); the slabs then run in reverse, each carrying back the
+    cotangent of the radiance it read (written at the window the forward read it from, as the
+    step scheme's transpose does) and the source cotangent its crossings scattered into the
+    previous slab's planes.  Per direction the chain is replayed backwards: the node's own
+    half sub-steps, then its crossings from the last to the first, each taking the cotangent
+    of its deposit from the padded Λ̄ window of the two slabs' planes at its offset and adding
+    its source's cotangent into a padded window at the same offset (margins folded back after
+    the loop); a chain's validity and surface restarts (geometry) are replayed forwards
+    first."""
+    nw, nu, nv = tau_half_unit.shape
+    P = 2 * M + 1
+    D = P * P
+    per_w, per_u, per_v = periodic
+    dt = tau_half_unit.dtype
+    aniso = q_channels > 0
+    if geo.wscale is None:
+        raise SolverError("the sub-stepped sweep's transpose needs the geometry's weight scale "
+                          "(FaceGeometry.wscale, made by prepare_sweep(substep=True))")
+    slabs, ns = _slabber(nw, M, per_w, warmup)
+    total = ns * M
+    length_k, kidx = _distinct_lengths(consts, M, dt)  # (K,) distinct |L|; each d's index
+    len_k4 = length_k[:, None, None, None]
+    unit = consts.unit.astype(dt)
+    weight = consts.weight.astype(dt)
+    start = M - jnp.asarray(consts.pq, jnp.int32)
+    sub_start = M - jnp.asarray(consts.sub, jnp.int32)  # (M − 1, D, 2) crossings' origins
+    byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)
+    bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))
+    nk = nj = 0
+    table = None
+    if aniso:
+        table, nk = _source_table(consts, dt)  # (D, J)
+        nj = table.shape[1]
+        if 1 + nj != q_channels:
+            raise SolverError(f"sweep_face_transposed: {q_channels} source channels, the "
+                              f"table has {1 + nj}")
+    chan = weight[:, None] if not nk else jnp.concatenate(
+        [weight[:, None], weight[:, None] * table[:, :nk]], axis=1)
+    nc = 1 + nk
+    nq = 1 + nj if aniso else 1
+    zero = jnp.zeros((), dt)
+    tu = _tile_rows(nu)
+
+    def pad(x):  # the transpose of the forward's fold: wrapped on periodic sides, else 0
+        return _pad_plane(x, M, per_u, per_v, zero)
+
+    def full(x):  # the outputs' cotangents over the planes swept (warm-up, padding: none)
+        z = jnp.zeros((total,) + x.shape[1:], dt)
+        return z.at[total - nw :].set(x) if per_w else z.at[:nw].set(x)
+
+    def prev(a):  # the previous slab's (zeros before the first: the forward's initial carry)
+        return jnp.concatenate([jnp.zeros_like(a[:1]), a[:-1]])
+
+    if fluence:  # Λ of the raw accumulator: the renormalization is per node
+        scale = geo.wscale.astype(dt)
+        lam_bar = lam_bar.astype(dt) * (scale[..., None] if nk else scale)
+    else:
+        lam_bar = jnp.zeros(lam_bar.shape, dt)
+    lb = full(lam_bar).reshape((ns, M, nu, nv) + ((nc,) if nk else ()))
+    lb = jnp.moveaxis(lb, -1, 1) if nk else lb[:, None]  # (ns, nc, M, nu, nv)
+    eb = full(irr_bar.astype(dt)).reshape((ns, M, nu, nv))
+    ts = slabs(tau_half_unit)
+    fs, ss = slabs(geo.free), slabs(geo.surf)
+    solid = ~(fs | ss)
+    if surfaces:
+        nrm = jnp.moveaxis(slabs(geo.normal), -1, 1)
+        bits = jnp.moveaxis(slabs(geo.blocked), -1, 1)
+    else:
+        nrm = jnp.zeros((ns, 1), dt)
+        bits = jnp.zeros((ns, 1), jnp.uint8)
+
+    def expand(q, d):  # a direction's source cotangent → its channels' (nq, ...)
+        if not aniso:
+            return q[None]
+        hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
+        return jnp.stack([q] + [hd[j] * q for j in range(nj)])
+
+    def step(carry, slab):
+        abar, q_next = carry  # the cotangents of this slab's padded output, of its Q (crossed
+        lbp, lbc, eb_s, ts_, tp_, fs_, ss_, sp_, nrm_s, bits_s = slab  # by the next slab's)
+        solid_s = ~(fs_ | ss_)
+        pass_s = (fs_ | ss_) if surfaces else fs_
+        surf_f = ss_.astype(dt)
+        rbo = _fold_plane(abar, M, per_u, per_v)  # (D, M, nu, nv)
+        tk = (pad(jnp.concatenate([tp_, ts_])) * (2.0 / M))[None] * len_k4
+        em_w, avg_w = jnp.expm1(-tk), one_minus_exp_over(tk)
+        swp = pad(jnp.concatenate([sp_, solid_s]).astype(dt))
+        lwp = pad(jnp.concatenate([lbp, lbc], axis=1)) / M  # (nc, 2M, ...): the deposits'
+        own = ts_[None] * len_k4 / M
+        em_own, avg2_own, avg1_own = jnp.expm1(-own), one_minus_exp_over(2.0 * own), None
+        if surfaces:
+            avg1_own = one_minus_exp_over(own)
+        nxt0 = jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt)
+        qwin0 = jnp.zeros((nq, 2 * M, nu + 2 * M, nv + 2 * M), dt)
+        qb0 = jnp.zeros((nq, M, nu, nv), dt)
+        bb0 = jnp.zeros((M, nu, nv), dt)
+
+        def tile(t, c):
+            nxt, qwin, qb_s, bb_s = c
+            u0 = jnp.asarray(t * tu, jnp.int32)
+            rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
+            pt, st, sft, et = rows(pass_s), rows(ss_), rows(surf_f), rows(eb_s)
+            lct = rows(lbc) / M  # the own sub-steps' Λ̄ (nc, M, tu, nv)
+            em_t, a2_t = rows(em_own), rows(avg2_own)
+            if surfaces:
+                a1_t, nt, bt = rows(avg1_own), rows(nrm_s), rows(bits_s)
+            blk = (M, tu, nv)
+
+            def direction(d, c):
+                nxt, qwin, qb, bb = c
+                d = jnp.asarray(d, jnp.int32)
+                k = kidx[d]
+                at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
+                su, sv = u0 + start[d, 0], start[d, 1]
+                crossing = [(jnp.asarray(j, jnp.int32), u0 + sub_start[j - 1, d, 0],
+                             sub_start[j - 1, d, 1]) for j in range(1, M)]
+                # the chain forwards: its validity at each crossing and its restarts (geometry)
+                valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), blk)
+                if surfaces:
+                    byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
+                    blocked = ((byte >> bit_of[d]) & 1) > 0
+                    valid = jnp.where(blocked, 1.0, valid)
+                valids, restarts = [], []
+                for o in crossing:
+                    if surfaces:
+                        sj = jax.lax.dynamic_slice(swp, o, blk) > 0
+                        restarts.append(sj & st)
+                        valid = jnp.where(sj, sft, valid)
+                    valids.append(valid)
+                # backwards: the node's own half sub-steps
+                ro = jax.lax.dynamic_slice(rbo, (d, _I0, u0, _I0), (1,) + blk)[0]
+                r_through = jnp.where(pt, ro, 0.0)
+                em = at_k(em_t)
+                a2 = at_k(a2_t)
+                r_arr = r_through + em * r_through
+                q4 = -em * r_through
+                r_avg = sum(chan[d, c] * lct[c] for c in range(nc))
+                if surfaces:
+                    ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
+                    r_arr = r_arr + et * jnp.maximum(-ldotn, 0.0) * weight[d]
+                    a1 = at_k(a1_t)
+                    bb = bb + jnp.where(blocked, r_arr + a1 * r_avg, 0.0)
+                    q4 = q4 + jnp.where(blocked, (1.0 - a1) * r_avg,
+                                        -em * r_arr + (1.0 - a2) * r_avg)
+                    r = jnp.where(blocked, 0.0, r_arr + em * r_arr + a2 * r_avg)
+                else:
+                    q4 = q4 - em * r_arr + (1.0 - a2) * r_avg
+                    r = r_arr + em * r_arr + a2 * r_avg
+                qb = qb + expand(q4, d)
+                for i in reversed(range(M - 1)):  # the crossings, last first
+                    o = crossing[i]
+                    em = jax.lax.dynamic_slice(em_w, (k,) + o, (1,) + blk)[0]
+                    av = jax.lax.dynamic_slice(avg_w, (k,) + o, (1,) + blk)[0]
+                    lw = jax.lax.dynamic_slice(lwp, (_I0,) + o, (nc,) + blk)
+                    rho = valids[i] * sum(chan[d, c] * lw[c] for c in range(nc))
+                    qj = (1.0 - av) * rho - em * r
+                    r = r + em * r + av * rho
+                    oq = (_I0,) + o
+                    qwin = jax.lax.dynamic_update_slice(
+                        qwin, jax.lax.dynamic_slice(qwin, oq, (nq,) + blk) + expand(qj, d), oq)
+                    if surfaces:
+                        bb = bb + jnp.where(restarts[i], r, 0.0)
+                        r = jnp.where(restarts[i], 0.0, r)
+                if surfaces:
+                    bb = bb + jnp.where(blocked, r, 0.0)
+                    r = jnp.where(blocked, 0.0, r)
+                nxt = jax.lax.dynamic_update_slice(nxt, r[None], (d, _I0, su, sv))
+                return nxt, qwin, qb, bb
+
+            c0 = (nxt, qwin, jnp.zeros((nq,) + blk, dt), jnp.zeros(blk, dt))
+            nxt, qwin, qb, bb = jax.lax.fori_loop(0, D, direction, c0)
+            qb_s = jax.lax.dynamic_update_slice_in_dim(qb_s, qb, u0, axis=2)
+            bb_s = jax.lax.dynamic_update_slice_in_dim(bb_s, bb, u0, axis=1)
+            return nxt, qwin, qb_s, bb_s
+
+        nxt, qwin, qb, bb = jax.lax.fori_loop(0, nu // tu, tile, (nxt0, qwin0, qb0, bb0))
+        qw = _fold_plane(qwin, M, per_u, per_v)  # (nq, 2M, nu, nv)
+        return (nxt, qw[:, :M]), (qb + qw[:, M:] + q_next, bb)
+
+    xs = (prev(lb), lb, eb, ts, prev(ts), fs, ss, prev(solid), nrm, bits)
+    init = (jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt), jnp.zeros((nq, M, nu, nv), dt))
+    first = np.arange(M) % nw
+    if per_w:  # the slab after the last, in wrap order, finished the last slab's Λ
+        take = lambda a: jnp.take(a, first, axis=0)  # noqa
+        fs_e, ss_e = take(geo.free), take(geo.surf)
+        extra = (lb[-1], jnp.zeros_like(lb[-1]), jnp.zeros((M, nu, nv), dt),
+                 take(tau_half_unit), ts[-1], fs_e, ss_e, solid[-1],
+                 jnp.moveaxis(take(geo.normal), -1, 0) if surfaces else nrm[0],
+                 jnp.moveaxis(take(geo.blocked), -1, 0) if surfaces else bits[0])
+        init, (q_e, b_e) = step(init, extra)
+    (a_first, _), (qbs, bbs) = jax.lax.scan(step, init, xs, reverse=True)
+    if per_w:  # the periodic sweep's initial guess: each direction's source of the first slab
+        r0 = _fold_plane(a_first, M, per_u, per_v)  # (D, M, nu, nv)
+        add = r0.sum(0)[None]
+        if aniso:
+            add = jnp.concatenate([add, jnp.einsum("dk,dmuv->kmuv", table, r0)])
+        qbs = qbs.at[0].add(add)
+    q_bar = _unslabs(jnp.moveaxis(qbs, 1, -1), nw, per_w)  # (nw, nu, nv, nq)
+    b_bar = _unslabs(bbs, nw, per_w)
     if per_w:
-        return lam[total - nw :], irr[total - nw :], exit_
-    return lam[:nw], irr[:nw], exit_
+        q_bar = q_bar.at[first].add(jnp.moveaxis(q_e, 0, -1))
+        b_bar = b_bar.at[first].add(b_e)
+    return (q_bar if aniso else q_bar[..., 0]), b_bar
 
 
 def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts,
@@ -1106,6 +1415,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
     chan = weight[:, None] if not nk else jnp.concatenate(
         [weight[:, None], weight[:, None] * table[:, :nk]], axis=1)
     nc = 1 + nk
+    # with the geometry's weight scale no channel accumulates the known sub-steps' weight
+    nw_chan = 0 if geo.wscale is not None else 1
     zero = jnp.zeros((), dt)
     tu = _tile_rows(nu)
 
@@ -1145,7 +1456,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         em_own, avg2_own, avg1_own = jnp.expm1(-own), one_minus_exp_over(2.0 * own), None
         if surfaces:
             avg1_own = one_minus_exp_over(own)
-        lamp0 = tuple(jnp.zeros((2 * M, nu + 2 * M, nv + 2 * M), dt) for _ in range(nc + 1))
+        lamp0 = tuple(jnp.zeros((2 * M, nu + 2 * M, nv + 2 * M), dt)
+                      for _ in range(nc + nw_chan))
         acc0 = jnp.zeros((nc, M, nu, nv), dt)
         irr0 = jnp.zeros((M, nu, nv), dt)
 
@@ -1189,7 +1501,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
                     r = r + em * (r - qj)
                     if fluence:  # deposited at the node crossed (y − offset): the same window
                         x = valid * rbar
-                        adds = [chan[d, c] * x for c in range(nc)] + [weight[d] * valid]
+                        adds = [chan[d, c] * x for c in range(nc)] + (
+                            [weight[d] * valid] if nw_chan else [])
                         lamp = tuple(
                             jax.lax.dynamic_update_slice(
                                 a, jax.lax.dynamic_slice(a, o, blk) + v / M, o)
@@ -1218,8 +1531,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
             return dst, lamp, acc_s, irr_s
 
         dst, lamp, acc, irr = jax.lax.fori_loop(0, nu // tu, tile, (dst, lamp0, acc0, irr0))
-        lam_w = _fold_plane(jnp.stack(lamp), M, per_u, per_v)  # (nc + 1, 2M, nu, nv)
-        wown = jnp.full((1, M, nu, nv), weight.sum() / M, dt)
+        lam_w = _fold_plane(jnp.stack(lamp), M, per_u, per_v)  # (nc [+ 1], 2M, nu, nv)
+        wown = jnp.full((nw_chan, M, nu, nv), weight.sum() / M, dt)
         lam_w = lam_w.at[:, M:].add(jnp.concatenate([acc / M, wown]))
         done = lam_prev + lam_w[:, :M]  # the previous slab's planes: no later segment crosses
         if per_u:
@@ -1231,7 +1544,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
     r0 = _initial_carry(Qs[0], table, bc_d, D, M, periodic)
     q_shape = Qs.shape[1:]
     init = ((r0, r0), jnp.zeros((M, nu, nv), dt), jnp.zeros(q_shape, dt),
-            jnp.zeros((M, nu, nv), bool), jnp.zeros((nc + 1, M, nu, nv), dt))
+            jnp.zeros((M, nu, nv), bool), jnp.zeros((nc + nw_chan, M, nu, nv), dt))
     xs = (Qs, Bs, ts, fs, ss, nrm, bits)
     carry, (lam, irr) = jax.lax.scan(step, init, xs, unroll=2)
     lam_last = carry[4]
@@ -1247,7 +1560,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         _, (lam_last, _) = step(carry, nxt)
     exit_ = jnp.swapaxes(carry[0][0][..., M : M + nu, M : M + nv], 0, 1)
     lam = jnp.concatenate([lam[1:], lam_last[None]])  # step s finished slab s − 1's Λ
-    return _substep_outputs(jnp.moveaxis(lam, 1, -1), irr, exit_, weight, nk, nw, per_w)
+    return _substep_outputs(jnp.moveaxis(lam, 1, -1), irr, exit_, weight, nk, nw, per_w,
+                            geo.wscale)
 
 
 def face_consts(dirs: DirectionSet, face: int, harm: np.ndarray | None = None,

@@ -51,6 +51,8 @@ from ._kernel import (
     sweep_face,
     sweep_face_mesh,
     sweep_face_transposed,
+    substep_offsets,
+    substep_weight_scale,
     to_face,
 )
 
@@ -195,6 +197,9 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     sun_cos = np.where(surf, sun_cos, 0.0)
     periodic_xy = lattice.boundary == "periodic-xy"
     normal32 = normal.astype(np.float32)
+    substeps = bool(substep) and M > 1
+    # Warm-up for periodic sweep axes: every non-horizontal ray must have entered through z.
+    warmup = int(M * lattice.shape[2]) if periodic_xy else 0
 
     def cosines():
         c = np.zeros(nt.shape)
@@ -208,10 +213,17 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         vec[:, axis] = sign * M
         vec[:, u], vec[:, v] = dirs.pq[:, 0], dirs.pq[:, 1]
         n_face = np.stack([normal32[..., u], normal32[..., v], sign * normal32[..., axis]], -1)
-        return dict(free=_host_face(free, axis, sign), surf=_host_face(surf, axis, sign),
-                    normal=_host_face(n_face, axis, sign),
-                    blocked=_host_face(segment_blocking(solid, surf, vec, periodic_xy), axis,
-                                       sign))
+        out = dict(free=_host_face(free, axis, sign), surf=_host_face(surf, axis, sign),
+                   normal=_host_face(n_face, axis, sign),
+                   blocked=_host_face(segment_blocking(solid, surf, vec, periodic_xy), axis,
+                                      sign))
+        if substeps:  # the sub-stepped sweep's per-node renormalization (geometry only)
+            per = lambda a: periodic_xy and a in (0, 1)  # noqa: E731
+            out["wscale"] = substep_weight_scale(
+                out["free"], out["surf"], out["blocked"], dirs.pq, substep_offsets(dirs.pq, M),
+                dirs.weights[face], M=M, periodic=(per(axis), per(u), per(v)), warmup=warmup,
+                surfaces=bool(surf.any()))
+        return out
 
     # NumPy releases the GIL in its array loops: the faces and the cosine normalization on all
     # cores (fog-balls N = 128, M = 5, 2 cores: 2.7 s → 1.5 s)
@@ -228,8 +240,6 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         vis = None if vis_job is None else vis_job.result()
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
     material = np.where(np.asarray(lattice.material) >= 0, lattice.material, 0)
-    # Warm-up for periodic sweep axes: every non-horizontal ray must have entered through z.
-    warmup = int(M * lattice.shape[2]) if periodic_xy else 0
     return SweepGeometry(
         faces=tuple(faces),
         consts=tuple(face_consts(dirs, f, None if harm is None else harm.faces, linear,
@@ -254,7 +264,7 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         optical_size=_optical_size(scene, lattice, solid),
         order=int(order),
         linear=bool(linear),
-        substep=bool(substep) and M > 1,
+        substep=substeps,
         sun_cells=None if harm is None or sun_dir is None else _sun_cells(dirs),
         sun_vis=None if vis is None else f32(vis),
     )
@@ -764,10 +774,10 @@ def _rewrite_linear_transposed(v, inputs):
 
 
 def transposable(pb: "_Problem") -> bool:
-    """Whether ``_rewrite_linear_transposed`` serves ``pb``: the step scheme (no linear-source
-    slope, no sub-steps) on one device."""
+    """Whether ``_rewrite_linear_transposed`` serves ``pb``: the step or sub-stepped scheme (not
+    the linear-source scheme's slopes) on one device."""
     g = pb.geom
-    return not g.linear and not g.substep and int(np.prod(pb.mesh_shape)) == 1
+    return not g.linear and int(np.prod(pb.mesh_shape)) == 1
 
 
 def _jacobi_transposed(v, pb: "_Problem"):
@@ -894,8 +904,8 @@ class SweepSolver(eqx.Module):
     adjoint: how a gradient's adjoint solve (reverse mode: ``jax.grad``, the density fit)
         applies (I − K)ᵀ.  "transposed": hand-written transposed face sweeps
         (``_kernel.sweep_face_transposed``: the slabs in reverse, a direction loop like the
-        CPU's forward program), nothing kept between products; the step scheme on one device,
-        with tangents="matrix-free".
+        CPU's forward program), nothing kept between products; the step and sub-stepped
+        schemes on one device, with tangents="matrix-free".
         "linearised": JAX's transpose of the batched program linearised once (its residuals
         as ``sweep_residuals`` says).  "auto" (default): "transposed" where it applies, the
         kernel is "loop" (a CPU) and the phase is isotropic (with moments the loop's sums
@@ -1013,8 +1023,8 @@ class SweepSolver(eqx.Module):
         face sweeps run the CPU's loop program, ``transposable`` holds and the phase is
         isotropic, else "linearised")."""
         if self.adjoint == "transposed" and not transposable(pb):
-            raise SceneError("SweepSolver: adjoint=\"transposed\" has the step scheme on one "
-                             "device only; use adjoint=\"auto\"")
+            raise SceneError("SweepSolver: adjoint=\"transposed\" has the step and sub-stepped "
+                             "schemes on one device only; use adjoint=\"auto\"")
         if self.adjoint != "auto" or self.tangents != "matrix-free":
             return "linearised" if self.tangents != "matrix-free" else self.adjoint
         # with moments the loop's per-direction sums over them (K = 15 at L = 3) cost more than
