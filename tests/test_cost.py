@@ -154,6 +154,13 @@ def test_estimate_follows_the_scheme_the_solver_will_run():
     assert sub.seconds_per_iteration == pytest.approx(step.seconds_per_iteration
                                                       * SUBSTEP_COST_LOOP, rel=1e-9)
     assert sub.peak_bytes > step.peak_bytes
+    # and its host set-up: the per-node weight scale, per crossing and per NumPy call
+    from difffog._cost import SETUP_S_PER_SUBSTEP_CALL, SETUP_S_PER_SUBSTEP_CROSSING
+
+    n, D = float(math.prod(sub.shape)), 25
+    assert sub.setup_s - step.setup_s == pytest.approx(
+        D * (SETUP_S_PER_SUBSTEP_CROSSING * n
+             + SETUP_S_PER_SUBSTEP_CALL * 6 * -(-max(sub.shape) // 2)), rel=1e-9)
     kw = dict(resolution=32, M=2, kernel="batched", gradient=True, sweep_residuals="keep")
     sub_b = df.estimate(thick, "sweep", scheme="substep", **kw)
     step_b = df.estimate(thick, "sweep", scheme="step", **kw)

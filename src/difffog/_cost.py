@@ -169,6 +169,13 @@ SETUP_S_PER_RAY = 1.7e-6
 #: translucent-cube, 0.97-1.37 cloud-plane at N = 128 / 64 (this 2-core CPU; 2.1-3.6 µs
 #: before); on two cores it runs beside the faces' masks
 SETUP_S_PER_NODE_SHADOW = 0.5e-6
+#: the sub-stepped scheme's per-node weight scale (``_kernel.substep_weight_scale``, NumPy on
+#: the host, since stop 50): seconds per node × direction × crossing (M − 1 per segment) and per
+#: NumPy call (six faces × slabs × D × (M − 1)).  Measured (``bench_sweep.py --scheme
+#: substep``, prepare s, this 2-core CPU): +0.5 s at 64³, +1.6-2.0 s at 128³ (M = 3,
+#: fog-balls and cloud-tomo); these give 0.52 and 2.5 s
+SETUP_S_PER_SUBSTEP_CROSSING = 1e-8
+SETUP_S_PER_SUBSTEP_CALL = 2e-5
 #: the splat's set-up: a fixed part (its footprint and kernel programs) and a part per voxel
 #: (bench_cost.py: 3.1 / 3.9 / 4.9 s at N = 32 / 64 / 96)
 SPLAT_SETUP_S = 2.6
@@ -382,6 +389,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
                  + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0)
              + (SETUP_S_PER_NODE_SHADOW * n if shadows_exactly(scene) else 0))
+    if substep:
+        setup += (M - 1) * D * (SETUP_S_PER_SUBSTEP_CROSSING * n
+                                + SETUP_S_PER_SUBSTEP_CALL * 6 * -(-max(shape) // M))
     return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
 
 
