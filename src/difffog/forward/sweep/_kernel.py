@@ -1162,6 +1162,19 @@ def _substep_outputs(lam, irr, exit_, weight, nk: int, nw: int, per_w: bool, wsc
     return (lam[..., 0] if not nk else lam), irr, exit_
 
 
+def _substep_factors(t_prev, ts, len_k4, M: int, pad, surfaces: bool):
+    """A slab's sub-step factors for the sub-stepped loop and its transpose, per distinct |L|
+    (``len_k4`` (K, 1, 1, 1)): over the padded window of the 2M planes a segment can cross (the
+    previous slab's τ ``t_prev``, then this one's ``ts``; ``pad`` pads a plane's margins) a
+    crossing's e^(−τ) − 1 and (1 − e^(−τ))/τ (K, 2M, nu + 2M, nv + 2M), and the node's own
+    half sub-steps' e^(−τ) − 1, (1 − e^(−2τ))/(2τ) and, with surfaces, (1 − e^(−τ))/τ
+    (K, M, nu, nv; else None)."""
+    tk = (pad(jnp.concatenate([t_prev, ts])) * (2.0 / M))[None] * len_k4
+    own = ts[None] * len_k4 / M
+    return (jnp.expm1(-tk), one_minus_exp_over(tk), jnp.expm1(-own),
+            one_minus_exp_over(2.0 * own), one_minus_exp_over(own) if surfaces else None)
+
+
 def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
                                   consts: SweepConsts, *, M: int,
                                   periodic: tuple[bool, bool, bool], warmup: int,
@@ -1254,14 +1267,10 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
         pass_s = (fs_ | ss_) if surfaces else fs_
         surf_f = ss_.astype(dt)
         rbo = _fold_plane(abar, M, per_u, per_v)  # (D, M, nu, nv)
-        tk = (pad(jnp.concatenate([tp_, ts_])) * (2.0 / M))[None] * len_k4
-        em_w, avg_w = jnp.expm1(-tk), one_minus_exp_over(tk)
+        em_w, avg_w, em_own, avg2_own, avg1_own = _substep_factors(tp_, ts_, len_k4, M, pad,
+                                                                   surfaces)
         swp = pad(jnp.concatenate([sp_, solid_s]).astype(dt))
         lwp = pad(jnp.concatenate([lbp, lbc], axis=1)) / M  # (nc, 2M, ...): the deposits'
-        own = ts_[None] * len_k4 / M
-        em_own, avg2_own, avg1_own = jnp.expm1(-own), one_minus_exp_over(2.0 * own), None
-        if surfaces:
-            avg1_own = one_minus_exp_over(own)
         nxt0 = jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt)
         qwin0 = jnp.zeros((nq, 2 * M, nu + 2 * M, nv + 2 * M), dt)
         qb0 = jnp.zeros((nq, M, nu, nv), dt)
@@ -1447,15 +1456,10 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         pass_s = (fs_ | ss_) if surfaces else fs_
         surf_f = ss_.astype(dt)
         # the window of 2M planes the crossings read: previous slab's planes, then these
-        twp = pad(jnp.concatenate([t_prev, ts_])) * (2.0 / M)
-        tk = twp[None] * len_k4  # (K, 2M, nu + 2M, nv + 2M) sub-step depth per |L|
-        em_w, avg_w = jnp.expm1(-tk), one_minus_exp_over(tk)
+        em_w, avg_w, em_own, avg2_own, avg1_own = _substep_factors(t_prev, ts_, len_k4, M,
+                                                                   pad, surfaces)
         qwp = pad(jnp.concatenate([q_prev, Qs_], axis=-3))  # ([1 + J,] 2M, ...)
         swp = pad(jnp.concatenate([solid_prev, solid]).astype(dt))
-        own = ts_[None] * len_k4 / M  # (K, M, nu, nv) the node's own half sub-steps
-        em_own, avg2_own, avg1_own = jnp.expm1(-own), one_minus_exp_over(2.0 * own), None
-        if surfaces:
-            avg1_own = one_minus_exp_over(own)
         lamp0 = tuple(jnp.zeros((2 * M, nu + 2 * M, nv + 2 * M), dt)
                       for _ in range(nc + nw_chan))
         acc0 = jnp.zeros((nc, M, nu, nv), dt)
