@@ -336,7 +336,7 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
     (["--unknown", "fog.density", "--unknown", "fog.scattering"], "is fitted alone"),
     (["--unknown", "fog.density", "--prior", "l2=1"], "--prior l2=1: use KIND=WEIGHT"),
     (["--unknown", "fog.density", "--prior", "tv=-1"], "must be >= 0"),
-    (["--unknown", "fog.density", "--prior", "tv=balance"], "only smooth has a balancing share"),
+    (["--unknown", "fog.density", "--prior", "tv=balance"], "tv has no balancing share"),
     (["--unknown", "fog.density", "--resume"], "no checkpoint"),
 ])
 def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):

@@ -101,7 +101,8 @@ def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
 
 def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
     """``roughness``: "tv" is Σ sqrt(|∇g|² + ε²) − ε and "smooth" Σ|∇g|² over the cells, with
-    forward differences that are 0 past the grid; fit_density refuses an unknown prior and
+    forward differences that are 0 past the grid, "shape" the latter at a fixed mass (a scaled
+    grid's is unchanged, where "smooth" scales with the square); fit_density refuses an unknown prior and
     a negative weight with one line each."""
     from difffog.fit._density import roughness
 
@@ -112,6 +113,13 @@ def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
     eps = 0.01
     tv = np.sum(np.sqrt(sq + eps ** 2) - eps)
     assert float(roughness(jnp.asarray(g), "tv", eps)) == pytest.approx(tv, rel=1e-6)
+    # "shape": "smooth" at the start's mass, the same for the grid scaled by any factor
+    m0 = float(g.sum())
+    for k in (1.0, 0.5, 3.0):
+        assert float(roughness(jnp.asarray(k * g), "shape", 0.0, m0)) == pytest.approx(
+            sq.sum(), rel=1e-6)
+    assert float(roughness(jnp.asarray(0.5 * g), "smooth", 0.0)) == pytest.approx(
+        0.25 * sq.sum(), rel=1e-6)
     scene = tiny_cloud()
     t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
     with pytest.raises(df.DifffogError, match="prior: 'l1' is not one of tv, smooth"):
@@ -169,6 +177,23 @@ def test_a_density_fit_takes_the_step_scheme_unless_told():
     assert DENSITY_SCHEME == "step" and model.solver.scheme == "step"
     _, _, model, lev = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1, {"scheme": "auto"})
     assert model.solver.resolved_scheme(lev, model.lattice) == "linear"
+
+
+def test_the_shape_prior_starts_where_smooth_does_and_ignores_the_mass():
+    """A level's "shape" prior is "smooth" of its start at the start (the level keeps the
+    start's mass), and the same for the grid at twice the density, where "smooth" is 4×."""
+    from difffog.fit._density import level_loss, roughness
+
+    scene = tiny_cloud()
+    g = np.asarray(scene.fog.density)
+    t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
+    sm, x0, _, _ = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1, prior="smooth")
+    sh, x1, _, _ = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1, prior="shape")
+    assert float(sh.mass0) == pytest.approx(float(g[g > 0].sum()), rel=1e-6)
+    for k in (1.0, 2.0):
+        a = float(roughness(sm.grid(x0 + np.log(k)), "smooth", sm.eps))
+        b = float(roughness(sh.grid(x1 + np.log(k)), "shape", sh.eps, sh.mass0))
+        assert b == pytest.approx(a / k ** 2, rel=1e-5) and a > 0
 
 
 def test_a_density_fit_samples_two_rays_per_target_pixel_side_unless_told():

@@ -94,10 +94,12 @@ def add_parser(sub) -> None:
                         "none: the fit itself, noise only)")
     p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
                    help="--unknown fog.density: the prior and its weight relative to the "
-                        "images' mean squared misfit: tv=W (total variation) or smooth=W "
-                        "(squared gradient), a fixed weight; smooth=balance: start at the "
-                        "default weight and choose it per fit by the balancing principle "
-                        "(default " + _default_prior() + ", balanced)")
+                        "images' mean squared misfit: tv=W (total variation), smooth=W "
+                        "(squared gradient) or shape=W (the squared gradient at a fixed "
+                        "mass: it does not pull the mass down), a fixed weight; "
+                        "smooth=balance or shape=balance: start at the default weight and "
+                        "choose it per fit by the balancing principle (default "
+                        + _default_prior() + ", balanced)")
     p.add_argument("--grid", type=int, default=None, metavar="N",
                    help="--unknown fog.density: the estimate's grid, N cells along each axis "
                         "(default: the scene's density grid, or 32)")
@@ -346,9 +348,9 @@ def _run_density(args, scene, targets) -> int:
                                f"{', '.join(PRIORS)}, e.g. --prior {_default_prior()}")
         if val.strip() == "balance":
             if kind not in BALANCE:
-                raise DifffogError(f"--prior {kind}=balance: only {', '.join(BALANCE)} has a "
-                                   f"balancing share; give {kind} a weight, e.g. --prior "
-                                   f"{kind}={PRIORS[kind]:g}")
+                raise DifffogError(f"--prior {kind}=balance: {kind} has no balancing share "
+                                   f"(only {' and '.join(BALANCE)} have); give {kind} a weight, "
+                                   f"e.g. --prior {kind}={PRIORS[kind]:g}")
             balance = True
         else:
             weight = _float("--prior", kind, val)

@@ -44,7 +44,10 @@ from ._targets import _block_mean, reduced_scene
 #: the squared gradient Σ|∇g|² / (cells · mean²) (forward differences; cells and mean: the
 #: level's support and its start's mean density there).  TV keeps edges and flattens peaks;
 #: "smooth" penalises cell-to-cell noise far more than broad structure.
-PRIORS = {"tv": 1e-3, "smooth": 3e-5}
+#: "shape" is "smooth" of the grid's shape, g / Σg: Σ|∇g|² · (m₀ / Σg)² with m₀ the start's
+#: mass (the same value at the start), so that it says nothing about the total mass, which
+#: the images determine; "smooth" ∝ (Σg)² at a fixed shape pulls every fit's mass down.
+PRIORS = {"tv": 1e-3, "smooth": 3e-5, "shape": 3e-5}
 #: the prior a density fit uses unless told (chosen on cloud-tomo and a second cloud of our
 #: own against Mitsuba images: docs/tomography.md)
 DEFAULT_PRIOR = "smooth"
@@ -55,7 +58,7 @@ DEFAULT_PRIOR = "smooth"
 #: cloud-tomo's fit holds at its good fixed weight (0.82 at W = 3e-5; 0.46 at 1e-5 overfits,
 #: and cloud-tomo-b's fit has its mass right at 0.62–0.81 and is too thin at 1.10):
 #: docs/tomography.md.  Per prior: "tv" has none measured, so it balances only when told.
-BALANCE = {"smooth": 0.8}
+BALANCE = {"smooth": 0.8, "shape": 0.8}
 BALANCE_TOL = 1.2
 #: how the share grows with the weight, share ∝ W^BALANCE_POWER (measured at the final level:
 #: 0.53 on cloud-tomo, 0.52 on cloud-tomo-b between W = 1e-5 and 3e-5); the new weight is
@@ -210,9 +213,16 @@ def total_variation(g, eps):
     return jnp.sum(jnp.sqrt(_grad2(g) + eps * eps) - eps)
 
 
-def roughness(g, prior: str, eps):
-    """The prior's measure of the grid: its total variation ("tv") or Σ|∇g|² ("smooth")."""
-    return total_variation(g, eps) if prior == "tv" else jnp.sum(_grad2(g))
+def roughness(g, prior: str, eps, mass0=None):
+    """The prior's measure of the grid: its total variation ("tv"), Σ|∇g|² ("smooth"), or
+    Σ|∇g|² · (``mass0`` / Σg)² ("shape": the squared gradient of the grid's shape at the mass
+    ``mass0``, unchanged when the whole grid is scaled)."""
+    if prior == "tv":
+        return total_variation(g, eps)
+    r = jnp.sum(_grad2(g))
+    if prior == "shape":
+        r = r * (mass0 / jnp.maximum(jnp.sum(g), 1e-30 * mass0)) ** 2
+    return r
 
 
 class _Loss(eqx.Module):
@@ -230,6 +240,7 @@ class _Loss(eqx.Module):
     prior_weight: jax.Array
     prior_norm: jax.Array  # 1 / (support cells · start's mean (tv) or its square (smooth))
     eps: jax.Array
+    mass0: jax.Array  # the start's mass over the support ("shape")
 
     def grid(self, x):
         g = jnp.zeros(math.prod(self.shape), x.dtype).at[self.support].set(
@@ -242,7 +253,8 @@ class _Loss(eqx.Module):
         imgs = self.model.images_from(light, with_density(self.params, g))
         data = 0.5 * self.scale * sum(jnp.sum((imgs[c] - self.targets[c]) ** 2)
                                       for c in self.targets)
-        prior = self.prior_weight * self.prior_norm * roughness(g, self.prior, self.eps)
+        prior = self.prior_weight * self.prior_norm * roughness(g, self.prior, self.eps,
+                                                                self.mass0)
         return data + prior, (data, prior, light.result, imgs)
 
 
@@ -350,7 +362,8 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
                  prior_weight=jnp.asarray(float(prior_weight), dt),
                  prior_norm=jnp.asarray(1.0 / (len(idx) * (mean if prior == "tv" else mean ** 2)),
                                         dt),
-                 eps=jnp.asarray(1e-3 * float(seed.max()), dt))
+                 eps=jnp.asarray(1e-3 * float(seed.max()), dt),
+                 mass0=jnp.asarray(float(seed[sup].sum()), dt))
     return loss, jnp.asarray(np.log(seed.reshape(-1)[idx]), dt), model, lev_scene
 
 
@@ -420,8 +433,10 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         level ``resolution``).
     downsample: the images' reduction per level (default: to about one pixel per lattice
         node along the longest axis, at least 1).
-    prior, prior_weight: the prior ("tv" or "smooth", see ``PRIORS``) and its (start) weight
-        (default: the prior's in ``PRIORS``).
+    prior, prior_weight: the prior ("tv", "smooth" or "shape", see ``PRIORS``) and its
+        (start) weight (default: the prior's in ``PRIORS``).  "shape" with
+        ``settings={"scheme": "substep"}`` was the closest to the truth on three clouds
+        against Mitsuba (docs/tomography.md, stop 50), at about twice the time.
     balance: the weight chosen per fit by the balancing principle: the prior term's share of
         the data term at the final level's best point that the fit aims for (``True``: the
         prior's in ``BALANCE``; ``False``: the weight stays ``prior_weight``).  Default: on,
