@@ -745,7 +745,9 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
     direction, or recomputes the step's factors per product).
 
     ``q_channels``: 0 for an isotropic source Q (nw, nu, nv), else 1 + J (the channels of
-    ``_source_table``); Λ̄ then has 1 + K channels when the table has K moments."""
+    ``_source_table``); Λ̄ then has 1 + K channels when the table has K moments.  The
+    sub-stepped scheme (``consts.sub``) goes to ``_sweep_face_substep_transposed``; the
+    linear-source scheme has none."""
     nw, nu, nv = tau_half_unit.shape
     P = 2 * M + 1
     D = P * P
