@@ -394,19 +394,27 @@ def _sweep_face_jvp(M, periodic, warmup, surfaces, vol, halo, kernel, recompute,
     return out, t_out
 
 
+def _slab_planes(nw: int, M: int, periodic_w: bool, warmup: int):
+    """(total, order): the planes a face sweep visits, in sweep order: on a periodic sweep axis
+    ``order`` (total,) in wrap order, ending with planes 0..nw-1 after a warm-up of at least
+    ``warmup`` planes; on an open one planes 0..nw-1 then zero padding to ``total``, a multiple
+    of M (``order`` None)."""
+    if periodic_w:
+        total = int(math.ceil((nw + warmup) / M) * M)
+        return total, np.arange(nw - total, nw) % nw
+    return int(math.ceil(nw / M) * M), None
+
+
 def _slabber(nw: int, M: int, periodic_w: bool, warmup: int):
     """(slabs, ns): ``slabs(a)`` reshapes a face-frame array (nw, ...) into ns slabs of M planes
     in sweep order.  Open: zero-padded at the end to a multiple of M.  Periodic: the planes in
     wrap order, ending with planes 0..nw-1, preceded by a warm-up long enough for every
     non-horizontal ray to have entered through an open side."""
+    total, order = _slab_planes(nw, M, periodic_w, warmup)
     if periodic_w:
-        total = int(math.ceil((nw + warmup) / M) * M)
-        order = np.arange(nw - total, nw) % nw
-
         def pick(a):
             return jnp.take(a, order, axis=0)
     else:
-        total = int(math.ceil(nw / M) * M)
         pad = total - nw
 
         def pick(a):
@@ -912,17 +920,12 @@ def substep_weight_scale(free, surf, blocked, pq, sub, weight, *, M: int,
     nw, nu, nv = free.shape
     D = len(weight)
     per_w, per_u, per_v = periodic
-    if per_w:
-        total = int(math.ceil((nw + warmup) / M) * M)
-        order = np.arange(nw - total, nw) % nw
+    total, order = _slab_planes(nw, M, per_w, warmup)
 
-        def pick(a):
+    def pick(a):  # ``_slabber``'s order, on the host
+        if per_w:
             return a[order]
-    else:
-        total = int(math.ceil(nw / M) * M)
-
-        def pick(a):
-            return np.concatenate([a, np.zeros((total - nw,) + a.shape[1:], a.dtype)])
+        return np.concatenate([a, np.zeros((total - nw,) + a.shape[1:], a.dtype)])
     ns = total // M
     solid = pick(~(free | surf)).reshape((ns, M, nu, nv))
     surf_s = pick(surf).reshape((ns, M, nu, nv))
@@ -949,6 +952,7 @@ def substep_weight_scale(free, surf, blocked, pq, sub, weight, *, M: int,
 
     def step(solid_prev, solid_s, surf_s_, bits_s):
         swp = padded(np.concatenate([solid_prev, solid_s]).astype(np.float64))
+        surf_f = surf_s_.astype(np.float64)
         acc = np.zeros((2 * M, nu + 2 * M, nv + 2 * M))
         for d in range(D):
             valid = 1.0 - at(swp[:M], pq[d])  # the chain left a fluid node
@@ -958,8 +962,7 @@ def substep_weight_scale(free, surf, blocked, pq, sub, weight, *, M: int,
             for j in range(1, M):
                 off = sub[j - 1, d]
                 if surfaces:
-                    valid = np.where(at(swp[j : j + M], off) > 0, surf_s_.astype(np.float64),
-                                     valid)
+                    valid = np.where(at(swp[j : j + M], off) > 0, surf_f, valid)
                 win = acc[j : j + M, M - off[0] : M - off[0] + nu, M - off[1] : M - off[1] + nv]
                 win += valid * (weight[d] / M)
         lam_w = fold(acc)
@@ -1177,6 +1180,35 @@ def _substep_factors(t_prev, ts, len_k4, M: int, pad, surfaces: bool):
             one_minus_exp_over(2.0 * own), one_minus_exp_over(own) if surfaces else None)
 
 
+def _substep_chain(swp, st, sft, bt, d, su, sv, u0, sub_start, byte_of, bit_of, M: int, blk,
+                   surfaces: bool):
+    """The geometry of direction ``d``'s segments arriving at a row tile's nodes, for the
+    sub-stepped loop and its transpose (which must agree on it): the window origins of the
+    M − 1 crossings in the padded two-slab window (``u0``: the tile's first row; ``sub_start``
+    (M − 1, D, 2)), whether each segment is blocked (``bt``: the tile's blocked bits; None
+    without surfaces), and per crossing whether the chain restarts there with y's radiosity
+    (it crossed a solid node on its way to a surface node ``st``) and whether its light is
+    known there (it left a fluid node, was emitted by a surface, and has not crossed into a
+    shape on its way to a node that is not a surface: ``sft`` its float).  ``swp``: the padded
+    solid flags of the 2M planes; (``su``, ``sv``) the arrival's window origin."""
+    crossing = [(jnp.asarray(j, jnp.int32), u0 + sub_start[j - 1, d, 0],
+                 sub_start[j - 1, d, 1]) for j in range(1, M)]
+    valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), blk)
+    blocked = None
+    if surfaces:
+        byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
+        blocked = ((byte >> bit_of[d]) & 1) > 0
+        valid = jnp.where(blocked, 1.0, valid)
+    valids, restarts = [], []
+    for o in crossing:
+        if surfaces:
+            sj = jax.lax.dynamic_slice(swp, o, blk) > 0
+            restarts.append(sj & st)
+            valid = jnp.where(sj, sft, valid)
+        valids.append(valid)
+    return crossing, blocked, restarts, valids
+
+
 def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
                                   consts: SweepConsts, *, M: int,
                                   periodic: tuple[bool, bool, bool], warmup: int,
@@ -1295,21 +1327,10 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
                 k = kidx[d]
                 at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
                 su, sv = u0 + start[d, 0], start[d, 1]
-                crossing = [(jnp.asarray(j, jnp.int32), u0 + sub_start[j - 1, d, 0],
-                             sub_start[j - 1, d, 1]) for j in range(1, M)]
                 # the chain forwards: its validity at each crossing and its restarts (geometry)
-                valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), blk)
-                if surfaces:
-                    byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
-                    blocked = ((byte >> bit_of[d]) & 1) > 0
-                    valid = jnp.where(blocked, 1.0, valid)
-                valids, restarts = [], []
-                for o in crossing:
-                    if surfaces:
-                        sj = jax.lax.dynamic_slice(swp, o, blk) > 0
-                        restarts.append(sj & st)
-                        valid = jnp.where(sj, sft, valid)
-                    valids.append(valid)
+                crossing, blocked, restarts, valids = _substep_chain(
+                    swp, st, sft, bt if surfaces else None, d, su, sv, u0, sub_start, byte_of,
+                    bit_of, M, blk, surfaces)
                 # backwards: the node's own half sub-steps
                 ro = jax.lax.dynamic_slice(rbo, (d, _I0, u0, _I0), (1,) + blk)[0]
                 r_through = jnp.where(pt, ro, 0.0)
@@ -1484,19 +1505,15 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
                 k = kidx[d]
                 su, sv = u0 + start[d, 0], start[d, 1]
                 r = jax.lax.dynamic_slice(src, (d, _I0, su, sv), (1,) + blk)[0]
-                valid = 1.0 - jax.lax.dynamic_slice(swp, (_I0, su, sv), blk)
+                crossing, blocked, restarts, valids = _substep_chain(
+                    swp, st, sft, bt if surfaces else None, d, su, sv, u0, sub_start, byte_of,
+                    bit_of, M, blk, surfaces)
                 if surfaces:
-                    byte = jax.lax.dynamic_index_in_dim(bt, byte_of[d], 0, keepdims=False)
-                    blocked = ((byte >> bit_of[d]) & 1) > 0
                     r = jnp.where(blocked, Bt, r)
-                    valid = jnp.where(blocked, 1.0, valid)
-                for j in range(1, M):  # the plane M − j before the arrival: window plane m + j
-                    o = (jnp.asarray(j, jnp.int32), u0 + sub_start[j - 1, d, 0],
-                         sub_start[j - 1, d, 1])
+                for i, o in enumerate(crossing):
                     if surfaces:
-                        sj = jax.lax.dynamic_slice(swp, o, blk) > 0
-                        r = jnp.where(sj & st, Bt, r)
-                        valid = jnp.where(sj, sft, valid)
+                        r = jnp.where(restarts[i], Bt, r)
+                    valid = valids[i]
                     em = jax.lax.dynamic_slice(em_w, (k,) + o, (1,) + blk)[0]
                     av = jax.lax.dynamic_slice(avg_w, (k,) + o, (1,) + blk)[0]
                     if aniso:

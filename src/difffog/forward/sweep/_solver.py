@@ -156,10 +156,15 @@ class SweepGeometry(eqx.Module):
         return self.free.shape
 
     def periodic(self, face: int) -> tuple[bool, bool, bool]:
-        axis, _ = FACE_AXES[face]
-        u, v = face_plane_axes(axis)
-        per = lambda a: self.periodic_xy and a in (0, 1)  # noqa: E731
-        return per(axis), per(u), per(v)
+        return face_periodic(face, self.periodic_xy)
+
+
+def face_periodic(face: int, periodic_xy: bool) -> tuple[bool, bool, bool]:
+    """Which of a face sweep's axes (w, u, v) wrap: x and y on a laterally periodic domain."""
+    axis, _ = FACE_AXES[face]
+    u, v = face_plane_axes(axis)
+    per = lambda a: periodic_xy and a in (0, 1)  # noqa: E731
+    return per(axis), per(u), per(v)
 
 
 def check_point_sun(scene) -> None:
@@ -218,11 +223,10 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
                    blocked=_host_face(segment_blocking(solid, surf, vec, periodic_xy), axis,
                                       sign))
         if substeps:  # the sub-stepped sweep's per-node renormalization (geometry only)
-            per = lambda a: periodic_xy and a in (0, 1)  # noqa: E731
             out["wscale"] = substep_weight_scale(
                 out["free"], out["surf"], out["blocked"], dirs.pq, substep_offsets(dirs.pq, M),
-                dirs.weights[face], M=M, periodic=(per(axis), per(u), per(v)), warmup=warmup,
-                surfaces=bool(surf.any()))
+                dirs.weights[face], M=M, periodic=face_periodic(face, periodic_xy),
+                warmup=warmup, surfaces=bool(surf.any()))
         return out
 
     # NumPy releases the GIL in its array loops: the faces and the cosine normalization on all
