@@ -1,10 +1,11 @@
-"""cloud-tomo-b and -c: more density-tomography clouds with independent Mitsuba 3 targets.
+"""cloud-tomo-b, -c and -d: more density-tomography clouds with independent Mitsuba 3 targets.
 
     python benchmarks/cloud_b.py --make        # density32.npz, start32.npz and the two scene files
     python benchmarks/cloud_b.py --validate    # the converter against the shared cloud-tomo references
                                                #   (top, view1 at 256 spp; --cameras, --spp)
     python benchmarks/cloud_b.py --render      # the six views of cloud-tomo-b: <camera>.npy, _stats.json
     python benchmarks/cloud_b.py --cloud c --make --render     # the third cloud, cloud-tomo-c
+    python benchmarks/cloud_b.py --cloud d --make --render     # the fourth, cloud-tomo-d (a deck)
 
 The scenes are the shared cloud-tomo ones (same sun, sky, ground, ζ = 36, γ = 4, six cameras)
 with another density grid.  The renders use Mitsuba 3 (``pip install mitsuba``), ``volpath``
@@ -69,6 +70,13 @@ CLOUDS = {
         ((0.58, 0.45, 0.63), (0.09, 0.08, 0.09), 1.0),     #   a turret
         ((0.26, 0.72, 0.46), (0.06, 0.06, 0.06), 0.8),     # a small puff, apart
         ((0.74, 0.30, 0.44), (0.07, 0.05, 0.05), 0.8)]),   # another
+    # d: made after the density fits' default scheme and prior were chosen on cloud-tomo, -b
+    # and -c (stop 51), to check that choice on a cloud of another kind: a broad, flat deck
+    # (stratocumulus) lit and seen mostly through its width, with one turret rising from it
+    "d": dict(seed=23, peak=0.8, base=0.40, blobs=[
+        ((0.50, 0.50, 0.50), (0.36, 0.33, 0.09), 1.0),     # the deck, wide and thin
+        ((0.30, 0.64, 0.52), (0.12, 0.10, 0.08), 1.0),     #   a thicker lobe of it
+        ((0.63, 0.40, 0.62), (0.08, 0.08, 0.16), 1.1)]),   # a turret rising from it
 }
 
 
@@ -257,7 +265,7 @@ def main():
     ap.add_argument("--validate", action="store_true", help="render shared cloud-tomo top, view1")
     ap.add_argument("--render", action="store_true", help="render the cloud's six cameras")
     ap.add_argument("--cloud", default="b", choices=list(CLOUDS),
-                    help="which cloud: cloud-tomo-b (default) or cloud-tomo-c")
+                    help="which cloud: cloud-tomo-b (default), -c or -d")
     ap.add_argument("--spp", type=int, help="samples per pixel (validate 256, render 4096)")
     ap.add_argument("--cameras", nargs="+", default=["top", "view1"], help="cameras to validate")
     ap.add_argument("--chunks", type=int, default=4, help="independent renders averaged (noise)")

@@ -8,7 +8,7 @@ against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to `
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
         [--prior-kind tv|smooth|shape] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
         [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep]
-        [--cloud shared|b|c] [--balance 0.8|off] [--scheme auto|step|linear|substep]
+        [--cloud shared|b|c|d] [--balance 0.8|off] [--scheme auto|step|linear|substep]
         [--first-collision beam|deposit]
         [--out benchmarks/results/tomography]
 """
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def load_case(cloud: str):
     """(name, references' folder or None for the shipped ones, start scene, true scene) of
-    the shared cloud-tomo ("shared"), the second cloud ("b") or the third ("c")."""
+    the shared cloud-tomo ("shared") or one of data_synthetic's ("b", "c", "d")."""
     if cloud == "shared":
         return "cloud-tomo", None, df.load_scene("cloud-tomo-start"), df.load_scene("cloud-tomo")
     name, refdir = f"cloud-tomo-{cloud}", ROOT / "data_synthetic"
@@ -65,9 +65,9 @@ def main(argv=None):
                     help="mitsuba: the shared references; sweep: rendered by the sweep at "
                          "--target-N from the truth (no noise), with the fit's scheme")
     ap.add_argument("--target-N", type=int, default=48)
-    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c"],
-                    help="shared: cloud-tomo and its Mitsuba references; b, c: the clouds of "
-                         "data_synthetic/cloud-tomo-b, -c (benchmarks/cloud_b.py)")
+    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c", "d"],
+                    help="shared: cloud-tomo and its Mitsuba references; b, c, d: the clouds "
+                         "of data_synthetic/cloud-tomo-b, -c, -d (benchmarks/cloud_b.py)")
     ap.add_argument("--balance", default=None,
                     help="the balancing principle's prior/data share (a number), or off "
                          "(default: fit_density's: on unless --prior fixes the weight)")
