@@ -101,8 +101,8 @@ def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
 
 def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
     """``roughness``: "tv" is Σ sqrt(|∇g|² + ε²) − ε and "smooth" Σ|∇g|² over the cells, with
-    forward differences that are 0 past the grid, "shape" the latter at a fixed mass (a scaled
-    grid's is unchanged, where "smooth" scales with the square); fit_density refuses an unknown prior and
+    forward differences that are 0 past the grid, "shape" the latter and "tvshape" the former
+    at a fixed mass (a scaled grid's is unchanged, where "smooth" scales with the square); fit_density refuses an unknown prior and
     a negative weight with one line each."""
     from difffog.fit._density import roughness
 
@@ -120,6 +120,10 @@ def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
             sq.sum(), rel=1e-6)
     assert float(roughness(jnp.asarray(0.5 * g), "smooth", 0.0)) == pytest.approx(
         0.25 * sq.sum(), rel=1e-6)
+    # "tvshape": "tv" of the grid brought to the start's mass, whatever its scale
+    for k in (1.0, 0.5, 3.0):
+        assert float(roughness(jnp.asarray(k * g), "tvshape", eps, m0)) == pytest.approx(
+            tv, rel=1e-6)
     scene = tiny_cloud()
     t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
     with pytest.raises(df.DifffogError, match="prior: 'l1' is not one of tv, smooth"):
@@ -163,18 +167,25 @@ def test_carving_needs_two_views_and_a_coarse_cell_all_of_its_fine_cells():
     assert coarse[0, 0, 0] and not coarse.all()
 
 
-def test_a_density_fit_takes_the_step_scheme_unless_told():
-    """The density fit's levels use the step scheme (``DENSITY_SCHEME``: closer to Mitsuba on
-    both clouds than the linear scheme that "auto" picks for a cloud's thick steps); settings
-    that name a scheme win, and "auto" still resolves to linear for the tiny cloud (step
-    depth 6.6)."""
-    from difffog.fit._density import DENSITY_SCHEME, level_loss
+def test_a_density_fit_takes_the_substep_scheme_and_the_shape_prior_unless_told():
+    """The density fit's levels use the sub-stepped scheme (``DENSITY_SCHEME``: the closest to
+    Mitsuba on the clouds' skins) and the "shape" prior (``DEFAULT_PRIOR``: blind to the
+    total mass), the pair that came closest to the truth on four clouds (docs/tomography.md);
+    settings that name a scheme win, and "auto" still resolves to linear for the tiny cloud
+    (step depth 6.6)."""
+    import inspect
+
+    from difffog.fit._density import DEFAULT_PRIOR, DENSITY_SCHEME, level_loss
 
     scene = tiny_cloud()
     g = np.asarray(scene.fog.density)
     t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
-    _, _, model, lev = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1)
-    assert DENSITY_SCHEME == "step" and model.solver.scheme == "step"
+    loss, _, model, lev = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1)
+    assert DENSITY_SCHEME == "substep" and model.solver.scheme == "substep"
+    assert DEFAULT_PRIOR == "shape" and loss.prior == "shape"
+    assert inspect.signature(df.fit_density).parameters["prior"].default == "shape"
+    _, _, model, _ = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1, {"scheme": "step"})
+    assert model.solver.scheme == "step"
     _, _, model, lev = level_loss(scene, t, g, 10, 1, 1e-3, 2, 1, {"scheme": "auto"})
     assert model.solver.resolved_scheme(lev, model.lattice) == "linear"
 
@@ -251,7 +262,7 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
     """End to end at a tiny size (one grid level, 8 evaluations, float64): the loss falls, the
     error to the truth falls well below the start's, the carving removes cells the views see
     through, the cells outside the start's support stay 0, and density.npz / fit.json are
-    written.  Then the fit's gradient at its estimate (the images' relative misfit + the TV
+    written.  Then the fit's gradient at its estimate (the images' relative misfit + the
     prior, in the log of every support cell; reverse mode through the implicit light solve:
     one adjoint solve for all the cells) against central differences on the densest, a
     middling and the thinnest cell (the fit's own compiled program).  A fixed weight

@@ -94,9 +94,10 @@ def add_parser(sub) -> None:
                         "none: the fit itself, noise only)")
     p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
                    help="--unknown fog.density: the prior and its weight relative to the "
-                        "images' mean squared misfit: tv=W (total variation), smooth=W "
-                        "(squared gradient) or shape=W (the squared gradient at a fixed "
-                        "mass: it does not pull the mass down), a fixed weight; "
+                        "images' mean squared misfit: shape=W (the squared gradient at a "
+                        "fixed mass: it does not pull the mass down), smooth=W (squared "
+                        "gradient), tv=W (total variation) or tvshape=W (total variation at "
+                        "a fixed mass), a fixed weight; "
                         "smooth=balance or shape=balance: start at the default weight and "
                         "choose it per fit by the balancing principle (default "
                         + _default_prior() + ", balanced)")

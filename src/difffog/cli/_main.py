@@ -43,7 +43,7 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                         "substep (each segment crossed plane by plane through the nearest "
                         "nodes: clouds' edges and thick fog at a coarse lattice; slower) or auto "
                         "(default: linear where one lattice step is thicker than a mean free "
-                        "path; see docs/validation.md)")
+                        "path; a density fit's default is substep; see docs/validation.md)")
     p.add_argument("--first-collision", choices=("beam", "deposit"), default=None,
                    help="sweep: what the fog's first collision scatters: beam (default: the "
                         "uncollided sun and sky at each node) or deposit (what the beams lose, "

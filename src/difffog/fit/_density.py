@@ -47,10 +47,15 @@ from ._targets import _block_mean, reduced_scene
 #: "shape" is "smooth" of the grid's shape, g / Σg: Σ|∇g|² · (m₀ / Σg)² with m₀ the start's
 #: mass (the same value at the start), so that it says nothing about the total mass, which
 #: the images determine; "smooth" ∝ (Σg)² at a fixed shape pulls every fit's mass down.
-PRIORS = {"tv": 1e-3, "smooth": 3e-5, "shape": 3e-5}
-#: the prior a density fit uses unless told (chosen on cloud-tomo and a second cloud of our
-#: own against Mitsuba images: docs/tomography.md)
-DEFAULT_PRIOR = "smooth"
+#: "tvshape" is "tv" of the grid brought to the start's mass (TV · m₀ / Σg), likewise blind
+#: to the total mass (not measured beyond stop 51's trial: docs/tomography.md).
+PRIORS = {"tv": 1e-3, "smooth": 3e-5, "shape": 3e-5, "tvshape": 1e-3}
+#: the prior a density fit uses unless told: "shape" with the sub-stepped scheme
+#: (``DENSITY_SCHEME``) came closest to the truth from Mitsuba images on cloud-tomo, -b and -c
+#: (0.140 / 0.197 / 0.204 against smooth's 0.142 / 0.215 / 0.238 with the step scheme, the
+#: mass within 6% where smooth took 7-11% off b and c), and on cloud-tomo-d, made afterwards
+#: to check it (docs/tomography.md, stop 51)
+DEFAULT_PRIOR = "shape"
 #: the balancing principle's share of the prior in the loss at the final level: after the
 #: final level's L-BFGS run, a fit whose prior term over data term, at its best point, lies
 #: outside [BALANCE / BALANCE_TOL, BALANCE · BALANCE_TOL] takes a new weight that would bring
@@ -69,13 +74,14 @@ BALANCE_POWER = 0.5
 #: a target pixel within this relative difference of the fog-free image sees clear sky or
 #: ground: its ray carves the cells it crosses out of the support
 DEFAULT_CARVE_TOL = 0.02
-#: the light solve's scheme a density fit uses unless ``settings`` names one: the step scheme.
-#: scheme="auto" would judge each level by its start's densest cell and take the linear
-#: scheme for clouds (step depth 3.75 at N = 32 on cloud-tomo), which is the further one from
-#: Mitsuba 3 there (the true cloud's own misfit at N = 32: step 3.44e-4, linear 4.66e-4;
-#: cloud-tomo-b 3.85e-4 against 4.72e-4); fits: cloud-tomo 0.189 → 0.144, in half the time
-#: (docs/tomography.md)
-DENSITY_SCHEME = "step"
+#: the light solve's scheme a density fit uses unless ``settings`` names one: the sub-stepped
+#: scheme, exact-conservation segments whose images of the true clouds are the closest to
+#: Mitsuba 3 (cloud-tomo 1.17% RMS at N = 32, step 1.84%; its collided light in the skin
+#: within 2% of N = 96, the step scheme's 8% too bright).  The step scheme fits in less than
+#: half the time but needs the "smooth" prior's pull on the mass to come out right (with
+#: "shape" it puts 23% too much mass into cloud-tomo); scheme="auto" would take the linear
+#: scheme for clouds, the furthest from Mitsuba (docs/tomography.md)
+DENSITY_SCHEME = "substep"
 #: the smallest density a support cell starts from, relative to the start's largest (its log
 #: must be finite)
 _FLOOR = 1e-3
@@ -216,11 +222,15 @@ def total_variation(g, eps):
 
 
 def roughness(g, prior: str, eps, mass0=None):
-    """The prior's measure of the grid: its total variation ("tv"), Σ|∇g|² ("smooth"), or
+    """The prior's measure of the grid: its total variation ("tv"), Σ|∇g|² ("smooth"),
     Σ|∇g|² · (``mass0`` / Σg)² ("shape": the squared gradient of the grid's shape at the mass
-    ``mass0``, unchanged when the whole grid is scaled)."""
-    if prior == "tv":
-        return total_variation(g, eps)
+    ``mass0``, unchanged when the whole grid is scaled), or the total variation of that shape
+    ("tvshape": the total variation of the grid scaled to the mass ``mass0``)."""
+    if prior in ("tv", "tvshape"):
+        if prior == "tv":
+            return total_variation(g, eps)
+        k = mass0 / jnp.maximum(jnp.sum(g), 1e-30 * mass0)
+        return total_variation(g * k, eps)
     r = jnp.sum(_grad2(g))
     if prior == "shape":
         r = r * (mass0 / jnp.maximum(jnp.sum(g), 1e-30 * mass0)) ** 2
@@ -362,7 +372,7 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
                  keep=jnp.ones(len(idx), dt), shape=tuple(seed.shape), prior=prior,
                  scale=jnp.asarray(1.0 / (pixels * bright ** 2), dt),
                  prior_weight=jnp.asarray(float(prior_weight), dt),
-                 prior_norm=jnp.asarray(1.0 / (len(idx) * (mean if prior == "tv" else mean ** 2)),
+                 prior_norm=jnp.asarray(1.0 / (len(idx) * (mean if prior in ("tv", "tvshape") else mean ** 2)),
                                         dt),
                  eps=jnp.asarray(1e-3 * float(seed.max()), dt),
                  mass0=jnp.asarray(float(seed[sup].sum()), dt))
@@ -435,10 +445,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         level ``resolution``).
     downsample: the images' reduction per level (default: to about one pixel per lattice
         node along the longest axis, at least 1).
-    prior, prior_weight: the prior ("tv", "smooth" or "shape", see ``PRIORS``) and its
-        (start) weight (default: the prior's in ``PRIORS``).  "shape" with
-        ``settings={"scheme": "substep"}`` was the closest to the truth on three clouds
-        against Mitsuba (docs/tomography.md, stop 50), at about twice the time.
+    prior, prior_weight: the prior ("shape", the default, "smooth", "tv" or "tvshape", see
+        ``PRIORS``) and its (start) weight (default: the prior's in ``PRIORS``).
     balance: the weight chosen per fit by the balancing principle: the prior term's share of
         the data term at the final level's best point that the fit aims for (``True``: the
         prior's in ``BALANCE``; ``False``: the weight stays ``prior_weight``).  Default: on,
@@ -459,7 +467,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         ray per target pixel the truth's own misfit to the Mitsuba images of cloud-tomo was
         3.44e-4 at the final level, with two per side 2.01e-4: docs/tomography.md).
     settings: further forward-model settings (the light solve's scheme is ``DENSITY_SCHEME``,
-        "step", unless they name one: ``{"scheme": "auto"}`` restores the sweep's choice).
+        "substep", unless they name one: ``{"scheme": "step"}`` takes less than half the
+        time, best with ``prior="smooth"``; ``{"scheme": "auto"}`` the sweep's choice).
     checkpoint: a file (.npz) written atomically after every evaluation: the finished levels'
         estimate and records, the current level's best point and its evaluations.
     resume: continue from ``checkpoint`` (a killed fit's, or one that ran out of
