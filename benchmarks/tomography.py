@@ -6,7 +6,7 @@ time went (compile and evaluations), then the estimate's relative L2 error and t
 against the truth (``cloud-tomo32.npz``).  Writes the estimate and fit.json to ``--out``.
 
     python benchmarks/tomography.py [--views top,view0,...] [--prior 1e-3]
-        [--prior-kind tv|smooth|shape|tvshape] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
+        [--prior-kind tv|smooth|shape] [--grids 8,16] [--resolutions 16,24,32] [--downsample 4,2,2]
         [--steps 15,15,10] [--M 3] [--rtol 1e-3] [--supersample 2] [--targets mitsuba|sweep]
         [--cloud shared|b|c|d] [--balance 0.8|off] [--scheme auto|step|linear|substep]
         [--first-collision beam|deposit]
@@ -49,7 +49,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", default="top,view0,view1,view2,view3,view4")
     ap.add_argument("--prior", type=float, default=None, help="the prior's weight")
-    ap.add_argument("--prior-kind", default=None, choices=["tv", "smooth", "shape", "tvshape"])
+    ap.add_argument("--prior-kind", default=None, choices=["tv", "smooth", "shape"])
     ap.add_argument("--grids", default="8,16")
     ap.add_argument("--resolutions", default=None)
     ap.add_argument("--downsample", default=None)

@@ -101,8 +101,8 @@ def test_traced_density_gives_the_hosts_fields_at_the_scene_grid():
 
 def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
     """``roughness``: "tv" is Σ sqrt(|∇g|² + ε²) − ε and "smooth" Σ|∇g|² over the cells, with
-    forward differences that are 0 past the grid, "shape" the latter and "tvshape" the former
-    at a fixed mass (a scaled grid's is unchanged, where "smooth" scales with the square); fit_density refuses an unknown prior and
+    forward differences that are 0 past the grid, "shape" the latter at a fixed mass (a scaled
+    grid's is unchanged, where "smooth" scales with the square); fit_density refuses an unknown prior and
     a negative weight with one line each."""
     from difffog.fit._density import roughness
 
@@ -120,10 +120,6 @@ def test_the_priors_are_the_documented_sums_and_a_bad_one_is_refused():
             sq.sum(), rel=1e-6)
     assert float(roughness(jnp.asarray(0.5 * g), "smooth", 0.0)) == pytest.approx(
         0.25 * sq.sum(), rel=1e-6)
-    # "tvshape": "tv" of the grid brought to the start's mass, whatever its scale
-    for k in (1.0, 0.5, 3.0):
-        assert float(roughness(jnp.asarray(k * g), "tvshape", eps, m0)) == pytest.approx(
-            tv, rel=1e-6)
     scene = tiny_cloud()
     t = {c.name: np.ones((c.height, c.width)) for c in scene.cameras}
     with pytest.raises(df.DifffogError, match="prior: 'l1' is not one of tv, smooth"):

@@ -96,8 +96,7 @@ def add_parser(sub) -> None:
                    help="--unknown fog.density: the prior and its weight relative to the "
                         "images' mean squared misfit: shape=W (the squared gradient at a "
                         "fixed mass: it does not pull the mass down), smooth=W (squared "
-                        "gradient), tv=W (total variation) or tvshape=W (total variation at "
-                        "a fixed mass), a fixed weight; "
+                        "gradient) or tv=W (total variation), a fixed weight; "
                         "smooth=balance or shape=balance: start at the default weight and "
                         "choose it per fit by the balancing principle (default "
                         + _default_prior() + ", balanced)")

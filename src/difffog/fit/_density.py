@@ -47,9 +47,7 @@ from ._targets import _block_mean, reduced_scene
 #: "shape" is "smooth" of the grid's shape, g / Σg: Σ|∇g|² · (m₀ / Σg)² with m₀ the start's
 #: mass (the same value at the start), so that it says nothing about the total mass, which
 #: the images determine; "smooth" ∝ (Σg)² at a fixed shape pulls every fit's mass down.
-#: "tvshape" is "tv" of the grid brought to the start's mass (TV · m₀ / Σg), likewise blind
-#: to the total mass (not measured beyond stop 51's trial: docs/tomography.md).
-PRIORS = {"tv": 1e-3, "smooth": 3e-5, "shape": 3e-5, "tvshape": 1e-3}
+PRIORS = {"tv": 1e-3, "smooth": 3e-5, "shape": 3e-5}
 #: the prior a density fit uses unless told: "shape" with the sub-stepped scheme
 #: (``DENSITY_SCHEME``) came closest to the truth from Mitsuba images on cloud-tomo, -b and -c
 #: (0.140 / 0.197 / 0.204 against smooth's 0.142 / 0.215 / 0.238 with the step scheme, the
@@ -222,15 +220,11 @@ def total_variation(g, eps):
 
 
 def roughness(g, prior: str, eps, mass0=None):
-    """The prior's measure of the grid: its total variation ("tv"), Σ|∇g|² ("smooth"),
+    """The prior's measure of the grid: its total variation ("tv"), Σ|∇g|² ("smooth"), or
     Σ|∇g|² · (``mass0`` / Σg)² ("shape": the squared gradient of the grid's shape at the mass
-    ``mass0``, unchanged when the whole grid is scaled), or the total variation of that shape
-    ("tvshape": the total variation of the grid scaled to the mass ``mass0``)."""
-    if prior in ("tv", "tvshape"):
-        if prior == "tv":
-            return total_variation(g, eps)
-        k = mass0 / jnp.maximum(jnp.sum(g), 1e-30 * mass0)
-        return total_variation(g * k, eps)
+    ``mass0``, unchanged when the whole grid is scaled)."""
+    if prior == "tv":
+        return total_variation(g, eps)
     r = jnp.sum(_grad2(g))
     if prior == "shape":
         r = r * (mass0 / jnp.maximum(jnp.sum(g), 1e-30 * mass0)) ** 2
@@ -372,7 +366,7 @@ def level_loss(scene: Scene, targets: Mapping[str, np.ndarray], seed: np.ndarray
                  keep=jnp.ones(len(idx), dt), shape=tuple(seed.shape), prior=prior,
                  scale=jnp.asarray(1.0 / (pixels * bright ** 2), dt),
                  prior_weight=jnp.asarray(float(prior_weight), dt),
-                 prior_norm=jnp.asarray(1.0 / (len(idx) * (mean if prior in ("tv", "tvshape") else mean ** 2)),
+                 prior_norm=jnp.asarray(1.0 / (len(idx) * (mean if prior == "tv" else mean ** 2)),
                                         dt),
                  eps=jnp.asarray(1e-3 * float(seed.max()), dt),
                  mass0=jnp.asarray(float(seed[sup].sum()), dt))
@@ -445,8 +439,7 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         level ``resolution``).
     downsample: the images' reduction per level (default: to about one pixel per lattice
         node along the longest axis, at least 1).
-    prior, prior_weight: the prior ("shape", the default, "smooth", "tv" or "tvshape", see
-        ``PRIORS``) and its (start) weight (default: the prior's in ``PRIORS``).
+    prior, prior_weight: the prior ("shape", the default, "smooth" or "tv", see ``PRIORS``) and its (start) weight (default: the prior's in ``PRIORS``).
     balance: the weight chosen per fit by the balancing principle: the prior term's share of
         the data term at the final level's best point that the fit aims for (``True``: the
         prior's in ``BALANCE``; ``False``: the weight stays ``prior_weight``).  Default: on,
