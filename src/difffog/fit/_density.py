@@ -439,7 +439,8 @@ def fit_density(scene: Scene, targets: Mapping[str, Any], *, start=None, grid=No
         level ``resolution``).
     downsample: the images' reduction per level (default: to about one pixel per lattice
         node along the longest axis, at least 1).
-    prior, prior_weight: the prior ("shape", the default, "smooth" or "tv", see ``PRIORS``) and its (start) weight (default: the prior's in ``PRIORS``).
+    prior, prior_weight: the prior ("shape", the default, "smooth" or "tv", see ``PRIORS``)
+        and its (start) weight (default: the prior's in ``PRIORS``).
     balance: the weight chosen per fit by the balancing principle: the prior term's share of
         the data term at the final level's best point that the fit aims for (``True``: the
         prior's in ``BALANCE``; ``False``: the weight stays ``prior_weight``).  Default: on,
