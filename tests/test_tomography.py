@@ -186,6 +186,23 @@ def test_a_density_fit_takes_the_substep_scheme_and_the_shape_prior_unless_told(
     assert model.solver.resolved_scheme(lev, model.lattice) == "linear"
 
 
+def test_a_density_fits_final_level_takes_two_pixels_per_lattice_node():
+    """The default image reduction per level: one pixel per lattice node on the coarser
+    levels, two on the final one (``FINAL_PIXELS_PER_NODE``: cloud-tomo's 64² views at full
+    size on its 32-node lattice), a divisor of every camera's sides, never below 1."""
+    from difffog.fit._density import FINAL_PIXELS_PER_NODE, level_downsample
+
+    assert FINAL_PIXELS_PER_NODE == 2
+    scene = df.load_scene("cloud-tomo-start")
+    names = {c.name for c in scene.cameras}
+    assert level_downsample(scene, names, [16, 24, 32]) == [4, 2, 1]
+    assert level_downsample(scene, names, [48, 64]) == [1, 1]
+    big = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(480, 360))
+                                      for c in scene.cameras))
+    # 480 // 16 = 30, 480 // 24 = 20, 480 // 64 = 7 -> 6 (7 does not divide 360)
+    assert level_downsample(big, names, [16, 24, 32]) == [30, 20, 6]
+
+
 def test_the_shape_prior_starts_where_smooth_does_and_ignores_the_mass():
     """A level's "shape" prior is "smooth" of its start at the start (the level keeps the
     start's mass), and the same for the grid at twice the density, where "smooth" is 4×."""
