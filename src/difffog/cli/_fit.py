@@ -75,7 +75,9 @@ def add_parser(sub) -> None:
                    help="residual loss (default linear = least squares)")
     p.add_argument("--downsample", type=int, default=None,
                    help="render the cameras at 1/K width and height, box-averaging the "
-                        "targets to match (default: the largest of 4, 2, 1 that divides)")
+                        "targets to match (default: the largest of 4, 2, 1 that divides; "
+                        "--unknown fog.density: every level at 1/K, default per level about "
+                        "one pixel per lattice node, two on the final grid)")
     p.add_argument("--max-steps", type=int, default=None,
                    help="optimizer steps (default 50; --unknown fog.density: evaluations per "
                         "grid level, default 20, and 40 for the final grid)")
