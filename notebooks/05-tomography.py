@@ -268,7 +268,7 @@ print(f"residual RMS {rms / bright:.1%} of the targets' RMS")
 # their own noise-free images b and c come to 0.156 and 0.154, so what is left there is mostly
 # not the forward model: six 64² views do not pin down a cloud's cell-scale structure, and the
 # smoothness prior fills it in smoothly. From the sweep's own images at N = 48 the shared cloud
-# comes to 0.106, not the issue's 10%. The defaults until stop 50 (the step scheme and the
+# comes to 0.116, not the issue's 10%. The defaults until stop 50 (the step scheme and the
 # plain squared gradient, `settings={"scheme": "step"}, prior="smooth"`) were faster (221 s)
 # and as close here (0.142), but that prior pulls every fit's mass down (b, c, d came out 3–11%
 # thin) and only cancelled the step scheme's own bias on this cloud (docs/tomography.md). A fit stopped early keeps a
