@@ -83,7 +83,8 @@ DENSITY_SCHEME = "substep"
 #: the final level's image pixels per lattice node along the longest axis (the coarser levels
 #: take one): 64² targets on a 32-node lattice are fitted at their own resolution, 2² rays per
 #: pixel, as many rays as one pixel per node at 4² (rays_per_pixel_side), so the same camera
-#: work and no 2×2 averaging of the cloud's edges away.  Against 1 (stop 51, Mitsuba targets,
+#: work and no 2×2 averaging of the cloud's edges away (targets larger than 4 pixels per node
+#: keep 4² rays per reduced pixel: there the final level casts 4 times the rays it did).  Against 1 (stop 51, Mitsuba targets,
 #: defaults otherwise): cloud-tomo 0.140 / −1.6% both, -b 0.193 / +3.7% (0.197 / +4.4%), -c
 #: 0.198 / +5.9% (0.204 / +5.7%), -d 0.197 / −1.1% (0.201 / −1.1%), each no slower
 #: (docs/tomography.md)
