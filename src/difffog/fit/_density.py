@@ -61,8 +61,10 @@ DEFAULT_PRIOR = "shape"
 #: cloud-tomo's fit holds at its good fixed weight (0.82 at W = 3e-5; 0.46 at 1e-5 overfits,
 #: and cloud-tomo-b's fit has its mass right at 0.62–0.81 and is too thin at 1.10):
 #: docs/tomography.md.  Per prior: "tv" has none measured, so it balances only when told;
-#: "shape" takes smooth's (the same roughness at the start; its three clouds' fits, stop 50,
-#: ended at shares 0.65-0.99 after one rebalance, not measured further).
+#: "shape" takes smooth's (the same roughness at the start).  With "shape" the fits end at
+#: shares 0.71–1.4 (stop 51, today's defaults, six Mitsuba-target fits): the share responds
+#: more steeply to W than BALANCE_POWER says, so one rebalance overshoots; not re-measured
+#: cleanly yet (docs/tomography.md, stop 51).
 BALANCE = {"smooth": 0.8, "shape": 0.8}
 BALANCE_TOL = 1.2
 #: how the share grows with the weight, share ∝ W^BALANCE_POWER (measured at the final level:
