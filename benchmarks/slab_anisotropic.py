@@ -7,7 +7,7 @@ scattered light from its moments, plus the sun's single scattering with the exac
 relative to the table (``difffog/data/references/slab_adding_doubling.csv``), float64.
 
     python benchmarks/slab_anisotropic.py [--n 32] [--m 3] [--orders 0 1 2 3 4]
-        [--first-collision beam|deposit] [--out benchmarks/results/slab_anisotropic.md]
+        [--first-collision beam|deposit] [--scheme auto|step|linear|substep] [--out benchmarks/results/slab_anisotropic.md]
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import _common as C
 CASES = [("diffuse", None), ("collimated", 0.0), ("collimated", 60.0)]
 
 
-def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam"):
+def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam", scheme="auto"):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -34,7 +34,7 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam"):
     sun = None if illumination == "diffuse" else (1.0, zenith)
     scene, lat, margin = slab_problem(tau, albedo, N, M, sun=sun, sky=0.0 if sun else 1.0, g=g)
     solver = SweepSolver(M=M, max_iterations=4000, tol=1e-8, phase_order=L,
-                         first_collision=first_collision)
+                         first_collision=first_collision, scheme=scheme)
     geom = solver.prepare(scene, lat)
 
     @jax.jit
@@ -55,7 +55,8 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam"):
     R, T = slab_reflectance(np.asarray(sigma)[0, 0], q, None, margin, lat.h,
                             sky=0.0 if sun else 1.0, sun=sun,
                             basis=basis(L, M) if L else None, sun_scatter=ss, slope=slope)
-    return R, T, int(light.iterations), "linear" if geom.linear else "step"
+    ran = "linear" if geom.linear else "substep" if geom.substep else "step"
+    return R, T, int(light.iterations), ran
 
 
 def main(argv=None):
@@ -68,6 +69,8 @@ def main(argv=None):
     ap.add_argument("--g", type=float, default=0.85)
     ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
                     help="SweepSolver.first_collision")
+    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear", "substep"],
+                    help="SweepSolver.scheme")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     import jax
@@ -94,7 +97,7 @@ def main(argv=None):
                         for tau in a.taus:
                             t = time.perf_counter()
                             R, T, k, scheme = slab(tau, albedo, a.g, N, M, L, ill, zen,
-                                                   a.first_collision)
+                                                   a.first_collision, a.scheme)
                             Rr, Tr = ref(albedo, tau, ill, zen)
                             row = dict(N=N, M=M, L=L, illumination=ill + ("" if zen is None
                                                                           else f" {zen:g}°"),
@@ -110,7 +113,8 @@ def main(argv=None):
              f"g = {a.g}; relative error of R / T in % (float64); "
              "`python benchmarks/slab_anisotropic.py`"
              + ("" if a.first_collision == "beam"
-                else f"; first collision: {a.first_collision}"), ""]
+                else f"; first collision: {a.first_collision}")
+             + ("" if a.scheme == "auto" else f"; `--scheme {a.scheme}`"), ""]
     lines += C.machine_lines(C.machine(bandwidth=False)) + [""]
     taus = a.taus
     head = ["N", "M", "L", "illumination", "albedo"] + [f"τ = {t:g}" for t in taus]
@@ -123,12 +127,14 @@ def main(argv=None):
             r = next(r for r in rows
                      if (r["N"], r["M"], r["L"], r["illumination"], r["albedo"]) == key
                      and r["tau"] == t)
-            mark = " ˡ" if r["scheme"] == "linear" else ""
+            mark = {"linear": " ˡ", "substep": " ˢ"}.get(r["scheme"], "")
             cells.append(f"{100 * r['R_err']:+.1f} / {100 * r['T_err']:+.1f}{mark}")
         body.append(list(key) + cells)
     lines += C.md_table(head, body, "rrrlr" + "r" * len(taus))
     if any(r["scheme"] == "linear" for r in rows):
         lines += ["", "ˡ: the solver chose the linear scheme (optically thick steps)."]
+    if any(r["scheme"] == "substep" for r in rows):
+        lines += ["", "ˢ: the sub-stepped scheme."]
     worst = {}
     for r in rows:
         if r["tau"] <= 4:

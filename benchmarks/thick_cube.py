@@ -59,7 +59,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     C.add_sizes(ap, (16, 32), (8,), flag="--n")
     ap.add_argument("--schemes", nargs="+", default=["auto", "step", "linear"],
-                    choices=["auto", "step", "linear"])
+                    choices=["auto", "step", "linear", "substep"])
     ap.add_argument("--zetas", nargs="+", type=float, default=None)
     ap.add_argument("--first-collisions", nargs="+", default=["beam"], choices=["beam", "deposit"])
     ap.add_argument("--out", default=str(Path(__file__).parent / "results"))
