@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def load_case(cloud: str):
     """(name, references' folder or None for the shipped ones, start scene, true scene) of
-    the shared cloud-tomo ("shared") or one of data_synthetic's ("b", "c", "d")."""
+    the shared cloud-tomo ("shared") or one of data_synthetic's ("b", "c", "d", "e")."""
     if cloud == "shared":
         return "cloud-tomo", None, df.load_scene("cloud-tomo-start"), df.load_scene("cloud-tomo")
     name, refdir = f"cloud-tomo-{cloud}", ROOT / "data_synthetic"
@@ -65,9 +65,9 @@ def main(argv=None):
                     help="mitsuba: the shared references; sweep: rendered by the sweep at "
                          "--target-N from the truth (no noise), with the fit's scheme")
     ap.add_argument("--target-N", type=int, default=48)
-    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c", "d"],
-                    help="shared: cloud-tomo and its Mitsuba references; b, c, d: the clouds "
-                         "of data_synthetic/cloud-tomo-b, -c, -d (benchmarks/cloud_b.py)")
+    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c", "d", "e"],
+                    help="shared: cloud-tomo and its Mitsuba references; b, c, d, e: the clouds "
+                         "of data_synthetic/cloud-tomo-b … -e (benchmarks/cloud_b.py)")
     ap.add_argument("--balance", default=None,
                     help="the balancing principle's prior/data share (a number), or off "
                          "(default: fit_density's: on unless --prior fixes the weight)")

@@ -59,7 +59,7 @@ def band_rows(est: np.ndarray, truth: np.ndarray, tau: np.ndarray, empty: float 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("estimates", nargs="+", type=Path)
-    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c", "d"])
+    ap.add_argument("--cloud", default="shared", choices=["shared", "b", "c", "d", "e"])
     args = ap.parse_args(argv)
     _, _, _, truth_scene = load_case(args.cloud)
     truth = np.asarray(truth_scene.fog.density, np.float64)

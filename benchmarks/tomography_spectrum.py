@@ -65,7 +65,7 @@ def row(cloud: str) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clouds", nargs="+", default=["shared", "b", "c", "d"])
+    ap.add_argument("--clouds", nargs="+", default=["shared", "b", "c", "d", "e"])
     ap.add_argument("--out", default=str(ROOT / "benchmarks/results/tomography/spectrum.md"))
     a = ap.parse_args(argv)
     rows = [row(c) for c in a.clouds]
