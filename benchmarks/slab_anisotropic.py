@@ -7,7 +7,8 @@ scattered light from its moments, plus the sun's single scattering with the exac
 relative to the table (``difffog/data/references/slab_adding_doubling.csv``), float64.
 
     python benchmarks/slab_anisotropic.py [--n 32] [--m 3] [--orders 0 1 2 3 4]
-        [--first-collision beam|deposit] [--scheme auto|step|linear|substep] [--out benchmarks/results/slab_anisotropic.md]
+        [--first-collision beam|deposit] [--scheme auto|step|linear|substep]
+        [--out benchmarks/results/slab_anisotropic.md]
 """
 
 from __future__ import annotations
