@@ -1,8 +1,8 @@
 """How much of each tomography cloud lies at the scale of its cells: what no smooth estimate
 can recover, whatever the fit.
 
-For each cloud's true density grid (the shared ``cloud-tomo`` and data_synthetic's ``b``,
-``c``, ``d``; 32³), the relative L2 error (‖a − t‖ / ‖t‖, as ``DensityFit.relative_error``)
+For each cloud's true density grid (the shared ``cloud-tomo`` and data_synthetic's ``b`` …
+``e``, as ``tomography.load_case`` finds them; 32³), the relative L2 error (‖a − t‖ / ‖t‖, as ``DensityFit.relative_error``)
 of smoothed versions of the truth itself: a Gaussian blur of σ cells (zero outside the grid),
 and the truth averaged over blocks of 2³ / 4³ cells and resampled back (``fit._density.resample``,
 the fit's own ladder map), and the share of the truth's L2 norm at wavelengths under 4 cells
@@ -23,20 +23,14 @@ from scipy.ndimage import gaussian_filter
 
 import _common as C
 from difffog.fit._density import resample
+from tomography import load_case
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGMAS = (0.5, 0.75, 1.0, 1.5)
 
 
 def truth(cloud: str) -> np.ndarray:
-    import difffog as df
-
-    if cloud == "shared":
-        scene = df.load_scene("cloud-tomo")
-    else:
-        name = f"cloud-tomo-{cloud}"
-        scene = df.load_scene(ROOT / "data_synthetic" / name / f"{name}.toml")
-    return np.asarray(scene.fog.density, np.float64)
+    return np.asarray(load_case(cloud)[3].fog.density, np.float64)
 
 
 def rel(a: np.ndarray, t: np.ndarray) -> float:

@@ -87,8 +87,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         "render_s": t["images_s"],
         "warnings": "; ".join(notes),
         "phase_order": model.geometry.order,
-        "scheme": ("linear" if model.geometry.linear else "substep" if model.geometry.substep
-                   else "step"),
+        "scheme": out.settings["solver_options"]["scheme"],
         "first_collision": first_collision,
     }
     return images, info
