@@ -303,6 +303,8 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
         assert rep["model_error"][path] == pytest.approx(math.sqrt(sum(
             v * v for v in parts.values())))
         assert rep["uncertainty"][path] >= max(rep["stderr"][path], rep["model_error"][path])
+        assert parts["brightness"] > 0  # --model-floor auto: the sweep's 0.5%
+    assert rep["model_floor"] == 0.005
     assert len(rep["correlation"]) == 2 and rep["converged"]
     assert rep["settings"]["forward"] == "sweep" and rep["settings"]["optimizer"] == "lm"
     assert rep["settings"]["model"]["resolution"] == 12
@@ -364,6 +366,8 @@ def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, cap
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--resume"], "no checkpoint"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--model-error", "finer"],
      "--model-error finer: use refine, none or a finer resolution"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--model-floor", "5%x"],
+     "--model-floor 5%x: use auto or a relative brightness in [0, 1)"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",
       "fog.scattering=3,9"], "outside"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--edge-weight", "2"],

@@ -609,12 +609,16 @@ def test_the_fits_defaults_recover_the_truth_within_their_uncertainty(scene_name
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="translucent-cube's ground albedo against Mitsuba at "
-                   "N = 24: -0.32% against a total uncertainty of 0.06% (issue 16)")
 def test_translucent_cube_ground_albedo_against_mitsuba_within_its_uncertainty_at_24():
+    """The ground's albedo sits −0.32% against the Mitsuba image at every N and M tried, a
+    bias no finer lattice reveals (its lattice parts are 0.02–0.04%): the brightness floor
+    (0.5% for the sweep) is what covers it, and the total stays informative (under 1%)."""
     res, truth = _recover("translucent-cube", "mc", N=24, model_error="refine")
     p = "shape.ground.albedo"
+    parts = res.model_error_parts[p]
+    assert parts["brightness"] > 3 * max(parts["lattice"], parts["directions"])
     assert abs(res.estimates[p] - truth[p]) <= 3 * res.uncertainty[p]
+    assert res.uncertainty[p] < 0.01 * truth[p]
 
 
 def test_stall_test_counts_rejected_steps_after_progress():
@@ -858,6 +862,44 @@ def test_refine_says_which_check_it_left_out():
     assert math.isnan(res.uncertainty["fog.scattering"]) and res.stderr["fog.scattering"] > 0
     assert any("the estimate is not corrected and the model error not estimated: at N = 15, "
                "that light solve did not converge" in w for w in res.warnings), res.warnings
+
+
+def test_refine_counts_the_brightness_floor():
+    """model_floor adds to the model error how far the estimates move when the camera's image
+    is that much too bright.  The Toy's image is linear and homogeneous in ζ, γ and the walls'
+    albedo, so a brightness bias ε is absorbed by scaling all three by 1 + ε: each part is
+    ε·θ.  With an exposure among the unknowns the gain absorbs it alone.  "auto" gives a model
+    of no registered solver no floor (the other refine tests), the sweep its 0.5%."""
+    from difffog.fit._driver import _brightness_floor
+
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3, "shape.walls.albedo": 0.6}
+    target = _toy_target(LatticeToy(10**9), **truth)
+    start = {"fog.scattering": 0.5, "fog.absorption": 1.0, "shape.walls.albedo": 0.4}
+    eps = 0.01
+    res = df.fit(Toy().scene, target, start, forward=LatticeToy(10), model_error="refine",
+                 model_floor=eps)
+    assert res.converged, res.message
+    for p in truth:
+        parts = res.model_error_parts[p]
+        assert parts["brightness"] == pytest.approx(eps * res.fitted[p], rel=0.02), p
+        assert res.model_error[p] == pytest.approx(
+            math.sqrt(sum(v * v for v in parts.values())), rel=1e-9)
+    assert res.model_floor == eps and res.to_json()["model_floor"] == eps
+    assert "a 1.00% brightness floor" in res.summary()
+    fog = {"fog.scattering": 1.5, "fog.absorption": 0.3}  # the walls' albedo known
+    gain = df.fit(Toy().scene, _toy_target(LatticeToy(10**9), **fog),
+                  {"fog.scattering": 0.5, "fog.absorption": 1.0, "exposure": 1.0},
+                  forward=LatticeToy(10), model_error="refine", model_floor=eps)
+    assert gain.model_error_parts["exposure"]["brightness"] == pytest.approx(
+        eps * gain.fitted["exposure"], rel=0.02)
+    for p in fog:
+        assert gain.model_error_parts[p]["brightness"] < 1e-3 * eps * gain.fitted[p], p
+    assert _brightness_floor("sweep", "auto") == 0.005
+    assert _brightness_floor(LatticeToy(10), "auto") == 0.0
+    for bad in (-0.1, 1.0, float("nan"), "0.01", True):
+        with pytest.raises(df.DifffogError, match=r"model_floor=.*use \"auto\" or a relative"):
+            df.fit(Toy().scene, target, start, forward=LatticeToy(10), model_error="refine",
+                   model_floor=bad)
 
 
 class TooBigToy(LatticeToy):

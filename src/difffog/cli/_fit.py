@@ -27,6 +27,20 @@ def _ladder(text: str):
     return levels
 
 
+def _model_floor(text: str):
+    """--model-floor: "auto" or a relative brightness (0.005, 0.5%)."""
+    if text == "auto":
+        return "auto"
+    try:
+        value = float(text[:-1]) / 100 if text.endswith("%") else float(text)
+    except ValueError:
+        value = None
+    if value is None or not 0.0 <= value < 1.0:
+        raise DifffogError(f"--model-floor {text}: use auto or a relative brightness in [0, 1) "
+                           f"such as 0.005 or 0.5% (0 leaves it out)")
+    return value
+
+
 def _model_error(text: str):
     """--model-error: "refine", "none" or a resolution N."""
     if text in ("refine", "none"):
@@ -94,6 +108,12 @@ def add_parser(sub) -> None:
                         "fit itself); their model error, from that step and two checks (a "
                         "lattice between, M + 1), is added to the uncertainty (default refine; "
                         "none: the fit itself, noise only)")
+    p.add_argument("--model-floor", default="auto", metavar="auto|F",
+                   help="with --model-error: also count, in each estimate's model error, a "
+                        "relative brightness bias F of one camera's images at a time, the "
+                        "forward model's brightness against independent truth that no finer "
+                        "lattice reveals (default auto: the solver's validated figure, 0.5%% "
+                        "for the sweep; 0 leaves it out)")
     p.add_argument("--prior", default=None, metavar="KIND=WEIGHT",
                    help="--unknown fog.density: the prior and its weight relative to the "
                         "images' mean squared misfit: shape=W (the squared gradient at a "
@@ -259,7 +279,8 @@ def run(args) -> int:
                      resume=args.resume, progress=progress, ladder=_ladder(args.ladder),
                      edge_weight=args.edge_weight,
                      model_error=(None if args.ladder != "none"
-                                  else _model_error(args.model_error)))
+                                  else _model_error(args.model_error)),
+                     model_floor=_model_floor(args.model_floor))
     for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)
         if issubclass(w.category, MemoryWarning):
             print(f"difffog: warning: {w.message}", file=sys.stderr)

@@ -61,8 +61,11 @@ class FitResult:
         estimate of a lattice between (1.5 N, the fit's M) lands from the line through the fit
         and the corrected estimate ("lattice_between"); the change with M + 1 on the fit's own
         lattice ("directions"); with the sun's angles as unknowns, how far the last round's
-        rebuild at the estimated sun moved each estimate ("sun_rounds").  ``model_error`` is
-        their root sum of squares.
+        rebuild at the estimated sun moved each estimate ("sun_rounds"); how far a relative
+        brightness bias of ``fit``'s ``model_floor`` in one camera's images at a time moves it
+        ("brightness", the model's brightness against independent truth, which no finer
+        lattice reveals).  ``model_error`` is their root sum of squares.
+    model_floor: the relative brightness bias behind the "brightness" part (0: none).
     sun_rounds: with the sun's angles as unknowns, one dict per round of the fit (the sun the
         round's model was built at, its estimates, iterations, result): each round rebuilds
         the model at the previous round's sun, until the sun moves less than
@@ -94,6 +97,7 @@ class FitResult:
     fitted: dict = field(default_factory=dict)
     model_error_parts: dict = field(default_factory=dict)
     sun_rounds: list = field(default_factory=list)
+    model_floor: float = 0.0
 
     @property
     def converged(self) -> bool:
@@ -139,6 +143,9 @@ class FitResult:
                     by["model error" if self.model_error[p] > self.stderr[p] else "noise"].append(p)
             if self.model_error_parts:
                 source = "model error from " + "; ".join(level_label(lv) for lv in self.ladder[1:])
+                if self.model_floor:
+                    source += f"; a {self.model_floor:.2%} brightness floor"
+
             else:
                 source = ("model error from resolution "
                           + " → ".join(str(lv["resolution"]) for lv in self.ladder))
@@ -198,6 +205,7 @@ class FitResult:
             "fitted": self.fitted or self.estimates,
             "model_error_parts": self.model_error_parts,
             "sun_rounds": self.sun_rounds,
+            "model_floor": self.model_floor,
         }
 
 
