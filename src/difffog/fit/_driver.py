@@ -696,22 +696,28 @@ def _brightness_floor(forward, model_floor) -> float:
     return float(model_floor)
 
 
-def _floor_shifts(st, u, J, y, floor: float) -> dict[str, float]:
+def _moved_estimates(st, u, J, dy) -> dict[str, float]:
+    """The estimates after the Gauss–Newton step an image change ``dy`` (in the residual's
+    units) causes, taken in the unconstrained coordinates, so a moved albedo stays inside its
+    bounds."""
+    du = -np.linalg.lstsq(J, dy, rcond=None)[0]
+    return {c.path: float(c.to_v(float(x) + float(d))) for c, x, d in zip(st.coords, u, du)}
+
+
+def _floor_shifts(st, u, J, y, weight, fitted, floor: float) -> dict[str, float]:
     """Each estimate's shift (physical units) under a relative brightness bias ``floor`` of
-    one camera's images at a time (the Gauss–Newton step it would cause), root sum of squares
-    over the cameras."""
-    sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
-    total = np.zeros(len(st.coords))
+    one camera's images at a time, root sum of squares over the cameras; ``weight`` turns an
+    image change into the residual's units."""
+    total = dict.fromkeys(fitted, 0.0)
     off = 0
     for name in st.names:
         size = st.tgt[name].size
         dy = np.zeros_like(y)
         dy[off:off + size] = floor * y[off:off + size]
         off += size
-        du = -np.linalg.lstsq(J, sqrt_w * dy / scale, rcond=None)[0]
-        total += np.array([(c.to_v(float(x) + float(d)) - c.to_v(float(x))) ** 2
-                           for c, x, d in zip(st.coords, u, du)])
-    return {c.path: float(math.sqrt(t)) for c, t in zip(st.coords, total)}
+        for p, v in _moved_estimates(st, u, J, weight * dy).items():
+            total[p] += (v - fitted[p]) ** 2
+    return {p: math.sqrt(t) for p, t in total.items()}
 
 
 def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
@@ -759,11 +765,9 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
             res.warnings.append(f"the model error leaves out its check at {label}: {name}; "
                                 f"the uncertainty may be too small")
             continue
-        dy = sqrt_w * (y_f.astype(np.float64) - y) / scale  # in the residual's units
-        du = -np.linalg.lstsq(J, dy, rcond=None)[0]  # the Gauss–Newton step that model takes
-        # taken in the unconstrained coordinates, so a moved albedo stays inside its bounds
-        moved.append((what, {p: float(c.to_v(float(x) + float(d)))
-                             for p, c, x, d in zip(res.paths, st.coords, u, du)}))
+        # the Gauss–Newton step that model's images take the estimate
+        moved.append((what, _moved_estimates(st, u, J, sqrt_w * (y_f.astype(np.float64) - y)
+                                             / scale)))
     meter.update(len(checks), len(checks))
     meter.close()
     refined = moved[0][1]  # the estimate corrected to the finer lattice
@@ -783,7 +787,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         for p in res.paths:
             parts[p]["lattice_between"] = abs(est[p] - (fitted[p] + t * (refined[p] - fitted[p])))
     if floor > 0:  # the brightness the validation vouches for, not the lattice
-        for p, v in _floor_shifts(st, u, J, y, floor).items():
+        for p, v in _floor_shifts(st, u, J, y, sqrt_w / scale, fitted, floor).items():
             parts[p]["brightness"] = v
         res.model_floor = floor
     if len(res.sun_rounds) >= 2:  # how far the last rebuild at the estimated sun moved each

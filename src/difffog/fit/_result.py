@@ -145,7 +145,6 @@ class FitResult:
                 source = "model error from " + "; ".join(level_label(lv) for lv in self.ladder[1:])
                 if self.model_floor:
                     source += f"; a {self.model_floor:.2%} brightness floor"
-
             else:
                 source = ("model error from resolution "
                           + " → ".join(str(lv["resolution"]) for lv in self.ladder))

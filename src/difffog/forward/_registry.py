@@ -138,7 +138,7 @@ SOLVERS: dict[str, SolverEntry] = {
         traces_sun=True,
         # the image means of a fine render (N = 64, M = 3) against the Mitsuba 3 references:
         # +0.5 / +0.6% (fog-balls), −0.2 / +0.3% (ring-box), +0.1 / +0.2% (translucent-cube),
-        # 0.0% (furnace); docs/fitting.md, "The model's brightness floor"
+        # 0.0% (furnace); docs/fitting.md, the model error's "brightness" part
         brightness_floor=0.005,
     ),
     "splat": SolverEntry(
