@@ -53,7 +53,7 @@ from ._cache import (
 from .forward._registry import (
     SOLVERS as SOLVERS,
     forward_model as forward_model,
-    model_estimate as estimate,
+    model_estimate as estimate,  # noqa: F401 (difffog.estimate: the public name)
 )
 from .forward.splat._model import SheetLight as SheetLight, SplatModel as SplatModel
 from .forward.sweep._lightfield import LightField as LightField

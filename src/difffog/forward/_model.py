@@ -207,13 +207,13 @@ def largest_inputs(params: Params, k: int = 3) -> str:
     """The ``k`` parameters of largest magnitude, named as a scene file names them
     ('fog.scattering = 1e+14, sun.irradiance = 3'): where a valid input overflowed, the
     message says which input led there."""
-    vals = [(path, float(np.asarray(getattr(params, field))))
-            for path, field in _SCALAR_PATHS.items()]
-    for field in ("albedo", "emission"):
-        a = np.asarray(getattr(params, field), np.float64).reshape(-1)
+    vals = [(path, float(np.asarray(getattr(params, name))))
+            for path, name in _SCALAR_PATHS.items()]
+    for name in ("albedo", "emission"):
+        a = np.asarray(getattr(params, name), np.float64).reshape(-1)
         if a.size:
             i = int(np.argmax(np.abs(a)))
-            vals.append((f"shape #{i} {field}", float(a[i])))
+            vals.append((f"shape #{i} {name}", float(a[i])))
     vals.sort(key=lambda t: -abs(t[1]) if np.isfinite(t[1]) else -np.inf)
     return ", ".join(f"{p} = {v:.3g}" for p, v in vals[:k])
 
