@@ -297,6 +297,63 @@ def test_loop_kernel_matches_batched_kernel(shape, surfaces):
                   2e-6)
 
 
+def test_paired_face_sweeps_equal_six_separate_sweeps(x64):
+    """One program sweeps the + and − faces of an axis (``lax.map`` over the pair; the fog step
+    over the union of the two faces' fog planes): Λ, E and every face's exit radiance equal
+    six separate face sweeps, each with its own fog planes, and so does the transposed sweep
+    of the adjoint.  The fog sits off-centre in the column, so the ± faces' planes differ."""
+    import dataclasses
+
+    from difffog.forward.sweep._kernel import sweep_face, sweep_face_transposed
+    from difffog.forward.sweep._solver import (FACE_AXES, _jacobi_transposed, _sources,
+                                               _sweep_all, _with_sources, from_face, to_face)
+
+    scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0), margin=4)
+    density = np.zeros_like(lat.density)
+    density[..., 2:9] = 1.0  # nodes 2..8 of 16: 2 vacuum planes below, 7 above
+    lat = dataclasses.replace(lat, density=density)
+    solver = SweepSolver(M=2, scheme="step")
+    geom = solver.prepare(scene, lat)
+    zp, zm = FACE_AXES.index((2, 1)), FACE_AXES.index((2, -1))
+    assert geom.vol_range(zp) is not None and geom.vol_range(zp) != geom.vol_range(zm)
+    pb = solver.problem(geom, Params.from_scene(scene, jnp.float64))
+    rng = np.random.default_rng(3)
+    q = jnp.asarray(rng.random(geom.shape))
+    b = jnp.asarray(rng.random(geom.shape))
+    (lam, irr), exits = _sweep_all(q, b, pb, return_exits=True)
+    g = pb.geom
+    want_lam, want_irr = jnp.zeros_like(lam), jnp.zeros_like(irr)
+    for f, (axis, sign) in enumerate(FACE_AXES):  # the six sweeps one by one
+        lf, ef, ex = sweep_face(
+            to_face(q, axis, sign), to_face(b, axis, sign), pb.tau_half[f],
+            pb.sky * g.sky_frac[f], g.faces[f], g.consts[f], M=g.M, periodic=g.periodic(f),
+            warmup=g.warmup, surfaces=g.has_surfaces, kernel=pb.kernel,
+            vol_range=g.vol_range(f))
+        want_lam = want_lam + from_face(lf, axis, sign)
+        want_irr = want_irr + from_face(ef, axis, sign)
+        np.testing.assert_allclose(np.asarray(exits[f]), np.asarray(ex), rtol=1e-12, atol=1e-14)
+    fog = np.asarray(pb.fog_mask) if pb.fog_mask is not None else np.ones(lam.shape, bool)
+    np.testing.assert_allclose(np.asarray(lam)[fog], np.asarray(want_lam)[fog], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(irr), np.asarray(jnp.where(g.surf, want_irr, 0.0)),
+                               rtol=1e-12, atol=1e-14)
+    assert float(jnp.max(lam)) > 0
+    # the adjoint's transposed sweeps: the paired program against the six one by one
+    v = (jnp.asarray(rng.random(lam.shape)) * fog, jnp.zeros_like(irr))
+    zeroed = _with_sources(pb, False)
+    got = _jacobi_transposed(v, zeroed)
+    q_bar = jnp.zeros(geom.shape, jnp.float64)
+    for f, (axis, sign) in enumerate(FACE_AXES):
+        qf, _ = sweep_face_transposed(
+            to_face(v[0], axis, sign), to_face(v[1], axis, sign), pb.tau_half[f], g.faces[f],
+            g.consts[f], M=g.M, periodic=g.periodic(f), warmup=g.warmup,
+            surfaces=g.has_surfaces)
+        q_bar = q_bar + from_face(qf, axis, sign)
+    _, vjp = jax.vjp(lambda s: _sources(s, zeroed), jax.tree.map(jnp.zeros_like, v))
+    want = vjp((q_bar, jnp.zeros_like(irr)))[0]
+    for x, y in zip(got, want):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("name,derivatives", [
     ("fog-balls", False),
     # derivatives always come from the batched program (the kernels differ in the primal the

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import math
 import os
 
@@ -529,11 +530,19 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
               fluence=True if pl is None else pl.volume_source)
     nf, npu, npv = pb.mesh_shape
     if nf * npu * npv == 1:
-        for f, (axis, sign) in enumerate(FACE_AXES):
-            lf, ef, exits[f] = sweep_face(*face_args(f), periodic=g.periodic(f),
-                                          vol_range=g.vol_range(f), **kw)
-            lam = lam + from_face(lf, axis, sign)
-            irr = irr + from_face(ef, axis, sign)
+        # The + and − sweeps of an axis have the same shapes: one program sweeps both, one
+        # after the other (``lax.map`` over the pair), so the light solve holds three sweep
+        # programs, not six.  The work is the same but for the fog step, which runs over the
+        # union of the two faces' fog planes.
+        for axis in range(3):
+            fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
+            pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+            sweep = functools.partial(sweep_face, periodic=g.periodic(fp),
+                                      vol_range=_union(g.vol_range(fp), g.vol_range(fm)), **kw)
+            lf, ef, ex = jax.lax.map(lambda a: sweep(*a), pair)
+            lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
+            irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
+            exits[fp], exits[fm] = ex[0], ex[1]
     else:
         mesh = _device_mesh(pb.mesh_shape)
         for axis in range(3):
@@ -565,6 +574,13 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
         lam = _mask(~pb.fog_mask, lam)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
+
+
+def _union(a: tuple[int, int] | None, b: tuple[int, int] | None) -> tuple[int, int] | None:
+    """The plane range [lo, hi) that covers both ``a`` and ``b`` (None: every plane)."""
+    if a is None or b is None:
+        return None
+    return min(a[0], b[0]), max(a[1], b[1])
 
 
 def mesh_shape_for(devices: int) -> tuple[int, int, int]:
@@ -802,16 +818,23 @@ def _jacobi_transposed(v, pb: "_Problem"):
     fluence = True if pl is None else pl.volume_source
     q_bar = jnp.zeros(q_sd.shape, q_sd.dtype)
     b_bar = jnp.zeros(b_sd.shape, b_sd.dtype)
-    for f, (axis, sign) in enumerate(FACE_AXES):
+    def face_args(f):
+        axis, sign = FACE_AXES[f]
         consts = g.consts[f]
         if pb.sun_phase is not None:
             consts = dataclasses.replace(consts, sun_phase=pb.sun_phase[f])
-        qf, bf = sweep_face_transposed(
-            to_face(lam_bar, axis, sign), to_face(irr_bar, axis, sign), pb.tau_half[f],
-            g.faces[f], consts, M=g.M, periodic=g.periodic(f), warmup=g.warmup,
-            surfaces=g.has_surfaces, fluence=fluence, q_channels=nq)
-        q_bar = q_bar + from_face(qf, axis, sign)
-        b_bar = b_bar + from_face(bf, axis, sign)
+        return (to_face(lam_bar, axis, sign), to_face(irr_bar, axis, sign), pb.tau_half[f],
+                g.faces[f], consts)
+
+    for axis in range(3):  # the ± faces of an axis in one program, as in ``_sweep_all``
+        fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
+        pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+        sweep = functools.partial(sweep_face_transposed, M=g.M, periodic=g.periodic(fp),
+                                  warmup=g.warmup, surfaces=g.has_surfaces, fluence=fluence,
+                                  q_channels=nq)
+        qf, bf = jax.lax.map(lambda a: sweep(*a), pair)
+        q_bar = q_bar + from_face(qf[0], axis, 1) + from_face(qf[1], axis, -1)
+        b_bar = b_bar + from_face(bf[0], axis, 1) + from_face(bf[1], axis, -1)
     return vjp((q_bar, b_bar))[0]
 
 
