@@ -1,0 +1,86 @@
+"""Where a sweep model's compile time goes: the size of each compiled program (StableHLO lines,
+while loops, functions) and its XLA compile seconds, for the light solve, the cameras, the
+whole image program and the gradient of an image loss, with JAX's persistent cache off.
+
+The default test suite is compile-bound (``python -m pytest -q --durations=0``), and so is a
+user's first render or fit; this measures what a change to the program's structure buys.
+
+    python benchmarks/compile_cost.py [--scene fog-balls] [--N 12] [--M 2] [--kernel auto]
+        [--out benchmarks/results/compile_cost.md]
+
+The defaults are the test suite's small sweep model (``tests/helpers.py``: fog-balls reduced,
+N = 12, M = 2, supersample 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+import time
+
+os.environ["DIFFFOG_CACHE_DIR"] = "off"  # every program compiles here: nothing from the cache
+
+import _common as C  # noqa: E402
+
+
+def _program(fn, *args):
+    """(lines, while loops, functions, lowering s, compile s) of ``jax.jit(fn)`` at ``args``."""
+    import jax
+
+    t0 = time.perf_counter()
+    low = jax.jit(fn).lower(*args)
+    t1 = time.perf_counter()
+    low.compile()
+    t2 = time.perf_counter()
+    txt = low.as_text()
+    return (txt.count("\n"), len(re.findall(r"stablehlo\.while", txt)),
+            len(re.findall(r"func\.func", txt)), t1 - t0, t2 - t1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="fog-balls")
+    ap.add_argument("--N", type=int, default=12)
+    ap.add_argument("--M", type=int, default=2)
+    ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched"])
+    ap.add_argument("--out", default=None, help="write the markdown report here")
+    a = ap.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+
+    import difffog as df
+
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
+    from helpers import small_scene
+
+    scene = small_scene() if a.scene == "fog-balls" else df.load_scene(a.scene)
+    model = df.forward_model(scene, "sweep", accuracy=None, resolution=a.N, M=a.M, tol=1e-6,
+                             supersample=1, kernel=a.kernel)
+    p = model.params()
+    light = jax.jit(lambda q: model.light(q))(p)
+    rows = [("light solve", _program(lambda q: model.light(q), p)),
+            ("cameras (images from a light)", _program(lambda l, q: model.images_from(l, q),
+                                                        light, p)),
+            ("images (both)", _program(lambda q: model.images(q, throw=False), p)),
+            ("gradient of Σ images", _program(jax.grad(
+                lambda q: sum(jnp.sum(v) for v in model.images(q, throw=False).values())), p))]
+    out = [f"# Compile cost of a sweep model ({a.scene}{' reduced' if a.scene == 'fog-balls' else ''}, "
+           f"N = {a.N}, M = {a.M}, kernel {model.settings()['solver_options']['kernel']})", "",
+           f"`python benchmarks/compile_cost.py --scene {a.scene} --N {a.N} --M {a.M} "
+           f"--kernel {a.kernel}`; JAX's persistent compilation cache off.", "",
+           *C.machine_lines(C.machine()), "",
+           "| program | StableHLO lines | while loops | functions | lowering s | XLA compile s |",
+           "|---|---:|---:|---:|---:|---:|"]
+    for name, (lines, whiles, funcs, t_low, t_comp) in rows:
+        out.append(f"| {name} | {lines} | {whiles} | {funcs} | {t_low:.1f} | {t_comp:.1f} |")
+    text = "\n".join(out) + "\n"
+    print(text)
+    if a.out:
+        C.write_text(a.out, text)
+
+
+if __name__ == "__main__":
+    main()
