@@ -535,8 +535,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
         # programs, not six.  The work is the same but for the fog step, which runs over the
         # union of the two faces' fog planes.
         for axis in range(3):
-            fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
-            pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+            fp, fm, pair = _face_pair(face_args, axis)
             sweep = functools.partial(sweep_face, periodic=g.periodic(fp),
                                       vol_range=_union(g.vol_range(fp), g.vol_range(fm)), **kw)
             lf, ef, ex = jax.lax.map(lambda a: sweep(*a), pair)
@@ -552,7 +551,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                 # them and let each half of the mesh run one; XLA on a CPU runs one fused loop
                 # at a time per device, so this is what puts a second core to work.  (No
                 # vol_range: the two faces share one program, and their fog ranges differ.)
-                pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+                _, _, pair = _face_pair(face_args, axis)
                 lf, ef, ex = sweep_face_mesh(pair, mesh, stacked=True,
                                              periodic=g.periodic(fp), **kw)
                 lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
@@ -574,6 +573,14 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
         lam = _mask(~pb.fog_mask, lam)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
+
+
+def _face_pair(face_args, axis: int):
+    """(f+, f−, their arguments stacked on a leading axis of 2): the + and − faces of ``axis``
+    (same shapes), for one program over the pair (``lax.map`` on one device, ``shard_map``
+    over a mesh's "face" axis)."""
+    fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
+    return fp, fm, jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
 
 
 def _union(a: tuple[int, int] | None, b: tuple[int, int] | None) -> tuple[int, int] | None:
@@ -818,6 +825,7 @@ def _jacobi_transposed(v, pb: "_Problem"):
     fluence = True if pl is None else pl.volume_source
     q_bar = jnp.zeros(q_sd.shape, q_sd.dtype)
     b_bar = jnp.zeros(b_sd.shape, b_sd.dtype)
+
     def face_args(f):
         axis, sign = FACE_AXES[f]
         consts = g.consts[f]
@@ -827,8 +835,7 @@ def _jacobi_transposed(v, pb: "_Problem"):
                 g.faces[f], consts)
 
     for axis in range(3):  # the ± faces of an axis in one program, as in ``_sweep_all``
-        fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
-        pair = jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+        fp, _, pair = _face_pair(face_args, axis)
         sweep = functools.partial(sweep_face_transposed, M=g.M, periodic=g.periodic(fp),
                                   warmup=g.warmup, surfaces=g.has_surfaces, fluence=fluence,
                                   q_channels=nq)
