@@ -60,7 +60,7 @@ def main(argv=None):
     model = df.forward_model(scene, "sweep", accuracy=None, resolution=a.N, M=a.M, tol=1e-6,
                              supersample=1, kernel=a.kernel)
     p = model.params()
-    light = jax.jit(lambda q: model.light(q))(p)
+    light = jax.eval_shape(lambda q: model.light(q), p)  # the cameras' program needs its shapes only
     rows = [("light solve", _program(lambda q: model.light(q), p)),
             ("cameras (images from a light)", _program(lambda l, q: model.images_from(l, q),
                                                         light, p)),

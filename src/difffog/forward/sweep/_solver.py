@@ -529,42 +529,37 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
               attenuate=True if pl is None else pl.fog,
               fluence=True if pl is None else pl.volume_source)
     nf, npu, npv = pb.mesh_shape
-    if nf * npu * npv == 1:
-        # The + and − sweeps of an axis have the same shapes: one program sweeps both, one
-        # after the other (``lax.map`` over the pair), so the light solve holds three sweep
-        # programs, not six.  The work is the same but for the fog step, which runs over the
-        # union of the two faces' fog planes.
-        for axis in range(3):
+    one = nf * npu * npv == 1
+    mesh = None if one else _device_mesh(pb.mesh_shape)
+    for axis in range(3):
+        if one or nf == 2:
+            # The + and − sweeps of an axis are independent and have the same shapes: one
+            # program sweeps both.  On one device ``lax.map`` runs them one after the other
+            # (three sweep programs to compile, not six; the fog step over the union of the two
+            # faces' fog planes).  On a mesh each half runs one: XLA on a CPU runs one fused
+            # loop at a time per device, so this is what puts a second core to work (no
+            # vol_range there).
             fp, fm, pair = _face_pair(face_args, axis)
-            sweep = functools.partial(sweep_face, periodic=g.periodic(fp),
-                                      vol_range=_union(g.vol_range(fp), g.vol_range(fm)), **kw)
-            lf, ef, ex = jax.lax.map(lambda a: sweep(*a), pair)
+            if one:
+                sweep = functools.partial(
+                    sweep_face, periodic=g.periodic(fp),
+                    vol_range=_union(g.vol_range(fp), g.vol_range(fm)), **kw)
+                lf, ef, ex = jax.lax.map(lambda a: sweep(*a), pair)
+            else:
+                lf, ef, ex = sweep_face_mesh(pair, mesh, stacked=True,
+                                             periodic=g.periodic(fp), **kw)
             lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
             irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
             exits[fp], exits[fm] = ex[0], ex[1]
-    else:
-        mesh = _device_mesh(pb.mesh_shape)
-        for axis in range(3):
-            fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
-            if nf == 2:
-                # The + and − sweeps of an axis are independent and have the same shapes: stack
-                # them and let each half of the mesh run one; XLA on a CPU runs one fused loop
-                # at a time per device, so this is what puts a second core to work.  (No
-                # vol_range: the two faces share one program, and their fog ranges differ.)
-                _, _, pair = _face_pair(face_args, axis)
-                lf, ef, ex = sweep_face_mesh(pair, mesh, stacked=True,
-                                             periodic=g.periodic(fp), **kw)
-                lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
-                irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
-                exits[fp], exits[fm] = ex[0], ex[1]
-            else:
-                for f, sign in ((fp, 1), (fm, -1)):
-                    lf, ef, exits[f] = sweep_face_mesh(face_args(f), mesh, stacked=False,
-                                                       periodic=g.periodic(f), **kw)
-                    lam = lam + from_face(lf, axis, sign)
-                    irr = irr + from_face(ef, axis, sign)
+        else:
+            for sign in (1, -1):
+                f = FACE_AXES.index((axis, sign))
+                lf, ef, exits[f] = sweep_face_mesh(face_args(f), mesh, stacked=False,
+                                                   periodic=g.periodic(f), **kw)
+                lam = lam + from_face(lf, axis, sign)
+                irr = irr + from_face(ef, axis, sign)
     lam = _mask(g.solid, lam)
-    if pb.fog_mask is not None and nf * npu * npv == 1:
+    if pb.fog_mask is not None and one:
         # Λ only where some segment has fog (τ > 0): the restricted sweeps skip the rest, and
         # it is never used there (the source is multiplied by τ; the camera by the density).
         # On a device mesh the sweeps are not restricted and the mask is applied to the result
