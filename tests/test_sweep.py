@@ -297,23 +297,38 @@ def test_loop_kernel_matches_batched_kernel(shape, surfaces):
                   2e-6)
 
 
-def test_paired_face_sweeps_equal_six_separate_sweeps(x64):
-    """One program sweeps the + and − faces of an axis (``lax.map`` over the pair; the fog step
-    over the union of the two faces' fog planes): Λ, E and every face's exit radiance equal
-    six separate face sweeps, each with its own fog planes, and so does the transposed sweep
-    of the adjoint.  The fog sits off-centre in the column, so the ± faces' planes differ."""
+def _face_problem(case: str):
+    """(scene, lattice) for the grouped face sweeps' test: a laterally periodic slab (a
+    non-cubic lattice: the ± pair of each axis per program) or translucent-cube at N = 10 (a
+    cubic lattice of an open domain: all six faces in one program), the fog off-centre along
+    z in both, so the + and − faces' fog planes differ."""
     import dataclasses
 
+    if case == "slab":
+        scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0), margin=4)
+        density = np.zeros_like(lat.density)
+        density[..., 2:9] = 1.0  # nodes 2..8 of 16: 2 vacuum planes below, 7 above
+        return scene, dataclasses.replace(lat, density=density)
+    scene = load_scene("translucent-cube")  # fog in z 0.1-0.7 of [0, 1]; a ground and a ring
+    return scene, voxelize(scene, 10, 2, margin=3)
+
+
+@pytest.mark.parametrize("case,groups", [("slab", 3), ("cube", 1)])
+def test_grouped_face_sweeps_equal_six_separate_sweeps(case, groups, x64):
+    """One program sweeps the faces whose frames have the same shape (``lax.map`` over them;
+    the fog step over the union of their fog planes): the ± faces of each axis, or all six on
+    a cubic lattice of an open domain.  Λ, E and every face's exit radiance equal six separate
+    face sweeps, each with its own fog planes, and so does the transposed sweep of the
+    adjoint."""
     from difffog.forward.sweep._kernel import sweep_face, sweep_face_transposed
     from difffog.forward.sweep._solver import (FACE_AXES, _jacobi_transposed, _sources,
                                                _sweep_all, _with_sources, from_face, to_face)
 
-    scene, lat, _ = slab_problem(4.0, 0.9, 8, 2, sky=0.5, sun=(1.0, 30.0), margin=4)
-    density = np.zeros_like(lat.density)
-    density[..., 2:9] = 1.0  # nodes 2..8 of 16: 2 vacuum planes below, 7 above
-    lat = dataclasses.replace(lat, density=density)
+    scene, lat = _face_problem(case)
     solver = SweepSolver(M=2, scheme="step")
     geom = solver.prepare(scene, lat)
+    assert len(geom.face_groups()) == groups
+    assert sorted(f for grp in geom.face_groups() for f in grp) == list(range(6))
     zp, zm = FACE_AXES.index((2, 1)), FACE_AXES.index((2, -1))
     assert geom.vol_range(zp) is not None and geom.vol_range(zp) != geom.vol_range(zm)
     pb = solver.problem(geom, Params.from_scene(scene, jnp.float64))
@@ -337,19 +352,23 @@ def test_paired_face_sweeps_equal_six_separate_sweeps(x64):
     np.testing.assert_allclose(np.asarray(irr), np.asarray(jnp.where(g.surf, want_irr, 0.0)),
                                rtol=1e-12, atol=1e-14)
     assert float(jnp.max(lam)) > 0
-    # the adjoint's transposed sweeps: the paired program against the six one by one
-    v = (jnp.asarray(rng.random(lam.shape)) * fog, jnp.zeros_like(irr))
+    # the adjoint's transposed sweeps: the grouped programs against the six one by one
+    live = fog & ~np.asarray(g.solid)  # where _jacobi_transposed's masks keep v
+    v = (jnp.asarray(rng.random(lam.shape)) * live, jnp.zeros_like(irr))
     zeroed = _with_sources(pb, False)
     got = _jacobi_transposed(v, zeroed)
-    q_bar = jnp.zeros(geom.shape, jnp.float64)
+    q_bar, b_bar = jnp.zeros(geom.shape, jnp.float64), jnp.zeros(geom.shape, jnp.float64)
     for f, (axis, sign) in enumerate(FACE_AXES):
-        qf, _ = sweep_face_transposed(
+        qf, bf = sweep_face_transposed(
             to_face(v[0], axis, sign), to_face(v[1], axis, sign), pb.tau_half[f], g.faces[f],
             g.consts[f], M=g.M, periodic=g.periodic(f), warmup=g.warmup,
             surfaces=g.has_surfaces)
         q_bar = q_bar + from_face(qf, axis, sign)
+        b_bar = b_bar + from_face(bf, axis, sign)
     _, vjp = jax.vjp(lambda s: _sources(s, zeroed), jax.tree.map(jnp.zeros_like, v))
-    want = vjp((q_bar, jnp.zeros_like(irr)))[0]
+    want = vjp((q_bar, b_bar))[0]
+    if case == "cube":  # the surfaces' part is checked too
+        assert float(jnp.max(jnp.abs(want[1]))) > 0
     for x, y in zip(got, want):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12, atol=1e-14)
 

@@ -159,6 +159,15 @@ class SweepGeometry(eqx.Module):
     def periodic(self, face: int) -> tuple[bool, bool, bool]:
         return face_periodic(face, self.periodic_xy)
 
+    def face_groups(self) -> tuple[tuple[int, ...], ...]:
+        """The faces one sweep program runs together on one device: all six where every
+        face frame has the same shape and wrapping (a cubic lattice of an open domain: every
+        shared open scene's), else the + and − faces of each axis (always alike)."""
+        pairs = tuple((FACE_AXES.index((a, 1)), FACE_AXES.index((a, -1))) for a in range(3))
+        cubic = len(set(self.shape)) == 1
+        alike = len({self.periodic(f) for f in range(len(FACE_AXES))}) == 1
+        return (tuple(range(len(FACE_AXES))),) if cubic and alike else pairs
+
 
 def face_periodic(face: int, periodic_xy: bool) -> tuple[bool, bool, bool]:
     """Which of a face sweep's axes (w, u, v) wrap: x and y on a laterally periodic domain."""
@@ -531,23 +540,29 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     nf, npu, npv = pb.mesh_shape
     one = nf * npu * npv == 1
     mesh = None if one else _device_mesh(pb.mesh_shape)
-    for axis in range(3):
-        if one or nf == 2:
-            # The + and − sweeps of an axis are independent and have the same shapes: one
-            # program sweeps both.  On one device ``lax.map`` runs them one after the other
-            # (three sweep programs to compile, not six; the fog step over the union of the two
-            # faces' fog planes).  On a mesh each half runs one: XLA on a CPU runs one fused
-            # loop at a time per device, so this is what puts a second core to work (no
-            # vol_range there).
-            fp, fm, pair = _face_pair(face_args, axis)
-            if one:
-                sweep = functools.partial(
-                    sweep_face, periodic=g.periodic(fp),
-                    vol_range=_union(g.vol_range(fp), g.vol_range(fm)), **kw)
-                lf, ef, ex = jax.lax.map(lambda a: sweep(*a), pair)
-            else:
-                lf, ef, ex = sweep_face_mesh(pair, mesh, stacked=True,
-                                             periodic=g.periodic(fp), **kw)
+    if one:
+        # Faces with the same shapes are independent sweeps of one program: ``lax.map`` runs
+        # them one after the other (one sweep program to compile on a cubic lattice, three
+        # otherwise, not six; the fog step over the union of the faces' fog planes).
+        for group in g.face_groups():
+            stacked = _face_stack(face_args, group)
+            sweep = functools.partial(
+                sweep_face, periodic=g.periodic(group[0]),
+                vol_range=functools.reduce(_union, (g.vol_range(f) for f in group)), **kw)
+            lf, ef, ex = jax.lax.map(lambda a: sweep(*a), stacked)
+            for i, f in enumerate(group):
+                axis, sign = FACE_AXES[f]
+                lam = lam + from_face(lf[i], axis, sign)
+                irr = irr + from_face(ef[i], axis, sign)
+                exits[f] = ex[i]
+    for axis in range(0 if one else 3):
+        if nf == 2:
+            # On a mesh the + and − sweeps of an axis run on its two halves: XLA on a CPU
+            # runs one fused loop at a time per device, so this is what puts a second core to
+            # work (no vol_range there).
+            fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
+            lf, ef, ex = sweep_face_mesh(_face_stack(face_args, (fp, fm)), mesh, stacked=True,
+                                         periodic=g.periodic(fp), **kw)
             lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
             irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
             exits[fp], exits[fm] = ex[0], ex[1]
@@ -570,12 +585,11 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     return ((lam, irr), exits) if return_exits else (lam, irr)
 
 
-def _face_pair(face_args, axis: int):
-    """(f+, f−, their arguments stacked on a leading axis of 2): the + and − faces of ``axis``
-    (same shapes), for one program over the pair (``lax.map`` on one device, ``shard_map``
-    over a mesh's "face" axis)."""
-    fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
-    return fp, fm, jax.tree.map(lambda x, y: jnp.stack([x, y]), face_args(fp), face_args(fm))
+def _face_stack(face_args, faces: tuple[int, ...]):
+    """The arguments of ``faces`` (same shapes) stacked on a leading axis, in that order, for
+    one program over them (``lax.map`` on one device, ``shard_map`` over a mesh's "face"
+    axis)."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *(face_args(f) for f in faces))
 
 
 def _union(a: tuple[int, int] | None, b: tuple[int, int] | None) -> tuple[int, int] | None:
@@ -829,14 +843,15 @@ def _jacobi_transposed(v, pb: "_Problem"):
         return (to_face(lam_bar, axis, sign), to_face(irr_bar, axis, sign), pb.tau_half[f],
                 g.faces[f], consts)
 
-    for axis in range(3):  # the ± faces of an axis in one program, as in ``_sweep_all``
-        fp, _, pair = _face_pair(face_args, axis)
-        sweep = functools.partial(sweep_face_transposed, M=g.M, periodic=g.periodic(fp),
+    for group in g.face_groups():  # faces alike in one program, as in ``_sweep_all``
+        sweep = functools.partial(sweep_face_transposed, M=g.M, periodic=g.periodic(group[0]),
                                   warmup=g.warmup, surfaces=g.has_surfaces, fluence=fluence,
                                   q_channels=nq)
-        qf, bf = jax.lax.map(lambda a: sweep(*a), pair)
-        q_bar = q_bar + from_face(qf[0], axis, 1) + from_face(qf[1], axis, -1)
-        b_bar = b_bar + from_face(bf[0], axis, 1) + from_face(bf[1], axis, -1)
+        qf, bf = jax.lax.map(lambda a: sweep(*a), _face_stack(face_args, group))
+        for i, f in enumerate(group):
+            axis, sign = FACE_AXES[f]
+            q_bar = q_bar + from_face(qf[i], axis, sign)
+            b_bar = b_bar + from_face(bf[i], axis, sign)
     return vjp((q_bar, b_bar))[0]
 
 
