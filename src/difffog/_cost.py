@@ -29,24 +29,35 @@ GIB = 1 << 30
 
 # ---- constants (measured: benchmarks/bench_cost.py, benchmarks/results/cost.md) -------------
 #: resident memory of a process that has imported difffog, jax and trimesh and compiled one
-#: small model (fog-balls N = 8, M = 1: the floor every render pays)
-BASE_BYTES = 720 * MIB
+#: small model (fog-balls N = 8, M = 1: the floor every render pays).  Refitted at stop 55,
+#: when the light solve became one sweep program instead of six (the compiler's own memory
+#: fell with it: the same renders peaked 50-150 MB lower at N = 32-96); 580 MiB fitted, with
+#: the next two constants, to fog-balls N = 32 / 64 / 96 × M = 2 / 3 / 5 and N = 8 × M = 1 /
+#: 8 / 12 (every row within 4% of its measured peak; ``benchmarks/results/cost.md``).  Machines
+#: differ here by ~100 MB (the splat's floor: 624-690 MiB on the AMD 2-core machine of stop 55,
+#: 739 on the Intel one before), which is the estimate's error at small sizes.
+BASE_BYTES = 580 * MIB
+#: the splat's floor (it compiles its own, smaller programs) and its bytes per voxel (density,
+#: its column integral, the scan's fields, XLA's temporaries): fitted at stop 55 to
+#: ``bench_cost.py``'s splat rows, fog-balls N = 32 / 64 / 96 / 128 (639 / 690 / 751 / 840 MiB
+#: measured, each within 2%); until then it shared the sweep's floor, 720 MiB, with 16 B/voxel
+SPLAT_BASE_BYTES = 630 * MIB
+SPLAT_BYTES_PER_VOXEL = 44
 #: host bytes per lattice node while voxelizing and preparing (sdf float64 + float32, owner,
 #: node type, material, normals, density twice, the shell's maximum filter, the camera
 #: geometry's nearest-node indices: ~60 B of named arrays, the rest temporaries)
 HOST_BYTES_PER_NODE = 110
 #: device bytes per lattice node of the light solve besides the Krylov vectors and the face
 #: carries: the problem's per-node fields (σ_t, albedo, sun and sky fluence, six face-frame
-#: optical depths, ...: ~160 B named), the face-frame copies a sweep makes, the light field,
-#: the cameras' node fields and XLA's temporaries: 780 B fitted (bench_cost.py, fog-balls N =
-#: 32-96, M = 2-5: every row within 4% of the measured peak with it)
-SOLVE_BYTES_PER_NODE = 780
-#: copies of one face's carry (M, D, nu + 2M, nv + 2M) alive at the peak: measured 18-19
-#: (fog-balls N = 8, M = 8 / 12 / 16: 1.08 / 2.56 / 7.58 GB resident, one carry 16 / 96 /
-#: 364 MB, the rest of the model ~0.8 GB; the issue's M = 20: 20.6 GB, predicted 20.5): six
-#: faces' exit radiance, the scan's carry in and out, the shifted copies per slab, XLA's
-#: buffers
-CARRY_COPIES = 18
+#: optical depths, ...: ~160 B named), the face-frame copies a sweep makes (six faces' stacked
+#: inputs since stop 55), the light field, the cameras' node fields and XLA's temporaries: 710 B
+#: fitted with BASE_BYTES (780 before stop 55)
+SOLVE_BYTES_PER_NODE = 710
+#: copies of one face's carry (M, D, nu + 2M, nv + 2M) alive at the peak: 2 fitted at stop 55
+#: (fog-balls N = 8, M = 8 / 12: 740 / 959 MiB resident, one carry 16 / 96 MiB).  It was 18-19
+#: while each of the six face sweeps was its own program with its own buffers (N = 8, M = 16:
+#: 7.58 GB resident then, one carry 364 MB; the issue's M = 20: 20.6 GB)
+CARRY_COPIES = 2
 #: bytes per camera ray (supersample² per pixel, plus edge re-samples) through set-up and march
 RAY_BYTES = 400
 #: fraction of pixels re-sampled at geometric edges (16 rays each) assumed up front
@@ -288,8 +299,8 @@ def estimate_splat(scene, *, resolution: int = 64, supersample: int = 1, cameras
     ext = max(shape)
     K = int(sheets) if sheets else int(math.ceil(math.sqrt(3) * ext)) + 2
     texels = int((math.sqrt(2) * ext + 8) ** 2)
-    mem = {"process": BASE_BYTES,
-           "volume": n * 16,  # density, its column integral, the scan's fields
+    mem = {"process": SPLAT_BASE_BYTES,
+           "volume": n * SPLAT_BYTES_PER_VOXEL,
            # light_D (K + W + 1, hs, ws) per camera
            "shadow buffers": len(_cameras(scene, cameras)) * (K + 7) * texels * f,
            # eye footprints: eye_D, eye_up (K, P) (eye_uv is built per sheet)
