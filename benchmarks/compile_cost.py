@@ -6,7 +6,7 @@ The default test suite is compile-bound (``python -m pytest -q --durations=0``),
 user's first render or fit; this measures what a change to the program's structure buys.
 
     python benchmarks/compile_cost.py [--scene fog-balls] [--N 12] [--M 2] [--kernel auto]
-        [--out benchmarks/results/compile_cost.md]
+        [--parts] [--out benchmarks/results/compile_cost.md]
 
 The defaults are the test suite's small sweep model (``tests/helpers.py``: fog-balls reduced,
 N = 12, M = 2, supersample 1).
@@ -45,6 +45,9 @@ def main(argv=None):
     ap.add_argument("--N", type=int, default=12)
     ap.add_argument("--M", type=int, default=2)
     ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched"])
+    ap.add_argument("--parts", action="store_true",
+                    help="also the light solve's parts: its problem (first-collision sun and "
+                         "sky), one Jacobi step, one sweep of all faces, GMRES alone")
     ap.add_argument("--out", default=None, help="write the markdown report here")
     a = ap.parse_args(argv)
 
@@ -67,6 +70,8 @@ def main(argv=None):
             ("images (both)", _program(lambda q: model.images(q, throw=False), p)),
             ("gradient of Σ images", _program(jax.grad(
                 lambda q: sum(jnp.sum(v) for v in model.images(q, throw=False).values())), p))]
+    if a.parts:
+        rows += _parts(model, p)
     out = [f"# Compile cost of a sweep model ({a.scene}{' reduced' if a.scene == 'fog-balls' else ''}, "
            f"N = {a.N}, M = {a.M}, kernel {model.settings()['solver_options']['kernel']})", "",
            f"`python benchmarks/compile_cost.py --scene {a.scene} --N {a.N} --M {a.M} "
@@ -80,6 +85,38 @@ def main(argv=None):
     print(text)
     if a.out:
         C.write_text(a.out, text)
+
+
+def _parts(model, p):
+    """The light solve's parts, each compiled alone (the problem's first-collision passes are
+    compiled with whatever uses them; what a part does not use, XLA drops)."""
+    import jax.numpy as jnp
+
+    from difffog.forward.sweep import _krylov
+    from difffog.forward.sweep import _solver as S
+
+    solver = model.solver
+
+    def problem(q):
+        geom, cg, _, _ = model._with_density(q, cameras=False)
+        geom, *_ = model._with_sun(q, geom, cg, None)
+        return solver.problem(geom, q)
+
+    pb = problem(p)
+    state = S._zero_state(pb)
+
+    def gmres_alone(b):  # its loop, Arnoldi, rotations and error estimate; K = b/2
+        return _krylov.gmres(lambda v, on: 0.5 * v + jnp.where(on, b, 0.0), b.shape,
+                             b.dtype, restart=pb.restart, max_matvecs=pb.max_iterations,
+                             tol=pb.tol)
+
+    return [("part: the problem (first-collision sun and sky)", _program(problem, p)),
+            ("part: the problem + one sweep of all faces (traced Q, B)",
+             _program(lambda q, s: S._sweep_all(s[1], s[1], problem(q)), p, state)),
+            ("part: the problem + one Jacobi step (traced state)",
+             _program(lambda q, s: S._jacobi(s, problem(q)), p, state)),
+            ("part: GMRES alone (a trivial operator)",
+             _program(gmres_alone, jnp.ones(state[0].size, state[0].dtype)))]
 
 
 if __name__ == "__main__":
