@@ -30,14 +30,15 @@ GIB = 1 << 30
 # ---- constants (measured: benchmarks/bench_cost.py, benchmarks/results/cost.md) -------------
 #: resident memory of a process that has imported difffog, jax and trimesh and compiled one
 #: small model (fog-balls N = 8, M = 1: the floor every render pays).  Refitted at stop 55,
-#: when the light solve became one sweep program instead of six (the compiler's own memory
-#: fell with it: the same renders peaked 50-150 MB lower at N = 32-96); 580 MiB fitted, with
-#: the next two constants, to fog-balls N = 32 / 64 / 96 × M = 2 / 3 / 5 and N = 8 × M = 1 /
-#: 8 / 12 (every row within 4% of its measured peak; ``benchmarks/results/cost.md``).  Machines
-#: differ here by ~100 MB (the splat's floor: 624-690 MiB on the AMD 2-core machine of stop 55,
-#: 739 on the Intel one before), which is the estimate's error at small sizes.
+#: when the light solve became one sweep program instead of six (fog-balls N = 32, M = 2
+#: peaked at 704 MiB, 755 with the ± pairs of stop 54 in the same hour, 905 in the table the
+#: constants were fitted to before, on another machine); 580 MiB fitted, with the next two
+#: constants, to fog-balls N = 32 / 64 / 96 × M = 2 / 3 / 5 and N = 8 × M = 1 / 8 / 12 (every
+#: row within 4% of its measured peak; ``benchmarks/results/cost.md``).  Machines differ here
+#: by ~100 MB (the splat's floor: 639-690 MiB on the AMD 2-core machine of stop 55, 739 on the
+#: Intel one before), which is the estimate's error at small sizes.
 BASE_BYTES = 580 * MIB
-#: the splat's floor (it compiles its own, smaller programs) and its bytes per voxel (density,
+#: the splat's floor (its process differs from the sweep's) and its bytes per voxel (density,
 #: its column integral, the scan's fields, XLA's temporaries): fitted at stop 55 to
 #: ``bench_cost.py``'s splat rows, fog-balls N = 32 / 64 / 96 / 128 (639 / 690 / 751 / 840 MiB
 #: measured, each within 2%); until then it shared the sweep's floor, 720 MiB, with 16 B/voxel
