@@ -159,14 +159,14 @@ class SweepGeometry(eqx.Module):
     def periodic(self, face: int) -> tuple[bool, bool, bool]:
         return face_periodic(face, self.periodic_xy)
 
-    def face_groups(self) -> tuple[tuple[int, ...], ...]:
-        """The faces one sweep program runs together on one device: all six where every
-        face frame has the same shape and wrapping (a cubic lattice of an open domain: every
-        shared open scene's), else the + and − faces of each axis (always alike)."""
+    def face_groups(self, six: bool = True) -> tuple[tuple[int, ...], ...]:
+        """The faces one sweep program runs together: all six where every face frame has the
+        same shape and wrapping (a cubic lattice of an open domain: every shared open
+        scene's) and ``six``, else the + and − faces of each axis (always alike)."""
         pairs = tuple((FACE_AXES.index((a, 1)), FACE_AXES.index((a, -1))) for a in range(3))
         cubic = len(set(self.shape)) == 1
         alike = len({self.periodic(f) for f in range(len(FACE_AXES))}) == 1
-        return (tuple(range(len(FACE_AXES))),) if cubic and alike else pairs
+        return (tuple(range(len(FACE_AXES))),) if six and cubic and alike else pairs
 
 
 def face_periodic(face: int, periodic_xy: bool) -> tuple[bool, bool, bool]:
@@ -526,11 +526,8 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
 
     def face_args(f):
         axis, sign = FACE_AXES[f]
-        consts = g.consts[f]
-        if pb.sun_phase is not None:
-            consts = dataclasses.replace(consts, sun_phase=pb.sun_phase[f])
         return (to_face(q, axis, sign), to_face(b, axis, sign), pb.tau_half[f],
-                pb.sky * g.sky_frac[f], g.faces[f], consts)
+                pb.sky * g.sky_frac[f], g.faces[f], _face_consts(pb, f))
 
     pl = g.terms
     kw = dict(M=g.M, warmup=g.warmup, surfaces=g.has_surfaces, kernel=pb.kernel,
@@ -540,39 +537,34 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     nf, npu, npv = pb.mesh_shape
     one = nf * npu * npv == 1
     mesh = None if one else _device_mesh(pb.mesh_shape)
-    if one:
-        # Faces with the same shapes are independent sweeps of one program: ``lax.map`` runs
-        # them one after the other (one sweep program to compile on a cubic lattice, three
-        # otherwise, not six; the fog step over the union of the faces' fog planes).
-        for group in g.face_groups():
-            stacked = _face_stack(face_args, group)
+    # Faces with the same shapes are independent sweeps of one program.  On one device
+    # ``lax.map`` runs a group one face after the other (one sweep program to compile on a
+    # cubic lattice, three otherwise, not six; the fog step over the union of the faces' fog
+    # planes).  On a mesh with a "face" axis of 2 each half runs one face of an axis's pair: XLA
+    # on a CPU runs one fused loop at a time per device, so this is what puts a second core to
+    # work (no vol_range there); without one, each face alone.
+    groups = g.face_groups(six=one)
+    if not (one or nf == 2):
+        groups = tuple((f,) for group in groups for f in group)
+    for group in groups:
+        periodic = g.periodic(group[0])
+        if one:
             sweep = functools.partial(
-                sweep_face, periodic=g.periodic(group[0]),
+                sweep_face, periodic=periodic,
                 vol_range=functools.reduce(_union, (g.vol_range(f) for f in group)), **kw)
-            lf, ef, ex = jax.lax.map(lambda a: sweep(*a), stacked)
-            for i, f in enumerate(group):
-                axis, sign = FACE_AXES[f]
-                lam = lam + from_face(lf[i], axis, sign)
-                irr = irr + from_face(ef[i], axis, sign)
-                exits[f] = ex[i]
-    for axis in range(0 if one else 3):
-        if nf == 2:
-            # On a mesh the + and − sweeps of an axis run on its two halves: XLA on a CPU
-            # runs one fused loop at a time per device, so this is what puts a second core to
-            # work (no vol_range there).
-            fp, fm = FACE_AXES.index((axis, 1)), FACE_AXES.index((axis, -1))
-            lf, ef, ex = sweep_face_mesh(_face_stack(face_args, (fp, fm)), mesh, stacked=True,
-                                         periodic=g.periodic(fp), **kw)
-            lam = lam + from_face(lf[0], axis, 1) + from_face(lf[1], axis, -1)
-            irr = irr + from_face(ef[0], axis, 1) + from_face(ef[1], axis, -1)
-            exits[fp], exits[fm] = ex[0], ex[1]
+            lf, ef, ex = jax.lax.map(lambda a: sweep(*a), _face_stack(face_args, group))
+        elif nf == 2:  # an axis's ± pair on the mesh's two halves
+            lf, ef, ex = sweep_face_mesh(_face_stack(face_args, group), mesh, stacked=True,
+                                         periodic=periodic, **kw)
         else:
-            for sign in (1, -1):
-                f = FACE_AXES.index((axis, sign))
-                lf, ef, exits[f] = sweep_face_mesh(face_args(f), mesh, stacked=False,
-                                                   periodic=g.periodic(f), **kw)
-                lam = lam + from_face(lf, axis, sign)
-                irr = irr + from_face(ef, axis, sign)
+            lf, ef, ex = (x[None] for x in sweep_face_mesh(face_args(group[0]), mesh,
+                                                           stacked=False, periodic=periodic,
+                                                           **kw))
+        for i, f in enumerate(group):
+            axis, sign = FACE_AXES[f]
+            lam = lam + from_face(lf[i], axis, sign)
+            irr = irr + from_face(ef[i], axis, sign)
+            exits[f] = ex[i]
     lam = _mask(g.solid, lam)
     if pb.fog_mask is not None and one:
         # Λ only where some segment has fog (τ > 0): the restricted sweeps skip the rest, and
@@ -583,6 +575,15 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
         lam = _mask(~pb.fog_mask, lam)
     irr = jnp.where(g.surf, irr, 0.0)
     return ((lam, irr), exits) if return_exits else (lam, irr)
+
+
+def _face_consts(pb: _Problem, f: int) -> SweepConsts:
+    """Face ``f``'s direction constants, with the problem's first-collision sun phase where it
+    has one (it depends on the traced phase parameters)."""
+    consts = pb.geom.consts[f]
+    if pb.sun_phase is not None:
+        consts = dataclasses.replace(consts, sun_phase=pb.sun_phase[f])
+    return consts
 
 
 def _face_stack(face_args, faces: tuple[int, ...]):
@@ -837,11 +838,8 @@ def _jacobi_transposed(v, pb: "_Problem"):
 
     def face_args(f):
         axis, sign = FACE_AXES[f]
-        consts = g.consts[f]
-        if pb.sun_phase is not None:
-            consts = dataclasses.replace(consts, sun_phase=pb.sun_phase[f])
         return (to_face(lam_bar, axis, sign), to_face(irr_bar, axis, sign), pb.tau_half[f],
-                g.faces[f], consts)
+                g.faces[f], _face_consts(pb, f))
 
     for group in g.face_groups():  # faces alike in one program, as in ``_sweep_all``
         sweep = functools.partial(sweep_face_transposed, M=g.M, periodic=g.periodic(group[0]),
