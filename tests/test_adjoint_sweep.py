@@ -68,6 +68,10 @@ def _transposes_agree(cases, substep: bool = False):
             assert float(jnp.max(jnp.abs(ref[0]))) > 0.1  # something was carried back
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); by default the adjoint's
+# gradients are checked against differences
+# (test_sweep.py::test_gradients_match_finite_differences)
+@pytest.mark.slow
 def test_face_transpose_equals_jax_transpose_of_the_batched_sweep(x64):
     """Open and periodic sides (the carried cotangent's margins folded back, the periodic
     sweep's initial guess), blocked segments and surfaces, several row tiles, and
@@ -87,6 +91,9 @@ def test_face_transpose_equals_jax_transpose_everywhere(x64):
                        (2, (6, 7, 5), True, 1, True, combos)])
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); the sub-stepped scheme is not a
+# default
+@pytest.mark.slow
 def test_substep_face_transpose_equals_the_batched_programs(x64):
     """The sub-stepped scheme's transpose (``_sweep_face_substep_transposed``): crossings'
     deposits and sources in the padded two-slab window, surface restarts, the periodic
@@ -138,6 +145,8 @@ def test_gradients_by_both_adjoint_routes_agree(x64, name, settings):
     assert any(float(np.max(np.abs(x))) > 0 for x in a)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_auto_takes_the_transposed_adjoint_where_it_applies_and_refuses_it_elsewhere():
     """On a CPU (the loop kernel) "auto" is "transposed" for the step and sub-stepped schemes
     in an isotropic fog, "linearised" for the linear scheme (where "transposed" is refused with a one-line

@@ -145,7 +145,9 @@ def test_hg_slab_against_adding_doubling(albedo, tau, illumination, x64):
 
 
 # ---------------------------------------------------------------- kernels
-@pytest.mark.parametrize("sun", [True, pytest.param(False, marks=pytest.mark.slow)])
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
+@pytest.mark.parametrize("sun", [True, False])
 def test_kernels_agree_with_an_anisotropic_source(sun):
     """The direction-loop and batched sweeps with per-direction sources (moments, the sun's
     channel), every combination of periodic sides."""

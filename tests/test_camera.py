@@ -372,6 +372,9 @@ def test_march_steps():
     assert march_steps(f, 0.0625, o, d) == 16 + 1  # tight for concrete rays
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56);
+# by default test_sweep.py's gradients against differences go through the compiled march
+@pytest.mark.slow
 def test_the_compiled_march_equals_the_march_op_by_op(x64):
     """Rays straight down through a linear-scheme lattice: their march points fall on node
     planes every few steps.  Compiled, XLA recomputed a point's coordinates in each fusion that
@@ -397,10 +400,13 @@ def test_the_compiled_march_equals_the_march_op_by_op(x64):
     np.testing.assert_allclose(compiled, plain, rtol=1e-12, atol=1e-14)
 
 
-# the periodic case is slow (the default suite keeps the open box; both passed when last run)
+# slow since stop 56 (the default suite's 12-minute budget on 2 cores; the periodic case
+# before): by default the gradients against differences of test_sweep.py and test_camera.py
+# go through this backward
+@pytest.mark.slow
 @pytest.mark.parametrize("periodic,slopes,sun", [
     (False, False, False), (False, True, True),
-    pytest.param(True, False, False, marks=pytest.mark.slow)])
+    (True, False, False)])
 def test_custom_backward_matches_autodiff(x64, periodic, slopes, sun):
     """The march's hand-scheduled backward equals JAX's autodiff of the plain forward scan
     (``slopes``: with the linear scheme's six side slope channels, sampled with offsets; ``sun``:

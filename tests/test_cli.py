@@ -153,6 +153,8 @@ def test_a_model_built_near_the_mapping_limit_drops_compiled_programs(monkeypatc
     assert f._cache_size() == 0  # dropped
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_render_fixed_iterations_and_override(tmp_path):
     out = tmp_path / "o"
     args = ["render", "furnace", "-N", "12", "-M", "2", "--iterations", "3", "-q",

@@ -224,6 +224,9 @@ def test_fit_converges_from_far_starts_or_says_it_did_not(small_forward, small_t
         pytest.fail(f"×{factor}: {res.result}: {res.message}")
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); by default
+# test_standard_errors_match_the_linear_least_squares_formula checks the standard errors' formula
+@pytest.mark.slow
 def test_noisy_fit_standard_errors_cover_the_truth(small_forward, small_targets):
     """5% Gaussian noise on the model's own images, a start 2-3× from the truth: the truth lies
     within 3 stated standard errors of every estimate, and the standard errors are not
@@ -261,6 +264,9 @@ def test_a_fit_model_built_again_steps_with_the_compiled_stepper():
     assert stepper_for(other, coords, ("top", "oblique"), "linear", "lm") is not first
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56);
+# by default test_edge_weight_without_known_edges_warns_and_changes_nothing
+@pytest.mark.slow
 def test_edge_weight_leaves_out_the_pixels_that_straddle_an_edge(small_forward, small_targets):
     """edge_weight=0: pixels the model's exact geometry says straddle an edge (a silhouette, a
     rim, a shadow's edge) do not count, so corrupting exactly those pixels leaves the estimate

@@ -264,6 +264,8 @@ def test_the_suns_visibility_is_the_lit_share_of_each_cell(resolution):
     assert abs(float(old[fluid].sum() * lat.h**3) - lit) > 0.02 * shadow  # what it fixes
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_more_edge_samples_place_an_outline_finer():
     # an emitting disc (a sphere of radiance 1 seen from above, no fog, no sun) on an 8×8 view:
     # a pixel reads the share of its footprint the outline encloses.  16 Hammersley rays in

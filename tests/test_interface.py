@@ -84,6 +84,8 @@ def _sets(model):
             for z, a in ((0.5, 0.2), (2.0, 0.5), (4.0, 0.9))]
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_render_batch_equals_one_by_one(model):
     sets = _sets(model)
     batch = df.render_batch(model, sets)

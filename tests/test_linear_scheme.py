@@ -52,6 +52,8 @@ def test_linear_node_is_the_exact_solution(tau, x64):
     assert avg == pytest.approx(mean, rel=1e-8)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_loop_kernel_matches_batched_kernel_with_slopes():
     """The CPU's loop kernel and the GPU's batched kernel with the slope channels (and with
     surfaces, blocked segments, open and periodic sides)."""
@@ -84,7 +86,7 @@ def _solve(scene, lat, solver):
 
 
 @pytest.mark.parametrize("scheme", [pytest.param("step", marks=pytest.mark.slow), "linear",
-                                    "substep"])
+                                    pytest.param("substep", marks=pytest.mark.slow)])
 def test_conservative_slab_returns_what_it_receives(scheme, x64):
     """A purely scattering slab neither creates nor destroys light, whatever its optical depth:
     the sky light leaving through the top and the bottom (the sweep's own exit radiance) sums

@@ -148,6 +148,8 @@ def test_forward_scattering_recurrence_conserves_the_forward_fraction():
     assert abs(fa - 0.9641) < 1e-3  # HG g = 0.85: 96.4% of the phase in the forward hemisphere
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_scattering_switches_order_the_brightness(cloud_alone):
     # the paper's Figs. 1, 2, 4: attenuation only < + forward < + forward and back
     means = []
@@ -185,6 +187,9 @@ def test_scenes_the_splat_cannot_handle_raise_scene_errors():
                          sheets=0)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56);
+# by default test_interface.py renders the splat and reads its report
+@pytest.mark.slow
 def test_render_returns_images_and_pass_summary():
     sc = df.load_scene("translucent-cube")
     sc = sc.replace(cameras=(_small(sc.cameras[0], (32, 32)), _small(sc.cameras[1], (40, 30))))

@@ -39,6 +39,9 @@ def test_intermediate_points_are_the_nearest_nodes(M):
     assert np.all(np.abs(off[0]) >= np.abs(off[-1]))  # nearer y − L first
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); the sub-stepped scheme is not a
+# default
+@pytest.mark.slow
 def test_sub_steps_bring_the_thick_cube_closer_to_its_independent_value():
     """Issue 14's cube (ζ = 100, γ = 0.001, a ball in it; float64 Monte Carlo 0.7271 ±
     0.0007) at N = 16, M = 2 with the step scheme's transport: sub-stepping each segment
@@ -76,6 +79,9 @@ def test_gradients_match_finite_differences(x64):
     assert_light_gradient(solver, scene, lat, seed=7)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); the sub-stepped scheme is not a
+# default
+@pytest.mark.slow
 def test_jvp_matches_finite_differences(x64):
     """The tangent of the sub-stepped light solve (forward mode, what a fit's Jacobian uses)
     against a central difference in ζ, on a small cloud over a ground quad in float64."""
@@ -96,6 +102,9 @@ def test_jvp_matches_finite_differences(x64):
     assert float(t) == pytest.approx(fd, rel=1e-6)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56): the sub-stepped scheme is not a
+# default
+@pytest.mark.slow
 @pytest.mark.parametrize("zeta", [100.0, pytest.param(1000.0, marks=pytest.mark.slow),
                                   pytest.param(10000.0, marks=pytest.mark.slow)])
 def test_the_thick_cube_at_n32_is_within_5_percent_of_its_monte_carlo_value(zeta):
@@ -173,6 +182,9 @@ def _loop_matches_batched(cases):
             assert float(jnp.max(a[0])) > 0.1  # the fluence was accumulated
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); the sub-stepped scheme is not a
+# default
+@pytest.mark.slow
 def test_loop_program_matches_batched_program():
     """All sides open, and all periodic (the deposits folded back across u and v), at M = 3
     with the plane's rows in three tiles (deposits cross the tiles' edges);

@@ -130,8 +130,11 @@ def test_slab_against_adding_doubling(albedo, tau, x64):
     assert abs(T / T_ref - 1) < eT, (T, T_ref)
 
 
-@pytest.mark.parametrize("zenith", [0.0, 60.0])
-@pytest.mark.parametrize("albedo,tau", [(0.9, 1.0), (0.5, 4.0)])
+# two of the four cases are slow (the default suite's 12-minute budget on 2 cores, stop 56)
+@pytest.mark.parametrize("albedo,tau,zenith", [
+    (0.9, 1.0, 0.0), (0.5, 4.0, 60.0),
+    pytest.param(0.9, 1.0, 60.0, marks=pytest.mark.slow),
+    pytest.param(0.5, 4.0, 0.0, marks=pytest.mark.slow)])
 def test_collimated_slab_first_collision_sun(albedo, tau, zenith, x64):
     R, T, *_ = _slab_rt(tau, albedo, 32, 2, sun=(1.0, zenith))
     R_ref, T_ref = slab_table_reference(albedo, tau, "collimated", zenith)
@@ -150,6 +153,8 @@ def _haze(tau, boundary="periodic-xy"):
     return haze(tau, 0.999, 0.0, boundary)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_a_thin_layer_across_a_periodic_domain_is_said_to_be_too_bright():
     """The lattice's horizontal directions never leave a thin layer that spans a periodic
     domain, so its multiply scattered light comes out too large: a haze of optical depth 0.1
@@ -275,8 +280,13 @@ def test_krylov_solver_solves_stops_early_transposes_and_says_when_it_has_not_co
 
 
 # ---------------------------------------------------------------- kernels and devices
-@pytest.mark.parametrize("surfaces", [False, True])
-@pytest.mark.parametrize("shape", [(9, 8, 10), (7, 1, 5)])  # a plane thinner than M wraps twice
+# (7, 1, 5): a plane thinner than M wraps twice; three of the four cases are slow (the default
+# suite's 12-minute budget on 2 cores, stop 56; test_solver_kernels_agree compares the kernels
+# on fog-balls by default)
+@pytest.mark.parametrize("shape,surfaces", [
+    pytest.param((9, 8, 10), True, marks=pytest.mark.slow), ((7, 1, 5), False),
+    pytest.param((9, 8, 10), False, marks=pytest.mark.slow),
+    pytest.param((7, 1, 5), True, marks=pytest.mark.slow)])
 def test_loop_kernel_matches_batched_kernel(shape, surfaces):
     """The direction-loop sweep (values) against the batched sweep (its derivatives), every
     combination of periodic sides (all sixteen sweeps in one compiled program)."""
@@ -313,6 +323,9 @@ def _face_problem(case: str):
     return scene, voxelize(scene, 10, 2, margin=3)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56);
+# every default render of a cubic lattice runs the one program of six
+@pytest.mark.slow
 @pytest.mark.parametrize("case,groups", [("slab", 3), ("cube", 1)])
 def test_grouped_face_sweeps_equal_six_separate_sweeps(case, groups, x64):
     """One program sweeps the faces whose frames have the same shape (``lax.map`` over them;
@@ -550,7 +563,10 @@ def test_sky_pass_shift_resampling_equals_the_gathers():
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-6, atol=1e-6)
 
 
-@pytest.mark.parametrize("scheme", [pytest.param("step", marks=pytest.mark.slow), "linear"])
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); by default
+# test_gradients_match_finite_differences
+@pytest.mark.slow
+@pytest.mark.parametrize("scheme", ["step", "linear"])
 def test_tangents_and_gradients_by_every_route_match_differences(scheme, x64):
     """A slab under sun and sky, float64.  Forward mode: a tangent light solve applies I − K
     matrix-free by default (one Jacobi step with the sources zeroed, nothing kept between

@@ -86,6 +86,8 @@ def test_the_lattice_returns_what_a_sunlit_slab_receives(x64):
     assert R == pytest.approx(R_ref, rel=0.01) and T == pytest.approx(T_ref, rel=0.04)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); the deposit is not a default
+@pytest.mark.slow
 def test_the_deposit_first_collision_returns_what_a_thick_sunlit_slab_receives(x64):
     """``first_collision="deposit"``: the first collision scatters the sun's box-filtered
     deposit, what the beam loses.  τ = 16 over 8 nodes (2 mean free paths per node, a sun at
@@ -99,6 +101,8 @@ def test_the_deposit_first_collision_returns_what_a_thick_sunlit_slab_receives(x
     assert abs(thin) < 0.002
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); the deposit is not a default
+@pytest.mark.slow
 def test_a_gradient_through_the_deposit_first_collision_matches_finite_differences(x64):
     """The deposit average (``_solver._deposit_average``: box filters of σ_t·beam over box
     filters of σ_t) is differentiable: a loss of the light solve of a slab with thick steps,
@@ -223,6 +227,8 @@ def test_side_slopes_blend_one_linear_field_and_stop_where_the_fog_does():
                                   np.asarray(slope)[-1, ..., 0])
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56)
+@pytest.mark.slow
 def test_a_density_grid_falling_to_zero_reflects_like_the_fogs_sharp_face():
     """A half-space whose density varies only with depth reflects as the uniform one: the
     thick cube's fog as a density grid of ones that drops to 0 above z = 1 (trilinear: a ramp
