@@ -415,6 +415,10 @@ def test_a_fit_reads_target_and_mask_files_and_records_them(toy, tmp_path):
 
 
 # ------------------------------------------------------------------ the command line
+# slow: the default suite's 12-minute budget on 2 cores (stop 56);
+# by default the files are read (the tests above), a fit reads target files
+# (test_a_fit_reads_target_and_mask_files...) and recovers an exposure (test_a_global_exposure...)
+@pytest.mark.slow
 def test_cli_fits_the_exposure_of_a_16bit_png(tmp_path, capsys):
     """`difffog fit --target top=photo.png --unknown exposure` end to end: the splat on
     cloud-plane's top view at 1/8 size (16×16), its own render scaled to a 16-bit PNG at the

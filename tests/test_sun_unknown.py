@@ -57,6 +57,9 @@ def test_sun_paths_read_and_set_the_direction():
         set_param(p, no_sun, "sun.zenith_deg", 10.0)
 
 
+# slow: the default suite's 12-minute budget on 2 cores (stop 56);
+# by default the sun's paths and refusals are checked (the two tests beside it)
+@pytest.mark.slow
 def test_traced_sun_renders_the_scene_at_its_own_sun():
     """At the model's own sun the traced angles change nothing (shadows included)."""
     scene = _slab(ball=True)
