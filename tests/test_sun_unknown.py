@@ -58,7 +58,8 @@ def test_sun_paths_read_and_set_the_direction():
 
 
 # slow: the default suite's 12-minute budget on 2 cores (stop 56);
-# by default the sun's paths and refusals are checked (the two tests beside it)
+# by default the sun's paths and refusals are checked (test_sun_paths_read_and_set_the_direction,
+# test_sun_unknowns_are_refused_where_they_cannot_be_traced)
 @pytest.mark.slow
 def test_traced_sun_renders_the_scene_at_its_own_sun():
     """At the model's own sun the traced angles change nothing (shadows included)."""
@@ -132,7 +133,8 @@ def _sun_targets(dz, da, pixels=16, N=12):
 
 
 # slow: the default suite's 12-minute budget on 2 cores (stop 56); the fit by rounds is also
-# test_fit_finds_the_sun_by_rounds; by default, test_traced_sun_renders_the_scene_at_its_own_sun
+# test_fit_finds_the_sun_by_rounds; by default only the sun's paths and refusals are checked
+# (test_sun_paths_read_and_set_the_direction, test_sun_unknowns_are_refused_where_...)
 @pytest.mark.slow
 def test_fit_finds_a_sun_near_the_start():
     """A sun 0.3° off in both angles, with the ball's shadow on the ground: the fit, through the

@@ -370,8 +370,8 @@ def test_the_balancing_rule_moves_the_weight_by_the_measured_power():
     assert balanced_weight(1e-5, 0.0, 0.8) is None and balanced_weight(1e-5, np.inf, 0.8) is None
 
 
-# slow: the default suite's 12-minute budget on 2 cores (stop 56); by default the tiny cloud's end-
-# to-end fit (test_fit_density_recovers_a_tiny_cloud...)
+# slow: the default suite's 12-minute budget on 2 cores (stop 56); by default the tiny cloud's
+# end-to-end fit (test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact)
 @pytest.mark.slow
 def test_a_balanced_density_fit_moves_its_share_toward_the_aim_and_resumes(tiny_fit_case,
                                                                           tmp_path):
