@@ -77,6 +77,65 @@ def test_traced_sun_renders_the_scene_at_its_own_sun():
         model(q)  # traced angles, no derivatives: a one-line error, not a silent static sun
 
 
+def _rebuilt_forms(g):
+    """A model with the sun's derivatives, the same rebuilt at another sun, and their
+    traced-sun forms, the second's shaped like the first's."""
+    paths = ("sun.zenith_deg", "sun.azimuth_deg")
+    a = df.forward_model(_slab(g=g, ball=True, pixels=8), "sweep",
+                         resolution=8).with_sun_derivatives()
+    b = a.at_sun(35.7, 20.6)  # the ball's shadow moves: other edge pixels, other rays
+    fa = a.traced_sun_form(paths)
+    return a, b, fa, b.traced_sun_form(paths, like=fa)
+
+
+def test_a_model_rebuilt_at_another_sun_runs_the_first_ones_programs():
+    """A fit's rounds rebuild the model at the estimated sun; their traced-sun forms
+    (``SweepModel.traced_sun_form``) have the first round's structure and array shapes, the
+    key of its compiled steps (stop 57: each round compiled its step anew, 45-50 s of a
+    round's 75 s in test_fit_finds_the_sun_by_rounds); their values are
+    test_the_rebuilt_models_form_renders_what_it_renders's."""
+    from difffog.fit._stepper import _model_key
+
+    a, b, fa, fb = _rebuilt_forms(0.0)
+    assert _model_key(fb) == _model_key(fa)
+    assert _model_key(b.traced_sun_form(("sun.zenith_deg", "sun.azimuth_deg"))) \
+        != _model_key(fa)  # (without ``like``: b's own static sun)
+    assert fb.scene.sun == a.scene.sun and b.scene.sun.zenith_deg == 35.7
+    assert [int(h.weight.shape[0]) for h in fb.hits] == [int(h.weight.shape[0]) for h in fa.hits]
+    assert all(int(h.weight.shape[0]) > int(k.weight.shape[0]) for h, k in zip(fa.hits, a.hits))
+    for h, k in zip(fb.hits, b.hits):  # the padding: rays of weight 0
+        n = int(k.weight.shape[0])
+        np.testing.assert_array_equal(np.asarray(h.weight[:n]), np.asarray(k.weight))
+        assert not np.asarray(h.weight[n:]).any()
+    with pytest.raises(SceneError, match="no sun derivatives"):
+        df.forward_model(_slab(pixels=8), "sweep", resolution=8).traced_sun_form(
+            ("sun.zenith_deg",))
+
+
+# slow: two render compiles of ~22 s each on 2 cores (the default suite's 12-minute budget);
+# the forms' structure and padding are checked by default (test_a_model_rebuilt_at_...)
+@pytest.mark.slow
+@pytest.mark.parametrize("g", [0.0, 0.6])
+def test_the_rebuilt_models_form_renders_what_it_renders(g):
+    """The form renders what the rebuilt model renders wherever the sun is traced (its own
+    shadows, paths and linearization; the first model's static sun standing in), and not
+    what the first model renders (g = 0.6: the first collision's cell-averaged phase at the
+    traced sun)."""
+    _, b, fa, fb = _rebuilt_forms(g)
+
+    def images(m, z, az):
+        p = set_param(set_param(m.params(), m.scene, "sun.zenith_deg", z), m.scene,
+                      "sun.azimuth_deg", az)
+        return np.concatenate([np.asarray(v).ravel() for v in m(p).values()])
+
+    for at in ((35.7, 20.6), (36.1, 20.2)):
+        want = images(b, *at)
+        np.testing.assert_allclose(images(fb, *at), want, rtol=2e-6, atol=1e-7)
+        # the first model, linearized about its own sun, renders these suns otherwise: the
+        # form carries the rebuilt model's arrays
+        assert np.abs(images(fa, *at) - want).max() > 1e-3 * np.abs(want).max()
+
+
 @pytest.mark.parametrize("g,order,rebuilt", [
     pytest.param(0.0, 0, ("sun.zenith_deg", "sun.azimuth_deg"), marks=pytest.mark.slow),
     pytest.param(0.6, 2, ("sun.azimuth_deg",), marks=pytest.mark.slow),
@@ -154,10 +213,15 @@ def test_fit_finds_the_sun_by_rounds():
     """Targets rendered at zenith 37°, azimuth 22° with the ball's shadow on the ground, the
     fit started 2° off in both: every round rebuilds the model at the last estimate, and the
     last one moves the sun less than SUN_SETTLE_DEG."""
+    from difffog.fit import _stepper
+
     targets = _sun_targets(2.0, 2.0)
     start = _slab(ball=True, pixels=16)
+    before = set(_stepper._STEPPERS)
     res = df.fit(start, targets, ["sun.zenith_deg", "sun.azimuth_deg"], resolution=12)
     assert res.converged, res.result
+    # every round ran the first one's compiled step (``SweepModel.traced_sun_form``)
+    assert len(set(_stepper._STEPPERS) - before) <= 1
     assert res.estimates["sun.zenith_deg"] == pytest.approx(37.0, abs=0.1)
     assert res.estimates["sun.azimuth_deg"] == pytest.approx(22.0, abs=0.1)
     rounds = res.sun_rounds

@@ -100,7 +100,7 @@ def _with_sun(model, step=True):
     lin = getattr(model, "sun_lin", None)
     if step is True:
         return model if lin is not None else model.with_sun_derivatives()
-    if lin is not None and lin.step == float(step):
+    if lin is not None and float(lin.step) == float(step):
         return model
     return model.with_sun_derivatives(float(step))
 
@@ -123,10 +123,13 @@ class _Setup:
     fingerprint: str
     target_files: dict
     mask_files: dict
+    # what the compiled steps run: the model, or with the sun's angles as unknowns its
+    # ``traced_sun_form`` (shared by the rounds that rebuild it at the estimated sun)
+    run: Any = None
 
     @property
     def args(self):
-        return (self.model, self.data)
+        return (self.model if self.run is None else self.run, self.data)
 
     def values(self, u) -> dict[str, float]:
         return {c.path: float(c.to_v(x)) for c, x in zip(self.coords, np.asarray(u))}
@@ -171,7 +174,7 @@ def _exposure_starts(stepper, args, coords, inits, names, tgt, wts, dtype) -> li
 
 def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, downsample,
            model_settings, weights, loss, loss_scale, rtol, atol, max_steps, stall_steps,
-           dtype, channel, transfer, edge_weight=1.0, sun_step=None) -> _Setup:
+           dtype, channel, transfer, edge_weight=1.0, sun_step=None, sun_memo=None) -> _Setup:
     unknowns = as_unknowns(unknowns)
     if loss not in LOSSES:
         raise DifffogError(f"loss '{loss}': choose one of {', '.join(LOSSES)}")
@@ -211,8 +214,9 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
     scale = float(np.sqrt(np.sum(flat_w * flat_t ** 2) / np.sum(flat_w))) or 1.0
     data = (jnp.asarray(flat_t, dtype), jnp.asarray(np.sqrt(flat_w), dtype),
             jnp.asarray(scale, dtype), jnp.asarray(loss_scale, dtype), base)
-    stepper = stepper_for(model, coords, names, loss, opt)
-    inits = (_exposure_starts(stepper, (model, data), coords, given, names, tgt, wts, dtype)
+    run = _traced_sun_form(model, unknowns, sun_memo)
+    stepper = stepper_for(run, coords, names, loss, opt)
+    inits = (_exposure_starts(stepper, (run, data), coords, given, names, tgt, wts, dtype)
              if None in given else given)
     u0 = jnp.asarray([c.to_u(v) for c, v in zip(coords, inits)], dtype)
     settings = {
@@ -239,7 +243,21 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
                         if k != "devices"},
         init=given, t=_checkpoint.digest(flat_t), w=_checkpoint.digest(flat_w))
     return _Setup(model, names, tgt, flat_t, m, data, u0, coords, inits, stepper, settings, fp,
-                  target_files, mask_files)
+                  target_files, mask_files, run)
+
+
+def _traced_sun_form(model, unknowns, memo: dict | None):
+    """What a fit's steps run: ``model``, or with the sun's angles among the unknowns its
+    form for traced-sun programs (``SweepModel.traced_sun_form``), shaped like the last
+    round's (``memo["form"]``, updated here) so that a round rebuilt at the estimated sun runs
+    the steps compiled for the first instead of compiling them again."""
+    paths = [u.path for u in unknowns if u.path in SUN_PATHS]
+    if not paths or not hasattr(model, "traced_sun_form"):
+        return model
+    memo = {} if memo is None else memo
+    form = model.traced_sun_form(paths, like=memo.get("form"))
+    memo["form"] = form
+    return form
 
 
 def _weigh_edges(model, names, wts, edge_weight: float) -> dict[str, float] | None:
@@ -561,9 +579,10 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
     t0 = time.perf_counter()
     rounds, history, first, last_move = [], [], None, None
     step = SUN_FIRST_STEP
+    memo = {}  # the last round's traced-sun form: the next round runs its compiled steps
     for r in range(SUN_ROUNDS):
         res = _fit_level(scene, targets, unk, checkpoint=checkpoint, callback=callback,
-                         sun_step=step, **kw)
+                         sun_step=step, sun_memo=memo, **kw)
         first = first or res
         at = {p: float(getattr(scene.sun, attr)) for p, (_, attr) in SUN_PATHS.items()}
         moved = max(abs(res.estimates[p] - at[p]) for p in sun_paths)

@@ -330,6 +330,42 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     )
 
 
+def _with_static(module: eqx.Module, **fields) -> eqx.Module:
+    """A copy of ``module`` with these fields (static ones too, which ``eqx.tree_at`` cannot
+    reach) replaced, without running its ``__init__`` (a ``SweepModel``'s builds the lattice)."""
+    out = jax.tree_util.tree_map(lambda x: x, module)  # a new instance, unflattened
+    for k, v in fields.items():
+        object.__setattr__(out, k, v)
+    return out
+
+
+def _pad_rays(a, pad: int):
+    """(N, ...) per-ray ``a`` with ``pad`` copies of its first ray appended."""
+    if pad <= 0:
+        return a
+    h = np.asarray(a)  # on the host: eager device ops would compile for every new count
+    return jnp.asarray(np.concatenate([h, np.broadcast_to(h[:1], (pad,) + h.shape[1:])]))
+
+
+def _pad_hits(hits: RayHits, pad: int) -> RayHits:
+    """``hits`` with ``pad`` copies of its first ray of weight 0 appended (finite values that
+    add nothing to its pixel, nor to any derivative)."""
+    if pad <= 0:
+        return hits
+    out = jax.tree_util.tree_map(lambda a: _pad_rays(a, pad), hits)
+    w = np.array(out.weight)
+    w[-pad:] = 0.0
+    return eqx.tree_at(lambda r: r.weight, out, jnp.asarray(w))
+
+
+def _same_march(a: float | None, b: float | None, h: float) -> bool:
+    """Whether two cameras' longest fog segments give the march the same step count (its
+    step: h/2, ``_march.march_steps``)."""
+    if a is None or b is None:
+        return a is None and b is None
+    return math.ceil(float(a) / (h / 2.0)) == math.ceil(float(b) / (h / 2.0))
+
+
 def _hit_points(hits: RayHits) -> tuple[np.ndarray, np.ndarray]:
     """(points (R, 3) where each ray meets a shape (its origin where it meets none), the rays
     that meet one (R,) bool), on the host in float64."""
@@ -434,9 +470,12 @@ class SunLinearization(eqx.Module):
     cam_path: tuple[jax.Array, jax.Array] | None  # the cameras' sun_path
     hit_cos: tuple[tuple[jax.Array, jax.Array], ...] | None  # per camera: RayHits.sun_cos
     hit_depth: tuple[tuple[jax.Array, jax.Array], ...] | None  # per camera: RayHits.sun_depth
-    zenith: float = eqx.field(static=True)
-    azimuth: float = eqx.field(static=True)
-    step: float = eqx.field(static=True)
+    # the angles it is linearized about and the differences' step (degrees), as arrays, not
+    # static: a model rebuilt at another sun then runs the programs compiled for the first
+    # (``traced_sun_form``)
+    zenith: jax.Array
+    azimuth: jax.Array
+    step: jax.Array
 
 
 class SweepModel(AbstractForwardModel):
@@ -537,7 +576,8 @@ class SweepModel(AbstractForwardModel):
         out = SweepModel(self.scene, resolution=self.resolution if resolution is None
                          else resolution, solver=solver, supersample=self.supersample,
                          cameras=self.cameras, edge_samples=self.edge_samples)
-        return out if self.sun_lin is None else out.with_sun_derivatives(self.sun_lin.step)
+        return out if self.sun_lin is None else out.with_sun_derivatives(
+            float(self.sun_lin.step))
 
     def at_sun(self, zenith_deg: float, azimuth_deg: float, step_deg: float | None = None
                ) -> "SweepModel":
@@ -554,7 +594,8 @@ class SweepModel(AbstractForwardModel):
                          edge_samples=self.edge_samples)
         if self.sun_lin is None and step_deg is None:
             return out
-        return out.with_sun_derivatives(self.sun_lin.step if step_deg is None else step_deg)
+        return out.with_sun_derivatives(float(self.sun_lin.step) if step_deg is None
+                                        else step_deg)
 
     def with_sun_derivatives(self, step_deg: float = SUN_STEP_DEG) -> "SweepModel":
         """This model with the sun's angles as parameters it can trace (``sun.zenith_deg``,
@@ -623,7 +664,7 @@ class SweepModel(AbstractForwardModel):
             vis=deriv("vis"), cam_vis=deriv("cam_vis"), cam_path=deriv("cam_path"),
             hit_cos=tuple(deriv("hit_cos", i) for i in range(n_cam)) if n_cam else None,
             hit_depth=tuple(deriv("hit_depth", i) for i in range(n_cam)) if n_cam else None,
-            zenith=z, azimuth=a, step=step)
+            zenith=jnp.asarray(z), azimuth=jnp.asarray(a), step=jnp.asarray(step))
         return eqx.tree_at(lambda m: m.sun_lin, self, lin, is_leaf=lambda x: x is None)
 
     def _with_sun(self, params: Params, geom, cg, hits):
@@ -643,8 +684,8 @@ class SweepModel(AbstractForwardModel):
                              "fit the density under a known sun, or the sun with the scene's "
                              "density")
         dt = params.scattering.dtype
-        dz = get_param(params, self.scene, "sun.zenith_deg").astype(dt) - lin.zenith
-        da = get_param(params, self.scene, "sun.azimuth_deg").astype(dt) - lin.azimuth
+        dz = get_param(params, self.scene, "sun.zenith_deg").astype(dt) - lin.zenith.astype(dt)
+        da = get_param(params, self.scene, "sun.azimuth_deg").astype(dt) - lin.azimuth.astype(dt)
 
         def moved(v, d, clip=True):  # a visibility or a cosine stays in [0, 1]; a path not
             # (the cameras' is continued linearly past the fog's box, negative beyond a face)
@@ -667,6 +708,64 @@ class SweepModel(AbstractForwardModel):
                                      (moved(h.sun_cos, dc), moved(h.sun_depth, dd, False)))
                          for h, dc, dd in zip(hits, lin.hit_cos, lin.hit_depth))
         return geom, cg, hits
+
+    def traced_sun_form(self, paths, like: "SweepModel | None" = None) -> "SweepModel":
+        """This model for programs that trace the sun's angles ``paths`` (a fit's): the same
+        images and derivatives wherever those angles are traced, shaped to share the programs
+        compiled for ``like`` (the form of this model built at another sun: a fit's last
+        round).
+
+        What a model holds static about its own sun (the scene's traced angles, the beam's
+        direction) enters a traced-sun program only through the beam's sheet order
+        (``_uncollided.beam_frame_key``), so where that agrees with ``like``'s, ``like``'s
+        stand in for them; the cameras' exact rays are padded to ``like``'s counts with rays
+        of weight 0 (or, without ``like``, by a sixteenth, so that a later round whose edge
+        pixels moved still fits).  Where they do not agree (the sun crossed a sheet order, a
+        camera gained more rays than the padding holds) the form differs and compiles anew:
+        slower, never wrong."""
+        import dataclasses
+
+        from ._uncollided import beam_frame_key
+
+        if self.sun_lin is None:
+            raise SceneError("traced_sun_form: this model has no sun derivatives "
+                             "(with_sun_derivatives)")
+        attrs = {"sun.zenith_deg": "zenith_deg", "sun.azimuth_deg": "azimuth_deg"}
+        out = self
+        if self.hits is not None:
+            hits, cos, depth = [], [], []
+            lin = self.sun_lin
+            for i, h in enumerate(self.hits):
+                n = int(h.weight.shape[0])
+                want = n + max(16, -(-n // 16))
+                max_length = h.max_length
+                if like is not None and like.hits is not None and len(like.hits) == len(self.hits):
+                    other = like.hits[i]
+                    if int(other.weight.shape[0]) >= n:
+                        want = int(other.weight.shape[0])
+                    if _same_march(h.max_length, other.max_length, self.camera_geometry.h):
+                        max_length = other.max_length
+                hits.append(_with_static(_pad_hits(h, want - n), max_length=max_length))
+                if lin.hit_cos is not None:
+                    cos.append(tuple(_pad_rays(d, want - n) for d in lin.hit_cos[i]))
+                    depth.append(tuple(_pad_rays(d, want - n) for d in lin.hit_depth[i]))
+            out = eqx.tree_at(lambda m: m.hits, out, tuple(hits))
+            if lin.hit_cos is not None:
+                out = eqx.tree_at(lambda m: (m.sun_lin.hit_cos, m.sun_lin.hit_depth), out,
+                                  (tuple(cos), tuple(depth)))
+        if like is None or like.scene.sun is None:
+            return out
+        periodic = self.geometry.periodic_xy
+        if beam_frame_key(self.geometry.sun_dir, periodic) != beam_frame_key(
+                like.geometry.sun_dir, periodic):
+            return out
+        sun = dataclasses.replace(self.scene.sun, **{
+            attrs[p]: getattr(like.scene.sun, attrs[p]) for p in paths if p in attrs})
+        return _with_static(
+            out, scene=self.scene.replace(sun=sun),
+            geometry=_with_static(out.geometry, sun_dir=like.geometry.sun_dir),
+            camera_geometry=_with_static(out.camera_geometry,
+                                         sun_dir=like.camera_geometry.sun_dir))
 
     @property
     def lattice(self) -> Lattice:
@@ -804,7 +903,8 @@ class SweepModel(AbstractForwardModel):
             "node_counts": lat.counts(),
             "supersample": self.supersample,
             "edge_samples": self.edge_samples,
-            "sun_derivative_step_deg": None if self.sun_lin is None else self.sun_lin.step,
+            "sun_derivative_step_deg": (None if self.sun_lin is None
+                                        else float(self.sun_lin.step)),
             "cameras": [c.name for c in self.cameras],
             "dtype": str(jnp.result_type(float)),
             "terms": ([] if self.geometry.terms is None

@@ -38,6 +38,22 @@ NO_SUN_PATH = 1e20
 _MOMENT_TO_CHANGE = 12.0
 
 
+def beam_frame_key(sun_dir, periodic_xy: bool):
+    """What a beam towards ``sun_dir`` fixes in its program: (axis, sign, the offsets' whole
+    voxels per sheet), or None for a sun on the horizon of a periodic domain.  With the sun's
+    direction traced (``_beam_frame``'s ``vec``) two static directions with the same key give
+    the same program."""
+    sun_dir = np.asarray(sun_dir, np.float64)
+    axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
+    along = float(abs(sun_dir[axis]))
+    if along < 1e-9:
+        return None
+    u, v = face_plane_axes(axis)
+    # Light moves by -sun_dir; per sheet the lateral displacement is d = -sun_dir[u,v]/along.
+    # The light at (u, v) came from (u - du, v - dv) in the previous sheet.
+    return axis, sign, tuple(math.floor(float(sun_dir[a]) / along) for a in (u, v))
+
+
 def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool, vec=None):
     """The sheet order of a beam towards ``sun_dir``: (perm, sign, along, resample), or None
     for a sun on the horizon of a periodic domain.  ``perm`` puts the sweep axis first, the
@@ -48,15 +64,13 @@ def _beam_frame(sun_dir: np.ndarray, periodic_xy: bool, vec=None):
     ``vec``: a traced direction near ``sun_dir`` (the sun as an unknown): ``along`` and the
     offsets' fractions follow it, the sheet order and the offsets' whole voxels stay
     ``sun_dir``'s (a fraction past [0, 1] extrapolates the bilinear weights linearly)."""
-    axis, sign = sun_sweep_axis(sun_dir, periodic_xy)
-    along = float(abs(sun_dir[axis]))  # Python floats below: weak-typed, keep σ's dtype
-    if along < 1e-9:
+    key = beam_frame_key(sun_dir, periodic_xy)
+    if key is None:
         return None
+    axis, sign, ipart = key
+    along = float(abs(sun_dir[axis]))  # Python floats below: weak-typed, keep σ's dtype
     u, v = face_plane_axes(axis)
-    # Light moves by -sun_dir; per sheet the lateral displacement is d = -sun_dir[u,v]/along.
-    # The light at (u, v) came from (u - du, v - dv) in the previous sheet.
     src = [float(sun_dir[u]) / along, float(sun_dir[v]) / along]  # offsets to sample, in voxels
-    ipart = [math.floor(x) for x in src]
     frac = [x - i for x, i in zip(src, ipart)]
     if vec is not None:
         along = jnp.abs(vec[axis])
