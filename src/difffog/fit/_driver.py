@@ -125,11 +125,11 @@ class _Setup:
     mask_files: dict
     # what the compiled steps run: the model, or with the sun's angles as unknowns its
     # ``traced_sun_form`` (shared by the rounds that rebuild it at the estimated sun)
-    run: Any = None
+    run: Any
 
     @property
     def args(self):
-        return (self.model if self.run is None else self.run, self.data)
+        return (self.run, self.data)
 
     def values(self, u) -> dict[str, float]:
         return {c.path: float(c.to_v(x)) for c, x in zip(self.coords, np.asarray(u))}

@@ -291,6 +291,16 @@ def march_steps(fields: LatticeFields, step: float, origins=None, directions=Non
             t0, t1 = _clip(fields.lo, fields.hi, o, d, fields.periodic_xy, np)
             path = np.where(t1 > t0, t1 - t0, 0.0)
             max_length = min(cap, float(path.max(initial=0.0)))
+    return step_count(max_length, step)
+
+
+def march_step(h: float, step: float | None = None) -> float:
+    """The march's step length: ``step``, by default half the lattice spacing ``h``."""
+    return float(h / 2.0 if step is None else step)
+
+
+def step_count(max_length: float, step: float) -> int:
+    """The march's static number of steps for a longest path ``max_length``."""
     return int(math.ceil(float(max_length) / step)) + 1
 
 
@@ -898,7 +908,7 @@ def trace_rays(fields: LatticeFields, origins, directions, *, step: float | None
                chunk: int = 16384, max_length: float | None = None,
                hits: RayHits | None = None) -> TraceResult:
     """March rays through the lattice; see :func:`render_rays`.  Returns a TraceResult (N,)."""
-    step = float(fields.h / 2.0 if step is None else step)
+    step = march_step(fields.h, step)
     if not step > 0:
         raise ValueError(f"step must be positive, got {step}")
     if hits is not None and max_length is None:

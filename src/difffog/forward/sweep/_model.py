@@ -21,12 +21,12 @@ from ...geometry._hits import casts_exactly
 from ..._errors import SceneError
 from ...geometry._lattice import SOLID, SURFACE, Lattice, apply_density_map, voxelize
 from ...scene._description import Camera, Scene, sun_vector
-from ...scene._params import Params, get_param, sun_direction_of
+from ...scene._params import SUN_PATHS, Params, get_param, sun_direction_of
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
 from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _flat_table, _interp, camera_hits,
-                     edge_pixels, render_camera)
+                     edge_pixels, march_step, render_camera, step_count)
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
@@ -359,11 +359,12 @@ def _pad_hits(hits: RayHits, pad: int) -> RayHits:
 
 
 def _same_march(a: float | None, b: float | None, h: float) -> bool:
-    """Whether two cameras' longest fog segments give the march the same step count (its
-    step: h/2, ``_march.march_steps``)."""
+    """Whether two cameras' longest fog segments give the march the same step count at its
+    default step (``_march.march_steps``)."""
     if a is None or b is None:
         return a is None and b is None
-    return math.ceil(float(a) / (h / 2.0)) == math.ceil(float(b) / (h / 2.0))
+    step = march_step(h)
+    return step_count(a, step) == step_count(b, step)
 
 
 def _hit_points(hits: RayHits) -> tuple[np.ndarray, np.ndarray]:
@@ -730,7 +731,6 @@ class SweepModel(AbstractForwardModel):
         if self.sun_lin is None:
             raise SceneError("traced_sun_form: this model has no sun derivatives "
                              "(with_sun_derivatives)")
-        attrs = {"sun.zenith_deg": "zenith_deg", "sun.azimuth_deg": "azimuth_deg"}
         out = self
         if self.hits is not None:
             hits, cos, depth = [], [], []
@@ -759,8 +759,9 @@ class SweepModel(AbstractForwardModel):
         if beam_frame_key(self.geometry.sun_dir, periodic) != beam_frame_key(
                 like.geometry.sun_dir, periodic):
             return out
-        sun = dataclasses.replace(self.scene.sun, **{
-            attrs[p]: getattr(like.scene.sun, attrs[p]) for p in paths if p in attrs})
+        attrs = [SUN_PATHS[p][1] for p in paths if p in SUN_PATHS]  # the Sun's attribute
+        sun = dataclasses.replace(self.scene.sun,
+                                  **{a: getattr(like.scene.sun, a) for a in attrs})
         return _with_static(
             out, scene=self.scene.replace(sun=sun),
             geometry=_with_static(out.geometry, sun_dir=like.geometry.sun_dir),
