@@ -53,7 +53,7 @@ CAMERAS = ["top", "oblique"]
 FIELDS = ["scene", "case", "set", "N", "M", "unknown", "truth", "estimate", "rel_error_pct",
           "rel_stderr_pct", "covered_2se", "iterations", "result", "time_s", "misfit_truth_pct",
           "residual_rms_pct", "load", "rel_model_error_pct", "rel_uncertainty_pct", "covered_3u",
-          "edge_weight"]
+          "edge_weight", "refine_steps"]
 
 
 def _ew(r) -> float:
@@ -93,12 +93,13 @@ def misfit(fwd, scene, truth, targets, downsample) -> float:
 
 
 def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, max_steps,
-             model_error=None, edge_weight=1.0):
+             model_error=None, edge_weight=1.0, refine_steps=4):
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.IdentifiabilityWarning)
         res = df.fit(scene, targets, start_of(truth), forward=fwd, downsample=downsample,
                      max_steps=max_steps, model_error=model_error, edge_weight=edge_weight,
+                     refine_steps=refine_steps,
                      callback=lambda e: print(
                          f"    step {e['step']}: loss {e['loss']:.4g} at {e['time_s']:.0f} s",
                          flush=True))
@@ -117,6 +118,7 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, 
             "rel_stderr_pct": 100 * se / v, "covered_2se": bool(abs(est - v) <= 2 * se),
             "iterations": res.iterations, "result": res.result, "time_s": round(wall, 1),
             "edge_weight": edge_weight,
+            "refine_steps": res.ladder[1].get("steps", "") if model_error is not None else "",
             "misfit_truth_pct": round(mis, 3),
             "residual_rms_pct": round(float(100 * res.residual_rms / mean), 3), "load": load,
         })
@@ -128,7 +130,7 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, 
 
 
 def study(scene_name, N, M, downsample, cases, rows, all_sets=True, max_steps=40,
-          refdir=None, model_error=None, edge_weight=1.0):
+          refdir=None, model_error=None, edge_weight=1.0, refine_steps=4):
     truth_all = json.loads((DATA / "truth.json").read_text())[scene_name]
     scene = df.load_scene(scene_name)
     fwd = C.fit_model(scene, CAMERAS, N, M, downsample)
@@ -152,7 +154,7 @@ def study(scene_name, N, M, downsample, cases, rows, all_sets=True, max_steps=40
                 targets = {c: np.load(DATA / scene_name / f"set{k}" / f"{c}{suffix}.npy")
                            for c in CAMERAS}
             run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load,
-                     max_steps, model_error, edge_weight)
+                     max_steps, model_error, edge_weight, refine_steps)
 
 
 def write(rows, out: Path, info: dict):
@@ -176,7 +178,9 @@ def write(rows, out: Path, info: dict):
              "estimate and its stated standard error (both % of the truth), LM from ζ×0.6, "
              "γ×1.6, albedo−0.15; both cameras at 1/4 size; M = 3. `misfit@truth`: image RMS "
              "of the fit's model at the true parameters, % of the target mean (model bias + "
-             "target noise). `load`: 1-min load average when the scene started.", "",
+             "target noise). `load`: 1-min load average when the scene started. `steps`: the fit's, "
+             "+ the renders of the finer model its correction took (`--model-error refine`; "
+             "rows before stop 58: one).", "",
              "Machine of the latest run:", "", *C.machine_lines(info), "",
              "| scene | case | set | N | ζ error % (±se) | γ error % (±se) | albedo error % "
              "(±se) | steps | result | time s | misfit@truth % | residual % | load |",
@@ -205,8 +209,9 @@ def write(rows, out: Path, info: dict):
                 cells.append(f"{float(r['rel_error_pct']):+.2f} "
                              f"(±{float(r['rel_stderr_pct']):.2f}){mark}")
         r0 = rs[0]
+        fine = str(r0.get("refine_steps") or "")  # renders of the correction's finer model
         lines.append(f"| {sc} | {case} | {k} | {N} | " + " | ".join(cells) +
-                     f" | {r0['iterations']} | {r0['result']} | {r0['time_s']} | "
+                     f" | {r0['iterations']}{' + ' + fine if fine else ''} | {r0['result']} | {r0['time_s']} | "
                      f"{float(r0['misfit_truth_pct']):.2f} | {float(r0['residual_rms_pct']):.2f} | "
                      f"{r0['load']} |")
     lines += ["", "✗: the truth lies outside ±2 stated standard errors (the standard error "
@@ -234,6 +239,9 @@ def main(argv=None):
     ap.add_argument("--model-error", default=None,
                     help="fit(model_error=...): \"refine\" (or a finer resolution) adds the "
                          "model's own error to each estimate's uncertainty")
+    ap.add_argument("--refine-steps", type=int, default=4,
+                    help="fit(refine_steps=...): the most renders of the finer model the "
+                         "correction takes (default 4; 1: one Gauss-Newton step)")
     ap.add_argument("--edge-weight", type=float, default=1.0,
                     help="fit(edge_weight=...): the weight of pixels that straddle a geometric "
                          "or a shadow edge (default 1: as any pixel)")
@@ -250,7 +258,8 @@ def main(argv=None):
             rows = []
             me = args.model_error
             study(name, N, args.M, args.downsample, cases, rows, not args.set0_only, max_steps,
-                  args.references, int(me) if me and me.isdigit() else me, args.edge_weight)
+                  args.references, int(me) if me and me.isdigit() else me, args.edge_weight,
+                  args.refine_steps)
             write(rows, args.out, info)  # after every scene, so a killed run keeps its rows
 
 

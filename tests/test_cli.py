@@ -368,6 +368,8 @@ def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, cap
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--resume"], "no checkpoint"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--model-error", "finer"],
      "--model-error finer: use refine, none or a finer resolution"),
+    (["--target", "top=T.npy", "--unknown", "fog.scattering", "--refine-steps", "0"],
+     "--refine-steps 0: give the most renders of the finer model"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--model-floor", "5%x"],
      "--model-floor 5%x: use auto or a relative brightness in [0, 1)"),
     (["--target", "top=T.npy", "--unknown", "fog.scattering", "--bounds",

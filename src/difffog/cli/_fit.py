@@ -52,6 +52,14 @@ def _model_error(text: str):
                            f"(e.g. 64)") from None
 
 
+def _refine_steps(k: int) -> int:
+    """--refine-steps: an integer ≥ 1."""
+    if k < 1:
+        raise DifffogError(f"--refine-steps {k}: give the most renders of the finer model the "
+                           f"correction takes, 1 or more (default 4; 1: one Gauss-Newton step)")
+    return k
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("fit", help="fit fog and surface parameters to target images")
     add_scene_args(p)
@@ -104,10 +112,15 @@ def add_parser(sub) -> None:
                    help="correct the estimates for the lattice and state its error: render "
                         "the fitted model once more on a lattice twice as fine (or N) with one "
                         "more direction and take the Gauss-Newton step that image change "
-                        "causes; the estimates are the fit moved by it (fit.json's fitted: the "
+                        "causes, then more such steps from where it lands (--refine-steps); "
+                        "the estimates are the fit moved by them (fit.json's fitted: the "
                         "fit itself); their model error, from that step and two checks (a "
                         "lattice between, M + 1), is added to the uncertainty (default refine; "
                         "none: the fit itself, noise only)")
+    p.add_argument("--refine-steps", type=int, default=4, metavar="K",
+                   help="with --model-error: the most renders of the finer model its correction "
+                        "takes, stopping when a step moves every estimate by less than a tenth "
+                        "of its stated uncertainty (default 4; 1: one Gauss-Newton step)")
     p.add_argument("--model-floor", default="auto", metavar="auto|F",
                    help="with --model-error: also count, in each estimate's model error, a "
                         "relative brightness bias F of one camera's images at a time, the "
@@ -280,7 +293,8 @@ def run(args) -> int:
                      edge_weight=args.edge_weight,
                      model_error=(None if args.ladder != "none"
                                   else _model_error(args.model_error)),
-                     model_floor=_model_floor(args.model_floor))
+                     model_floor=_model_floor(args.model_floor),
+                     refine_steps=_refine_steps(args.refine_steps))
     for w in caught:  # the fit's own warnings are in result.warnings (and fit.json)
         if issubclass(w.category, MemoryWarning):
             print(f"difffog: warning: {w.message}", file=sys.stderr)

@@ -424,7 +424,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         stall_steps: int = 3, dtype=None, channel: str = "luminance", transfer: str = "auto",
         checkpoint: str | os.PathLike | None = None, resume: bool = False, progress=None,
         callback: Callable[[dict], None] | None = None,
-        ladder=None, model_error=None, model_floor="auto",
+        ladder=None, model_error=None, model_floor="auto", refine_steps: int = 4,
         edge_weight: float = 1.0) -> FitResult:
     """Fit the unknowns of ``scene`` to target images.
 
@@ -487,13 +487,21 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         the estimate on a lattice twice as fine (or at the resolution given as an int) and,
         for the sweep, with one more direction (M + 1), takes the Gauss–Newton step that image
         change would cause, J⁺·Δy: to first order the estimate a fit with the finer model
-        would reach.  That corrected estimate is returned in ``estimates`` (the fit at
-        ``resolution`` itself in ``fitted``, with its images).  Its ``model_error`` is the root
-        sum of squares of three parts (``model_error_parts``): the step × N/(N_f − N), first
-        order in the voxel size (1 for a doubled lattice); how far a lattice between lands
-        from that first-order line; and the change with M + 1 on the fit's own lattice.  Three
-        light solves and their images after the fit.  None (default): no correction, no
-        estimate.
+        would reach; then further such steps from where the last one landed (defect
+        correction: the finer model's images there, the fit's Jacobian), up to
+        ``refine_steps`` renders in all, until a step moves every estimate by less than a
+        tenth of its stated uncertainty.  That corrected estimate is returned in ``estimates``
+        (the fit at ``resolution`` itself in ``fitted``, with its images).  Its
+        ``model_error`` is the root sum of squares of three parts (``model_error_parts``): the
+        correction × N/(N_f − N), first order in the voxel size (1 for a doubled lattice); how
+        far a lattice between lands from the first step's first-order line; and the change
+        with M + 1 on the fit's own lattice (a fourth, "refine_steps", the last step, where
+        the steps did not become small).  Three light solves and their images after the fit,
+        and one more per further step.  None (default): no correction, no estimate.
+    refine_steps: the most renders of the finer model the correction of ``model_error``
+        takes (default 4; 1: the one Gauss–Newton step).  Measured on cloud-plane (ζ = 60,
+        fit at N = 24, γ's correction −17%): one step leaves γ +1.5% off the finer fit, two
+        0.3%, three 0.1%.
     model_floor: with ``model_error="refine"``, a fourth part of the model error
         ("brightness"): how far each estimate moves (one Gauss–Newton step, as above) if one
         camera's images were this much (relative) too bright, root sum of squares over the
@@ -508,6 +516,11 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     did not converge; an unconverged tangent solve (the Jacobian) is listed in its warnings.
     See :func:`fit_batch` for many target sets at once.
     """
+    if isinstance(refine_steps, bool) or not isinstance(refine_steps, (int, np.integer)) \
+            or refine_steps < 1:
+        raise DifffogError(f"refine_steps={refine_steps!r}: give the most renders of the finer "
+                           f"model the correction takes, an integer ≥ 1 (default 4; 1: one "
+                           f"Gauss–Newton step)")
     levels = _ladder_levels(scene, forward, resolution, model_settings, ladder)
     fine_n = _refine_resolution(scene, forward, resolution, model_settings, model_error, levels)
     floor = _brightness_floor(forward, model_floor)
@@ -522,7 +535,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         if fine_n is not None:
             t0 = time.perf_counter()
             _with_refined_error(res, scene, forward, fine_n, downsample, model_settings,
-                                progress, floor)
+                                progress, floor, refine_steps)
             res.time_s += time.perf_counter() - t0
         return res
     if checkpoint is not None or resume:
@@ -741,7 +754,7 @@ def _floor_shifts(st, u, J, y, weight, fitted, floor: float) -> dict[str, float]
 
 def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                         downsample: int, model_settings, progress=None,
-                        floor: float = 0.0) -> FitResult:
+                        floor: float = 0.0, refine_steps: int = 1) -> FitResult:
     """``res`` corrected to the lattice ``fine_n``, with its model error and total uncertainty
     (see ``fit``'s ``model_error``)."""
     lin = getattr(res, "_linear", None)
@@ -753,6 +766,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
     fitted = dict(res.estimates)
     moved = []  # (what, {path: the estimate the finer model would reach, to first order})
+    corrected = None  # (estimates, steps, {path: the last step left}, a note) when iterated
     checks = _refined_models(scene, forward, st, fine_n, downsample, model_settings)
     meter = sibling(progress, "model error")
     for i, (what, build) in enumerate(checks):
@@ -769,12 +783,9 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                 res.warnings.append(f"the model error is estimated at N = {smaller}, not "
                                     f"{fine_n}: {name}")
                 return _with_refined_error(res, scene, forward, smaller, downsample,
-                                           model_settings, progress, floor)
+                                           model_settings, progress, floor, refine_steps)
         if model is not None:
-            y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u),
-                                                                   (model, st.data)))
-            name = None if int(code) == RESULTS.successful else (
-                f"that light solve did not converge ({RESULTS(int(code)).name})")
+            y_f, name = _finer_images(st, model, u)
         if name is not None:
             if not moved:  # the correction itself
                 res.warnings.append(f"the estimate is not corrected and the model error not "
@@ -785,11 +796,22 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                                 f"the uncertainty may be too small")
             continue
         # the Gauss–Newton step that model's images take the estimate
-        moved.append((what, _moved_estimates(st, u, J, sqrt_w * (y_f.astype(np.float64) - y)
-                                             / scale)))
+        moved.append((what, _moved_estimates(st, u, J, sqrt_w * (y_f - y) / scale)))
+        if i == 0 and refine_steps > 1:  # iterate the correction with that model
+            corrected = _iterated_correction(
+                st, model, u, J, y, y_f, sqrt_w / scale, res.stderr, n / (fine_n - n),
+                refine_steps, label,
+                lambda k, w=what: meter.update(0, len(checks), **{
+                    "N" if a == "resolution" else a: b for a, b in w.items()}, step=k))
     meter.update(len(checks), len(checks))
     meter.close()
-    refined = moved[0][1]  # the estimate corrected to the finer lattice
+    first = moved[0][1]  # the first Gauss–Newton step's estimate
+    if corrected is None:
+        refined, steps, left = first, 1, {}
+    else:
+        refined, steps, left, note = corrected
+        if note:
+            res.warnings.append(note)
     # θ(h) = θ* + c·h: the corrected estimate stands for θ(h_f), whose own error is
     # θ(h_f) − θ* = (θ(h) − θ(h_f))·h_f/(h − h_f) = shift·N/(N_f − N) (1 for a doubled lattice).
     # Where the lattice between lands off that line the error is not first order (it follows
@@ -797,14 +819,17 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     # own error: the change with M + 1 on the fit's lattice.
     factor = n / (fine_n - n)
     parts = {p: {"lattice": factor * abs(refined[p] - fitted[p])} for p in res.paths}
+    for p, v in left.items():  # an iterated correction stopped before its steps were small
+        parts[p]["refine_steps"] = v
     for what, est in moved[1:]:
         if "M" in what:  # M + 1 on the fit's own lattice
             for p in res.paths:
                 parts[p]["directions"] = abs(est[p] - fitted[p])
             continue
+        # (the checks are single steps: the line they are held to is the first step's)
         t = (1 / what["resolution"] - 1 / n) / (1 / fine_n - 1 / n)  # its place on the line
         for p in res.paths:
-            parts[p]["lattice_between"] = abs(est[p] - (fitted[p] + t * (refined[p] - fitted[p])))
+            parts[p]["lattice_between"] = abs(est[p] - (fitted[p] + t * (first[p] - fitted[p])))
     if floor > 0:  # the brightness the validation vouches for, not the lattice
         for p, v in _floor_shifts(st, u, J, y, sqrt_w / scale, fitted, floor).items():
             parts[p]["brightness"] = v
@@ -819,9 +844,66 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                        for p in res.paths}
     res.model_error_parts = {p: {k: float(v) for k, v in parts[p].items()} for p in res.paths}
     res.uncertainty = {p: math.hypot(res.stderr[p], res.model_error[p]) for p in res.paths}
-    res.ladder = [{"resolution": n, "estimates": fitted}] + [
-        {**what, "estimates": est, "linearized": True} for what, est in moved]
+    res.ladder = [{"resolution": n, "estimates": fitted},
+                  {**moved[0][0], "estimates": refined, "linearized": True, "steps": steps}] + [
+        {**what, "estimates": est, "linearized": True} for what, est in moved[1:]]
     return res
+
+
+def _finer_images(st, model, u) -> tuple[np.ndarray | None, str | None]:
+    """``model``'s images at the unconstrained unknowns ``u`` (float64, flattened as the
+    residual), or None and why not (its light solve did not converge)."""
+    y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u, st.data[0].dtype),
+                                                           (model, st.data)))
+    if int(code) != RESULTS.successful:
+        return None, f"that light solve did not converge ({RESULTS(int(code)).name})"
+    return y_f.astype(np.float64), None
+
+
+def _iterated_correction(st, model, u, J, y, y_f, weight, stderr, factor: float,
+                         refine_steps: int, label: str, show):
+    """The finer model's own best fit, by defect correction from the fit at ``u``: the step
+    u_k+1 = u_k − J⁺·w·(y_f(u_k) − y(u)) with the fit's Jacobian J, whose fixed point has
+    Jᵀ·w·(y_f − target) = Jᵀ·w·(y(u) − target) = 0 (the fit's own optimality): the finer
+    model's least squares, to the extent J's columns span its Jacobian's.  The first step is
+    the plain correction; each further one costs one render of ``model``.  Stops when a step
+    moves every estimate by less than a tenth of the uncertainty it will be stated with
+    (√(stderr² + (factor·correction)²), the lattice part of the model error; the steps shrink
+    about tenfold each on cloud-plane, so what is left is a hundredth of it), or after
+    ``refine_steps`` renders (``y_f``: its images at ``u``, the first).  Returns (estimates,
+    renders, {path: the last step, where the steps did not become small}, a note or None)."""
+    def physical(x):
+        return {c.path: float(c.to_v(float(v))) for c, v in zip(st.coords, x)}
+
+    u = np.asarray(u, np.float64)
+    fitted = before = physical(u)
+
+    def tolerance(p, v):
+        s = stderr.get(p, float("nan"))
+        s = s if math.isfinite(s) else 0.0
+        return max(0.1 * math.hypot(s, factor * (v - fitted[p])), 1e-6 * abs(v))
+
+    uk = u - np.linalg.lstsq(J, weight * (y_f - y), rcond=None)[0]
+    renders = 1
+    while True:
+        now = physical(uk)
+        last = {p: abs(now[p] - before[p]) for p in now}
+        if all(last[p] <= tolerance(p, now[p]) for p in now):
+            return now, renders, {}, None
+        if renders >= refine_steps:
+            return now, renders, last, (
+                f"the correction to {label} stopped after {renders} steps, its last still "
+                f"larger than a tenth of the uncertainty; that step is counted in the model "
+                f"error (\"refine_steps\"); refine_steps={refine_steps} sets how many")
+        show(renders + 1)
+        y_f, why = _finer_images(st, model, uk)
+        if why is not None:
+            return now, renders, last, (
+                f"the correction to {label} stopped after {renders} steps: at the next, {why}; "
+                f"its last step is counted in the model error (\"refine_steps\")")
+        renders += 1
+        before = now
+        uk = uk - np.linalg.lstsq(J, weight * (y_f - y), rcond=None)[0]
 
 
 def _ladder_levels(scene: Scene, forward, resolution, model_settings, ladder) -> tuple:

@@ -51,16 +51,19 @@ class FitResult:
         (the standard error alone without a model error).
     fitted: {path: value}: with ``model_error="refine"``, the best fit of the model at the
         fit's own resolution, the point ``images`` are rendered at; ``estimates`` are then that
-        fit corrected by one Gauss–Newton step to the finer model (the doubled lattice; for the
-        sweep with M + 1).  Otherwise the estimates.
+        fit corrected to the finer model (the doubled lattice; for the sweep with M + 1) by
+        Gauss–Newton steps on that model's images with the fit's Jacobian (``fit``'s
+        ``refine_steps``).  Otherwise the estimates.
     ladder: one dict per level of the ladder (resolution, estimates, iterations, time_s,
         result); with ``model_error="refine"`` the fit and each finer model's linearized
-        estimate (resolution, M where it changes, estimates).
+        estimate (resolution, M where it changes, estimates; the correction's ``steps``, the
+        renders its iteration took).
     model_error_parts: with ``model_error="refine"``, {path: {part: value}}: the correction's
         step taken as first order in the voxel size, × N/(N_f − N) ("lattice"); how far the
         estimate of a lattice between (1.5 N, the fit's M) lands from the line through the fit
-        and the corrected estimate ("lattice_between"); the change with M + 1 on the fit's own
-        lattice ("directions"); with the sun's angles as unknowns, how far the last round's
+        and the correction's first step ("lattice_between"); the change with M + 1 on the fit's own
+        lattice ("directions"); where the correction's iteration stopped before its steps
+        were small (``refine_steps`` reached), its last step ("refine_steps"); with the sun's angles as unknowns, how far the last round's
         rebuild at the estimated sun moved each estimate ("sun_rounds"); how far a relative
         brightness bias of ``fit``'s ``model_floor`` in one camera's images at a time moves it
         ("brightness", the model's brightness against independent truth, which no finer
@@ -151,8 +154,11 @@ class FitResult:
             lines.append("uncertainty dominated by " + "; ".join(
                 f"{k}: {', '.join(v)}" for k, v in by.items() if v) + f" ({source})")
         if corrected:
+            k = int(self.ladder[1].get("steps", 1))
+            how = ("one Gauss–Newton step" if k == 1
+                   else f"{k} Gauss–Newton steps (defect correction)")
             lines.append(f"estimate: the fit at {level_label(self.ladder[0])} corrected to "
-                         f"{level_label(self.ladder[1])} by one Gauss–Newton step on that "
+                         f"{level_label(self.ladder[1])} by {how} on that "
                          f"model's images (the fitted images are at the "
                          f"{level_label(self.ladder[0])} fit)")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
