@@ -767,6 +767,10 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     fitted = dict(res.estimates)
     moved = []  # (what, {path: the estimate the finer model would reach, to first order})
     corrected = None  # (estimates, steps, {path: the last step left}, a note) when iterated
+    # the brightness floor's part (from J alone) and the noise: known before any render, they
+    # are part of the uncertainty the iterated correction is held to
+    shifts = (_floor_shifts(st, u, J, y, sqrt_w / scale, fitted, floor) if floor > 0 else {})
+    known = {p: math.hypot(_finite(res.stderr.get(p)), shifts.get(p, 0.0)) for p in res.paths}
     checks = _refined_models(scene, forward, st, fine_n, downsample, model_settings)
     meter = sibling(progress, "model error")
     for i, (what, build) in enumerate(checks):
@@ -799,7 +803,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         moved.append((what, _moved_estimates(st, u, J, sqrt_w * (y_f - y) / scale)))
         if i == 0 and refine_steps > 1:  # iterate the correction with that model
             corrected = _iterated_correction(
-                st, model, u, J, y, y_f, sqrt_w / scale, res.stderr, n / (fine_n - n),
+                st, model, u, J, y, y_f, sqrt_w / scale, known, n / (fine_n - n),
                 refine_steps, label,
                 lambda k, w=what: meter.update(0, len(checks), **{
                     "N" if a == "resolution" else a: b for a, b in w.items()}, step=k))
@@ -831,7 +835,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         for p in res.paths:
             parts[p]["lattice_between"] = abs(est[p] - (fitted[p] + t * (first[p] - fitted[p])))
     if floor > 0:  # the brightness the validation vouches for, not the lattice
-        for p, v in _floor_shifts(st, u, J, y, sqrt_w / scale, fitted, floor).items():
+        for p, v in shifts.items():
             parts[p]["brightness"] = v
         res.model_floor = floor
     if len(res.sun_rounds) >= 2:  # how far the last rebuild at the estimated sun moved each
@@ -860,16 +864,22 @@ def _finer_images(st, model, u) -> tuple[np.ndarray | None, str | None]:
     return y_f.astype(np.float64), None
 
 
-def _iterated_correction(st, model, u, J, y, y_f, weight, stderr, factor: float,
+def _finite(v) -> float:
+    """``v`` where it is a finite number, else 0 (an unknown standard error adds nothing)."""
+    return float(v) if v is not None and math.isfinite(v) else 0.0
+
+
+def _iterated_correction(st, model, u, J, y, y_f, weight, known, factor: float,
                          refine_steps: int, label: str, show):
     """The finer model's own best fit, by defect correction from the fit at ``u``: the step
     u_k+1 = u_k − J⁺·w·(y_f(u_k) − y(u)) with the fit's Jacobian J, whose fixed point has
     Jᵀ·w·(y_f − target) = Jᵀ·w·(y(u) − target) = 0 (the fit's own optimality): the finer
     model's least squares, to the extent J's columns span its Jacobian's.  The first step is
     the plain correction; each further one costs one render of ``model``.  Stops when a step
-    moves every estimate by less than a tenth of the uncertainty it will be stated with
-    (√(stderr² + (factor·correction)²), the lattice part of the model error; the steps shrink
-    about tenfold each on cloud-plane, so what is left is a hundredth of it), or after
+    moves every estimate by less than a tenth of the uncertainty it will be stated with, as far
+    as it is known before the checks render (``known``: the standard error and the brightness
+    floor's part; and the lattice part, factor × the correction; the steps shrink about tenfold
+    each on cloud-plane, so what is left is a hundredth of it), or after
     ``refine_steps`` renders (``y_f``: its images at ``u``, the first).  Returns (estimates,
     renders, {path: the last step, where the steps did not become small}, a note or None)."""
     def physical(x):
@@ -879,9 +889,7 @@ def _iterated_correction(st, model, u, J, y, y_f, weight, stderr, factor: float,
     fitted = before = physical(u)
 
     def tolerance(p, v):
-        s = stderr.get(p, float("nan"))
-        s = s if math.isfinite(s) else 0.0
-        return max(0.1 * math.hypot(s, factor * (v - fitted[p])), 1e-6 * abs(v))
+        return max(0.1 * math.hypot(known[p], factor * (v - fitted[p])), 1e-6 * abs(v))
 
     uk = u - np.linalg.lstsq(J, weight * (y_f - y), rcond=None)[0]
     renders = 1
