@@ -118,7 +118,8 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, 
             "rel_stderr_pct": 100 * se / v, "covered_2se": bool(abs(est - v) <= 2 * se),
             "iterations": res.iterations, "result": res.result, "time_s": round(wall, 1),
             "edge_weight": edge_weight,
-            "refine_steps": res.ladder[1].get("steps", "") if model_error is not None else "",
+            # (no correction where it failed: the model error is then NaN and the ladder short)
+            "refine_steps": res.ladder[1].get("steps", "") if len(res.ladder) > 1 else "",
             "misfit_truth_pct": round(mis, 3),
             "residual_rms_pct": round(float(100 * res.residual_rms / mean), 3), "load": load,
         })
