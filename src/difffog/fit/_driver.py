@@ -728,12 +728,22 @@ def _brightness_floor(forward, model_floor) -> float:
     return float(model_floor)
 
 
+def _gauss_newton_step(J, dy) -> np.ndarray:
+    """The Gauss–Newton step, in the unknowns' unconstrained coordinates, that an image change
+    ``dy`` (in the residual's units) causes: −J⁺·dy."""
+    return -np.linalg.lstsq(J, dy, rcond=None)[0]
+
+
+def _physical(st, x) -> dict[str, float]:
+    """The estimates at the unconstrained unknowns ``x``."""
+    return {c.path: float(c.to_v(float(v))) for c, v in zip(st.coords, x)}
+
+
 def _moved_estimates(st, u, J, dy) -> dict[str, float]:
     """The estimates after the Gauss–Newton step an image change ``dy`` (in the residual's
     units) causes, taken in the unconstrained coordinates, so a moved albedo stays inside its
     bounds."""
-    du = -np.linalg.lstsq(J, dy, rcond=None)[0]
-    return {c.path: float(c.to_v(float(x) + float(d))) for c, x, d in zip(st.coords, u, du)}
+    return _physical(st, np.asarray(u, np.float64) + _gauss_newton_step(J, dy))
 
 
 def _floor_shifts(st, u, J, y, weight, fitted, floor: float) -> dict[str, float]:
@@ -770,7 +780,8 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     # the brightness floor's part (from J alone) and the noise: known before any render, they
     # are part of the uncertainty the iterated correction is held to
     shifts = (_floor_shifts(st, u, J, y, sqrt_w / scale, fitted, floor) if floor > 0 else {})
-    known = {p: math.hypot(_finite(res.stderr.get(p)), shifts.get(p, 0.0)) for p in res.paths}
+    known = {p: math.hypot(_finite_or(res.stderr.get(p), 0.0), shifts.get(p, 0.0))
+             for p in res.paths}
     checks = _refined_models(scene, forward, st, fine_n, downsample, model_settings)
     meter = sibling(progress, "model error")
     for i, (what, build) in enumerate(checks):
@@ -800,10 +811,11 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                                 f"the uncertainty may be too small")
             continue
         # the Gauss–Newton step that model's images take the estimate
-        moved.append((what, _moved_estimates(st, u, J, sqrt_w * (y_f - y) / scale)))
+        u_moved = np.asarray(u, np.float64) + _gauss_newton_step(J, sqrt_w * (y_f - y) / scale)
+        moved.append((what, _physical(st, u_moved)))
         if i == 0 and refine_steps > 1:  # iterate the correction with that model
             corrected = _iterated_correction(
-                st, model, u, J, y, y_f, sqrt_w / scale, known, n / (fine_n - n),
+                st, model, u, u_moved, J, y, sqrt_w / scale, known, n / (fine_n - n),
                 refine_steps, label,
                 lambda k, w=what: meter.update(0, len(checks), **{
                     "N" if a == "resolution" else a: b for a, b in w.items()}, step=k))
@@ -864,12 +876,7 @@ def _finer_images(st, model, u) -> tuple[np.ndarray | None, str | None]:
     return y_f.astype(np.float64), None
 
 
-def _finite(v) -> float:
-    """``v`` where it is a finite number, else 0 (an unknown standard error adds nothing)."""
-    return float(v) if v is not None and math.isfinite(v) else 0.0
-
-
-def _iterated_correction(st, model, u, J, y, y_f, weight, known, factor: float,
+def _iterated_correction(st, model, u, u_first, J, y, weight, known, factor: float,
                          refine_steps: int, label: str, show):
     """The finer model's own best fit, by defect correction from the fit at ``u``: the step
     u_k+1 = u_k − J⁺·w·(y_f(u_k) − y(u)) with the fit's Jacobian J, whose fixed point has
@@ -880,21 +887,17 @@ def _iterated_correction(st, model, u, J, y, y_f, weight, known, factor: float,
     as it is known before the checks render (``known``: the standard error and the brightness
     floor's part; and the lattice part, factor × the correction; the steps shrink about tenfold
     each on cloud-plane, so what is left is a hundredth of it), or after
-    ``refine_steps`` renders (``y_f``: its images at ``u``, the first).  Returns (estimates,
+    ``refine_steps`` renders (``u_first``: where the first step landed).  Returns (estimates,
     renders, {path: the last step, where the steps did not become small}, a note or None)."""
-    def physical(x):
-        return {c.path: float(c.to_v(float(v))) for c, v in zip(st.coords, x)}
-
-    u = np.asarray(u, np.float64)
-    fitted = before = physical(u)
+    fitted = before = _physical(st, u)
 
     def tolerance(p, v):
         return max(0.1 * math.hypot(known[p], factor * (v - fitted[p])), 1e-6 * abs(v))
 
-    uk = u - np.linalg.lstsq(J, weight * (y_f - y), rcond=None)[0]
+    uk = u_first
     renders = 1
     while True:
-        now = physical(uk)
+        now = _physical(st, uk)
         last = {p: abs(now[p] - before[p]) for p in now}
         if all(last[p] <= tolerance(p, now[p]) for p in now):
             return now, renders, {}, None
@@ -911,7 +914,7 @@ def _iterated_correction(st, model, u, J, y, y_f, weight, known, factor: float,
                 f"its last step is counted in the model error (\"refine_steps\")")
         renders += 1
         before = now
-        uk = uk - np.linalg.lstsq(J, weight * (y_f - y), rcond=None)[0]
+        uk = uk + _gauss_newton_step(J, weight * (y_f - y))
 
 
 def _ladder_levels(scene: Scene, forward, resolution, model_settings, ladder) -> tuple:

@@ -61,9 +61,10 @@ class FitResult:
     model_error_parts: with ``model_error="refine"``, {path: {part: value}}: the correction's
         step taken as first order in the voxel size, × N/(N_f − N) ("lattice"); how far the
         estimate of a lattice between (1.5 N, the fit's M) lands from the line through the fit
-        and the correction's first step ("lattice_between"); the change with M + 1 on the fit's own
-        lattice ("directions"); where the correction's iteration stopped before its steps
-        were small (``refine_steps`` reached), its last step ("refine_steps"); with the sun's angles as unknowns, how far the last round's
+        and the correction's first step ("lattice_between"); the change with M + 1 on the
+        fit's own lattice ("directions"); where the correction's iteration stopped before its
+        steps were small (``refine_steps`` reached), its last step ("refine_steps"); with the
+        sun's angles as unknowns, how far the last round's
         rebuild at the estimated sun moved each estimate ("sun_rounds"); how far a relative
         brightness bias of ``fit``'s ``model_floor`` in one camera's images at a time moves it
         ("brightness", the model's brightness against independent truth, which no finer
