@@ -1,13 +1,16 @@
 """Regenerate the synthetic fit targets in this folder, deterministically.
 
-    PYTHONPATH=src python data_synthetic/make.py            # everything (~10-20 min on 2 cores)
+    PYTHONPATH=src python data_synthetic/make.py            # everything (~30-40 min on 2 cores)
     PYTHONPATH=src python data_synthetic/make.py --scene fog-balls
     PYTHONPATH=src python data_synthetic/make.py --quick --out /tmp/synthetic   # smoke test
 
 For each scene and parameter set (``SETS`` below) it renders every camera of the built-in
-scene at full camera resolution with the sweep solver at resolution ``N = 48`` and ``M = 4`` —
-finer than the fits use (N = 24-32, M = 3), so that a fit of these targets is not the
-"inverse crime" — and writes, under ``<scene>/set<k>/``:
+scene at full camera resolution with the sweep solver at resolution ``N = 96`` and ``M = 5`` —
+finer than the fits use (N = 24-32, M = 3) and than the model a fit's refine correction renders
+at `difffog fit`'s defaults (N = 64, M = 4), so that a fit of these targets is not the "inverse
+crime" and its model-error correction is judged against a finer lattice, as a photograph would
+judge it (until stop 59 they were rendered at N = 48, M = 4, coarser than that correction) —
+and writes, under ``<scene>/set<k>/``:
 
     <camera>.npy            noise-free float32 radiance (H, W), row 0 at the top
     <camera>_noise01.npy    plus i.i.d. Gaussian noise of σ = 1% of the image mean
@@ -33,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-N, M, SUPERSAMPLE, TOL = 48, 4, 3, 1e-5
+N, M, SUPERSAMPLE, TOL = 96, 5, 3, 1e-5
 QUICK = dict(N=16, M=2, supersample=1, sets=1)
 NOISE = {"noise01": 0.01, "noise05": 0.05}
 
