@@ -7,7 +7,8 @@ height (32×32 and 40×30 pixels), from a start away from the truth (ζ × 0.6, 
 albedo − 0.15), to these targets:
 
 * ``crime``: the fit's own model at the truth (the "inverse crime": a sanity check only);
-* ``hires``: ``data_synthetic/`` noise-free (N = 48, M = 4), every parameter set;
+* ``hires``: ``data_synthetic/`` noise-free (N = 96, M = 5; N = 48, M = 4 before stop 59: the
+  `targets` column), every parameter set;
 * ``noise01`` / ``noise05``: the same with 1% / 5% Gaussian noise (set 0);
 * ``mc``: the Mitsuba 3 references shipped with difffog (``difffog.study.references``, or
   ``--references DIR``) with the scene file's parameters as truth (their own noise ≈ 2–6% per
@@ -53,7 +54,26 @@ CAMERAS = ["top", "oblique"]
 FIELDS = ["scene", "case", "set", "N", "M", "unknown", "truth", "estimate", "rel_error_pct",
           "rel_stderr_pct", "covered_2se", "iterations", "result", "time_s", "misfit_truth_pct",
           "residual_rms_pct", "load", "rel_model_error_pct", "rel_uncertainty_pct", "covered_3u",
-          "edge_weight", "refine_steps"]
+          "edge_weight", "refine_steps", "targets"]
+
+#: the lattice of data_synthetic/'s targets before stop 59 (rows written before "targets" was
+#: a column: their synthetic cases were fit to these)
+OLD_TARGETS = "N48 M4"
+
+
+def targets_of(case: str, render: dict | None) -> str:
+    """What a case's targets are: the synthetic sets' lattice ("N96 M5", from truth.json's
+    "render"), "Mitsuba 3", or the fit's own model ("crime")."""
+    if case == "mc":
+        return "Mitsuba 3"
+    if case == "crime":
+        return "own model"
+    return f"N{render['resolution']} M{render['directions']}" if render else OLD_TARGETS
+
+
+def _targets(r) -> str:
+    """A row's targets (rows written before it was a column: see ``OLD_TARGETS``)."""
+    return r.get("targets") or targets_of(r["case"], None)
 
 
 def _ew(r) -> float:
@@ -93,7 +113,7 @@ def misfit(fwd, scene, truth, targets, downsample) -> float:
 
 
 def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, max_steps,
-             model_error=None, edge_weight=1.0, refine_steps=4):
+             model_error=None, edge_weight=1.0, refine_steps=4, made=""):
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.IdentifiabilityWarning)
@@ -117,7 +137,7 @@ def run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load, 
             "truth": v, "estimate": est, "rel_error_pct": 100 * (est - v) / v,
             "rel_stderr_pct": 100 * se / v, "covered_2se": bool(abs(est - v) <= 2 * se),
             "iterations": res.iterations, "result": res.result, "time_s": round(wall, 1),
-            "edge_weight": edge_weight,
+            "edge_weight": edge_weight, "targets": made,
             # (no correction where it failed: the model error is then NaN and the ladder short)
             "refine_steps": res.ladder[1].get("steps", "") if len(res.ladder) > 1 else "",
             "misfit_truth_pct": round(mis, 3),
@@ -155,7 +175,8 @@ def study(scene_name, N, M, downsample, cases, rows, all_sets=True, max_steps=40
                 targets = {c: np.load(DATA / scene_name / f"set{k}" / f"{c}{suffix}.npy")
                            for c in CAMERAS}
             run_case(fwd, scene, case, k, truth, targets, N, M, downsample, rows, load,
-                     max_steps, model_error, edge_weight, refine_steps)
+                     max_steps, model_error, edge_weight, refine_steps,
+                     made=targets_of(case, truth_all["render"]))
 
 
 def write(rows, out: Path, info: dict):
@@ -166,7 +187,7 @@ def write(rows, out: Path, info: dict):
         with path.open() as f:
             old = list(csv.DictReader(f))
     key = lambda r: (r["scene"], r["case"], str(r["set"]), str(r["N"]), _ew(r),  # noqa: E731
-                     r["unknown"])
+                     _targets(r), r["unknown"])
     new_keys = {key(r) for r in rows}
     merged = [r for r in old if key(r) not in new_keys] + rows
     with path.open("w", newline="") as f:
@@ -186,9 +207,18 @@ def write(rows, out: Path, info: dict):
              "| scene | case | set | N | ζ error % (±se) | γ error % (±se) | albedo error % "
              "(±se) | steps | result | time s | misfit@truth % | residual % | load |",
              "|---|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
+    made = {targets_of("hires", v.get("render"))
+            for v in json.loads((DATA / "truth.json").read_text()).values()}
+    current = made.pop() if len(made) == 1 else None  # rows fit to other targets say so
+    if current:
+        lines[-2:-2] = [f"Synthetic targets (`hires`, `noise01`, `noise05`): `data_synthetic/` "
+                        f"as rendered now, {current.replace('N', 'N = ').replace(' M', ', M = ')}"
+                        "; rows fit to earlier targets name theirs.", ""]
     groups = {}
     for r in merged:
         case = r["case"] + (f" (edge weight {_ew(r):g})" if _ew(r) != 1.0 else "")
+        if r["case"] not in ("mc", "crime") and _targets(r) != current:
+            case += f" (targets {_targets(r)})"
         groups.setdefault((r["scene"], case, str(r["set"]), str(r["N"])), []).append(r)
     order = {"crime": 0, "hires": 1, "noise01": 2, "noise05": 3, "mc": 4}
     for (sc, case, k, N), rs in sorted(groups.items(), key=lambda kv: (
