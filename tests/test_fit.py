@@ -568,7 +568,7 @@ def _recover(scene_name, case, N=24, **fit_kw):
     return res, truth
 
 
-# slow: a full-size render at N = 48, M = 4 per scene (~1-1.5 min each on 2 cores)
+# slow: a full-size render at N = 96, M = 5 per scene (0.5 / 0.5 / 4-5 min on 2 cores)
 @pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["fog-balls", "translucent-cube", "cloud-plane"])
 def test_the_synthetic_targets_are_todays_model(scene_name):
@@ -621,9 +621,9 @@ def test_recovery_from_finer_targets_within_the_measured_bias(scene_name, case):
 # Issue 16's aim, at `difffog fit`'s defaults (N = 32, M = 3, both views at 1/4, the estimate
 # corrected to N = 64, M = 4 with the model error's three checks): within 1% of the truth from
 # the finer synthetic targets (set 0), within 2% from the Mitsuba 3 images, and the truth within
-# 3 total uncertainties.  Measured (benchmarks/results/recovery.md, 2026-11-29): fog-balls +0.42
-# / +0.28 / −0.04% (set 0), −1.74 / +0.89 / +0.08% (Mitsuba); translucent-cube −0.24 / +0.26 /
-# −0.15%, −1.09 / +0.26 / −0.32%.  The one miss of the study is at N = 24: translucent-cube's
+# 3 total uncertainties.  Measured (benchmarks/results/recovery_stop59_n32.md, 2026-12-01, the
+# targets rendered at N = 96, M = 5): fog-balls −0.29 / −0.24 / −0.01% (set 0), −1.72 / +0.93 /
+# +0.08% (Mitsuba); translucent-cube −0.53 / +0.34 / −0.23%, −1.09 / +0.26 / −0.32%.  The one miss of the study is at N = 24: translucent-cube's
 # ground albedo against Mitsuba lies 5.4 total uncertainties off (−0.32% against ±0.06%), a
 # bias none of the checks sees there (docs/fitting.md); it is marked, strictly, below.
 DEFAULT_FIT_BOUNDS = {("fog-balls", "hires"): 1.0, ("fog-balls", "mc"): 2.0,
