@@ -7,8 +7,13 @@ cameras reduced ``--downsample`` times.  Prints each estimate's error (% of the 
 stated standard error, the steps and the time.
 
     python benchmarks/fit_anisotropic.py [--N 48] [--target-N 64] [--downsample 4]
-        [--phase-order 3] [--first-collision beam|deposit]
+        [--phase-order 3] [--first-collision beam|deposit] [--model-error refine]
+        [--targets data_synthetic/cloud-plane/set0]
         [--out benchmarks/results/fit_anisotropic.md]
+
+``--targets DIR`` fits the images ``DIR/<camera>.npy`` instead of rendering targets (the scene
+file's parameters are their truth: ``data_synthetic/cloud-plane/set0``, rendered at N = 96,
+M = 5, is that set, finer than what a fit at N = 32 corrects its estimate to).
 """
 
 from __future__ import annotations
@@ -32,6 +37,9 @@ def main(argv=None):
                     help="fit(model_error=...): \"refine\" or a finer resolution")
     ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
                     help="SweepSolver.first_collision, of the targets and the fit")
+    ap.add_argument("--targets", default=None,
+                    help="a folder of <camera>.npy targets rendered at the scene file's "
+                         "parameters (instead of rendering them at --target-N)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     import difffog as df
@@ -41,8 +49,22 @@ def main(argv=None):
     truth = {k: float(df.get_param(p0, scene, k))
              for k in ("fog.scattering", "fog.absorption", "fog.g")}
     t = time.perf_counter()
-    targets = df.render(scene, accuracy=None, resolution=a.target_N, M=a.M,
-                        phase_order=a.phase_order, first_collision=a.first_collision).images
+    if a.targets:
+        import json
+        from pathlib import Path
+
+        import numpy as np
+
+        folder = Path(a.targets)
+        targets = {c.name: np.load(folder / f"{c.name}.npy") for c in scene.cameras}
+        made = folder.parent.parent / "truth.json"  # data_synthetic/: its render settings
+        r = json.loads(made.read_text())["cloud-plane"]["render"] if made.exists() else {}
+        described = (f"the files {a.targets}/<camera>.npy" + (
+            f" (sweep N = {r['resolution']}, M = {r['directions']})" if r else ""))
+    else:
+        targets = df.render(scene, accuracy=None, resolution=a.target_N, M=a.M,
+                            phase_order=a.phase_order, first_collision=a.first_collision).images
+        described = f"sweep N = {a.target_N}, M = {a.M}, phase_order {a.phase_order}"
     target_s = time.perf_counter() - t
     start = {"fog.scattering": 0.7 * truth["fog.scattering"],
              "fog.absorption": 1.5 * truth["fog.absorption"], "fog.g": 0.7}
@@ -56,8 +78,7 @@ def main(argv=None):
     lines = ["# Fit of ζ, γ and g to cloud-plane (anisotropic sweep)", "",
              *C.machine_lines(C.machine(bandwidth=False)),
              f"- scene: cloud-plane {' '.join(a.overrides)}",
-             f"- targets: sweep N = {a.target_N}, M = {a.M}, phase_order {a.phase_order} "
-             f"({target_s:.0f} s); fit: N = {a.N}, phase_order {a.phase_order}, both cameras / "
+             f"- targets: {described} ({target_s:.0f} s); fit: N = {a.N}, phase_order {a.phase_order}, both cameras / "
              f"{a.downsample}; start ζ × 0.7, γ × 1.5, g = 0.7; first collision "
              f"{a.first_collision}", "",
              "| unknown | truth | estimate | error % | stated standard error % | model error % "
