@@ -18,7 +18,7 @@
 # `difffog.fit` adjusts the fog's scattering ζ, its absorption γ and a surface albedo ρ until
 # the rendered images match target images, by Levenberg–Marquardt on the differentiable sweep
 # solver. This notebook fits the `fog-balls` scene to the synthetic targets in
-# `data_synthetic/` (rendered with known parameters at N = 48, M = 4, finer than the fits), and
+# `data_synthetic/` (rendered with known parameters at N = 96, M = 5, finer than the fits), and
 # looks at what the fit says about itself: its convergence, its residual, its standard errors
 # and correlations, what 5% image noise changes, what a second view adds, the model's own
 # error in the error bars, and the sun's direction as an unknown.
@@ -43,7 +43,7 @@ TOL = 1e-2 if SMALL else 1e-4  # the solver's estimated remaining relative error
 print(f"size {SIZE}: N = {N}, M = {M}, tol = {TOL:g}")
 
 # %%
-# the fit's own settings (the lattice is coarser than the targets' N = 48, M = 4 on purpose:
+# the fit's own settings (the lattice is coarser than the targets' N = 96, M = 5 on purpose:
 # a fit that uses the very model that made its targets finds them exactly, the "inverse crime")
 FIT_N = 21 if SMALL else 24  # lattice nodes along the domain (>= 21: the walls are 0.05 thick)
 FIT_M = 2 if SMALL else 3  # direction half-width
@@ -168,7 +168,7 @@ convergence_figure(top1, "fog-balls, top view, 1% noise")
 # difference. What is left is not noise: it sits on the walls' top rims (a wall 0.05 thick is
 # about one node of the 24-node lattice and under a pixel of the reduced image, so how bright
 # its rim comes out depends on where the lattice nodes and the pixels' samples fall) and at the
-# balls' edges, where the coarse model cannot draw what the N = 48 one did. `weights=` (a mask
+# balls' edges, where the coarse model cannot draw what the N = 96 one did. `weights=` (a mask
 # per view) can leave such pixels out of a fit.
 
 # %%
@@ -215,7 +215,7 @@ fig
 # ## 6. The error is the model's, not the noise's
 #
 # The estimates are off because the forward model (N = 24) does not render exactly what the
-# targets' N = 48, M = 4 model did: the fit finds the parameters with which the coarse model
+# targets' N = 96, M = 5 model did: the fit finds the parameters with which the coarse model
 # best imitates the fine one. The check: render the fit's own model at the *true* parameters.
 # Its misfit to the target is the model's bias; a converged fit's residual is no larger (the
 # truth fits *worse* than the estimate, or equally well). No fit can remove that bias; only a
