@@ -224,10 +224,11 @@ fig
 # may or may not lie within ±2 of them (the `error/se` column).
 #
 # At the full size (N = 24, M = 3, both views at 1/4 size, 64 rays in an edge pixel) this
-# notebook's fits measured (2026-11-29): with 1% noise ζ −1.2%, γ +0.4%, the walls' albedo
-# −0.2% (both views), standard errors 0.02–0.13%: the truth lies 3–10 of them away, and the
-# model's misfit at the truth, 1.0% of the target mean, is four times the noise's (1% per
-# target pixel, 0.25% after the fit's 4×4 averaging). (Before 2026-11-29 the fit's reduced pixels had 16 rays at an edge, not
+# notebook's fits measured (2026-12-01, targets at N = 96, M = 5): with 1% noise ζ −1.9%, γ
+# −0.2%, the walls' albedo −0.1% (both views), standard errors 0.02–0.14%: the truth lies 1–14
+# of them away, and the model's misfit at the truth, 1.05% of the target mean, is four times
+# the noise's (1% per target pixel, 0.25% after the fit's 4×4 averaging). (Against the earlier
+# targets at N = 48, M = 4 ζ read −1.2%: they shared more of the coarse model's bias.) (Before 2026-11-29 the fit's reduced pixels had 16 rays at an edge, not
 # 64: the walls' rim alone then biased the albedo by −0.9% and the misfit at the truth was
 # 2.1%.) Section 9 corrects the estimates for the lattice and puts the model's error into the
 # error bars. At the small size (N = 21, M = 2, 1/8 of the pixels) the bias is larger.
@@ -338,14 +339,15 @@ plot.error_map(both1.images["oblique"], both1.targets["oblique"], relative=False
 # estimate moves if one camera's images were that much too bright: the renders' own agreement
 # with independent truth, a bias every lattice shares and no finer one reveals. The root sum of
 # squares of the four parts is each estimate's model error, and the total uncertainty,
-# √(stderr² + model error²), is the error bar to quote. Here the targets were rendered at N =
-# 48, M = 4, the very model the correction steps to from N = 24, so the corrected estimates land
-# on the truth (within 0.1%): a check of the step, not of the model's error. The recovery study
-# (`benchmarks/results/recovery.md`, fits at N = 24 and 32) is the test: every estimate within
-# 1% of the synthetic targets at N = 32 too, within 2% of the Mitsuba 3 images at N = 32 (2.3%
-# at N = 24), and the truth within 3 total uncertainties in all 60 cases (without the floor 59:
-# translucent-cube's ground albedo against Mitsuba at N = 24, −0.32% against ±0.06%, now
-# ±0.41%; `benchmarks/results/recovery_floor_mc.md`).
+# √(stderr² + model error²), is the error bar to quote. Here the fit at N = 24 is corrected to
+# N = 48, M = 4, and the targets were rendered finer still (N = 96, M = 5), as a photograph is:
+# at the full size ζ −1.9% → −0.7%, γ −0.2% → −0.6%, the walls' albedo −0.14% → +0.02%, each
+# within its total uncertainty (±1.9%, ±2.2%, ±0.4%), which the model error dominates. (Until
+# 2026-12-01 the targets were that very N = 48, M = 4 model, and the corrected estimates landed
+# on the truth within 0.1%: a check of the step, not of the model's error.) The recovery study
+# is the wider test: at `difffog fit`'s default N = 32 every estimate within 1% of these targets
+# for fog-balls and translucent-cube (`benchmarks/results/recovery_stop59_n32.md`), within 2%
+# of the Mitsuba 3 images, and the truth within 3 total uncertainties in every case.
 
 # %%
 both_ref = df.fit(scene, targets["noise01"], init, optimizer="lm", forward=forward,
@@ -414,11 +416,12 @@ plt.close(fig)
 fig
 
 # %% [markdown]
-# Freeing the sun costs the fog little. At the full size (2026-11-29) the sun came to +0.16° in
-# zenith and −0.21° in azimuth from 3° and 4° off, in 5 rounds (202 s, each round compiling
-# its model again), with ζ −1.1% and γ +0.6% against −1.2% and +0.4% with the sun known
-# (section 8). Its standard errors (0.02–0.03°) are, as in section 6, the noise's share only:
-# the coarse model's bias puts the truth 7 of them away, and `model_error="refine"` (the
+# Freeing the sun costs the fog little. At the full size (2026-12-01) the sun came to +0.19° in
+# zenith and −0.19° in azimuth from 3° and 4° off, in 6 rounds (145 s, each round compiling
+# its model again; the last round still moved it 0.09°, and the fit says so), with ζ −1.8% and
+# γ +0.0% against −1.9% and −0.2% with the sun known (section 8). Its standard errors
+# (0.02–0.04°) are, as in section 6, the noise's share only: the coarse model's bias puts the
+# truth 5–8 of them away, and `model_error="refine"` (the
 # command line's default) adds the model's own error, as for the fog. Against Mitsuba 3's images of fog-balls (`python benchmarks/sun_recovery.py`,
 # N = 24, both views at 1/4 size, the refined model error) the zenith came to +0.26° ± 0.18°,
 # the azimuth −0.29° ± 0.38°, ζ −1.8% and γ +0.4%, in 257 s against 48 s with the sun known
@@ -431,7 +434,7 @@ fig
 # * The fit converges in a handful of steps from a start 20–60% off, and reports standard errors
 #   and correlations with the estimates.
 # * At a coarse lattice its error against the truth is the forward model's bias, not the noise:
-#   here ζ 1.2% low whatever the noise (1% or 5%); the standard errors (0.02–0.4%) do not cover
+#   here ζ 1.5–1.9% low whatever the noise (1% or 5%); the standard errors (0.02–0.4%) do not cover
 #   that. Read them as the noise's share of the uncertainty only. `model_error="refine"` (the
 #   command line's default) corrects the estimates to a lattice twice as fine and adds the
 #   model's own error to the error bars (section 9).
