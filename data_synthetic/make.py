@@ -18,8 +18,10 @@ and writes, under ``<scene>/set<k>/``:
 
 and ``truth.json`` with the parameters of every set, the render settings, σ per image and the
 seed of every noise draw (a CRC32 of "<scene>/set<k>/<camera>/<level>"), so the same command
-always writes the same bits on the same machine.  The model is the public
-``difffog.forward_model(scene, "sweep", ...)``, rendered with ``difffog.render``.
+always writes the same bits on the same machine.  Each scene renders into a hidden folder
+first and replaces its targets and its truth.json entry only when every set is done.  The
+model is the public ``difffog.forward_model(scene, "sweep", ...)``, rendered with
+``difffog.render``.
 
 ``--quick`` renders N = 16, M = 2, supersample 1, the first parameter set only (a smoke test,
 not the committed targets: it must be written elsewhere with ``--out DIR``).
@@ -29,6 +31,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
 import time
 import zlib
 from pathlib import Path
@@ -64,8 +68,9 @@ def seed_of(*parts: str) -> int:
     return zlib.crc32("/".join(parts).encode())
 
 
-def make_scene(name: str, truth: dict, root: Path = HERE, N: int = N, M: int = M,
-               supersample: int = SUPERSAMPLE, sets: int | None = None) -> None:
+def make_scene(name: str, root: Path, N: int = N, M: int = M,
+               supersample: int = SUPERSAMPLE, sets: int | None = None) -> dict:
+    """Render ``name``'s sets into ``root`` (a new folder) and return its truth.json entry."""
     import jax
 
     import difffog as df
@@ -82,7 +87,7 @@ def make_scene(name: str, truth: dict, root: Path = HERE, N: int = N, M: int = M
         for path, v in values.items():
             params = df.set_param(params, scene, path, v)
         rendered = df.render(model, params)
-        out = root / name / f"set{k}"
+        out = root / f"set{k}"
         out.mkdir(parents=True, exist_ok=True)
         info = {"params": values, "iterations": int(rendered.light.iterations), "images": {}}
         for cam, img in rendered.images.items():
@@ -99,7 +104,24 @@ def make_scene(name: str, truth: dict, root: Path = HERE, N: int = N, M: int = M
         entry["sets"].append(info)
         print(f"{name} set{k}: {info['iterations']} iterations, "
               f"{time.perf_counter() - t:.1f} s", flush=True)
+    return entry
+
+
+def replace_scene(name: str, entry: dict, partial: Path, out: Path, truth: dict) -> None:
+    """Put a scene's new targets (rendered into ``partial``) and its truth.json entry in place
+    together, so that a run stopped part-way leaves the old targets and their truth.json entry
+    (never new images under an old entry, or a scene half-rendered)."""
     truth[name] = entry
+    path = out / "truth.json"
+    tmp = out / "truth.json.partial"
+    tmp.write_text(json.dumps(truth, indent=1, sort_keys=True))
+    old = out / f".{name}.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if (out / name).exists():
+        (out / name).rename(old)
+    partial.rename(out / name)
+    os.replace(tmp, path)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def main(argv=None) -> None:
@@ -119,8 +141,14 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     truth = json.loads(path.read_text()) if path.exists() else {}
     for name in args.scene or list(SETS):
-        make_scene(name, truth, args.out, **kw)
-        path.write_text(json.dumps(truth, indent=1, sort_keys=True))
+        partial = args.out / f".{name}.partial"
+        shutil.rmtree(partial, ignore_errors=True)
+        try:
+            entry = make_scene(name, partial, **kw)
+        except BaseException:
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
+        replace_scene(name, entry, partial, args.out, truth)
 
 
 if __name__ == "__main__":
