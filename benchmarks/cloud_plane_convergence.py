@@ -1,7 +1,7 @@
 """How cloud-plane's images converge with the lattice: the sweep at N = 24 … 64 (M = 3, the
 scene's own parameters, full-size views) against ``data_synthetic/cloud-plane/set0`` (rendered
-at N = 96, M = 5, supersample 3), the mean and RMS difference of each view in % of the target's
-mean.  What a fit's model-error correction (first order in 1/N) assumes about the lattice error
+as its truth.json says: N = 96, M = 5, supersample 3 today), the mean and RMS difference of
+each view in % of the target's mean.  What a fit's model-error correction (first order in 1/N) assumes about the lattice error
 can be read off the means.
 
     PYTHONPATH=src python benchmarks/cloud_plane_convergence.py [--sizes 24 32 48 64] [-M 3]
@@ -10,6 +10,7 @@ can be read off the means.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 import warnings
 from pathlib import Path
@@ -32,6 +33,7 @@ def main(argv=None):
 
     scene = df.load_scene("cloud-plane")
     target = {c: np.load(SET0 / f"{c}.npy").astype(np.float64) for c in ("top", "oblique")}
+    made = json.loads((SET0.parents[1] / "truth.json").read_text())["cloud-plane"]["render"]
     rows = []
     for N in a.sizes:
         t = time.perf_counter()
@@ -47,9 +49,11 @@ def main(argv=None):
                       f"{100 * np.sqrt(np.mean((img - T) ** 2)) / T.mean():.2f}"]
         rows.append(f"| {N} | {a.M} | " + " | ".join(cells) + f" | {time.perf_counter() - t:.0f} |")
         print(rows[-1], flush=True)
-    lines = ["# cloud-plane's images against its N = 96, M = 5 target, by lattice", "",
+    lines = [f"# cloud-plane's images against its N = {made['resolution']}, "
+             f"M = {made['directions']} target, by lattice", "",
              "`PYTHONPATH=src python benchmarks/cloud_plane_convergence.py` (supersample 1, "
-             "tol 1e-5; the target: supersample 3)", "", *C.machine_lines(info), "",
+             f"tol 1e-5; the target: supersample {made['supersample']}, tol {made['tol']:g})", "",
+             *C.machine_lines(info), "",
              "| N | M | top mean % | top RMS % | oblique mean % | oblique RMS % | s |",
              "|---:|---:|---:|---:|---:|---:|---:|", *rows]
     C.write_text(a.out, lines)

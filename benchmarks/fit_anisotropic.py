@@ -79,8 +79,8 @@ def main(argv=None):
              *C.machine_lines(C.machine(bandwidth=False)),
              f"- scene: cloud-plane {' '.join(a.overrides)}",
              f"- targets: {described} ({target_s:.0f} s); fit: N = {a.N}, phase_order "
-             f"{a.phase_order}, both cameras / {a.downsample}; start ζ × 0.7, γ × 1.5, g = 0.7; first collision "
-             f"{a.first_collision}", "",
+             f"{a.phase_order}, both cameras / {a.downsample}; start ζ × 0.7, γ × 1.5, "
+             f"g = 0.7; first collision {a.first_collision}", "",
              "| unknown | truth | estimate | error % | stated standard error % | model error % "
              "| total uncertainty % |",
              "|---|---:|---:|---:|---:|---:|---:|"]
