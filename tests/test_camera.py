@@ -12,6 +12,7 @@ from difffog.forward._camera import camera_basis, camera_rays, hg_phase
 from difffog.forward.sweep._march import (
     LatticeFields,
     camera_hits,
+    forward_mode,
     march_steps,
     render_camera,
     render_rays,
@@ -297,12 +298,11 @@ def test_gradients_match_finite_differences(x64):
         assert np.isfinite(getattr(gf, name)).all(), name
 
 
-@pytest.mark.parametrize("sun_apart", [False, True])
-def test_exact_hit_gradients_match_finite_differences(x64, sun_apart):
-    """The march with exact hits (fog up to the hit, the hit's irradiance, albedo, emission and
-    its sun through the fog) against central differences, camera inside the fog.
-    ``sun_apart``: the fog's single scattering of the sun attenuated along each step by the
-    optical depth towards the sun (``sun_depth``), the march clipped to a fog box."""
+def _exact_hit_case(sun_apart: bool):
+    """(fields, camera, hits, fields_at): a small scene's exact hits (a sphere, a floor, the
+    sky) through random fields in float64, camera inside the fog; fields_at(a, e, alb, em)
+    scales σ_t (and the sun's extinction and depth), the irradiance, the albedos and the
+    emissions."""
     import difffog as df
 
     rng = np.random.default_rng(1)
@@ -327,13 +327,25 @@ def test_exact_hit_gradients_match_finite_differences(x64, sun_apart):
         **(dict(sun_depth=3.0 * rng.random(n), fog_box=((0.05, 0.0, 0.1), (0.95, 0.9, 0.7)))
            if sun_apart else {}))
 
-    def loss(a, e, alb, em):
+    def fields_at(a, e, alb, em):
         f = eqx_replace(base, sigma_t=a * base.sigma_t, irradiance=e * base.irradiance,
                         albedo=alb * base.albedo, emission=em * base.emission,
                         sun_extinction=a * base.sun_extinction)
-        if sun_apart:
-            f = eqx_replace(f, sun_depth=a * base.sun_depth)
-        return render_camera(f, cam, supersample=2, hits=hits).sum()
+        return eqx_replace(f, sun_depth=a * base.sun_depth) if sun_apart else f
+
+    return base, cam, hits, fields_at
+
+
+@pytest.mark.parametrize("sun_apart", [False, True])
+def test_exact_hit_gradients_match_finite_differences(x64, sun_apart):
+    """The march with exact hits (fog up to the hit, the hit's irradiance, albedo, emission and
+    its sun through the fog) against central differences, camera inside the fog.
+    ``sun_apart``: the fog's single scattering of the sun attenuated along each step by the
+    optical depth towards the sun (``sun_depth``), the march clipped to a fog box."""
+    _, cam, hits, fields_at = _exact_hit_case(sun_apart)
+
+    def loss(a, e, alb, em):
+        return render_camera(fields_at(a, e, alb, em), cam, supersample=2, hits=hits).sum()
 
     args = (1.0, 1.0, 1.0, 1.0)
     value_and_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2, 3)))
@@ -345,6 +357,26 @@ def test_exact_hit_gradients_match_finite_differences(x64, sun_apart):
         fd = (value_and_grad(*hi)[0] - value_and_grad(*lo)[0]) / (2 * eps)
         assert float(gr) == pytest.approx(float(fd), rel=1e-6), i
         assert abs(float(gr)) > 1e-3
+
+
+def test_forward_mode_march_gives_the_reverse_modes_jacobian(x64):
+    """Inside ``forward_mode()`` the cameras take ``jax.jvp`` (the plain scan; a fit's
+    Jacobian columns): the same image Jacobian as reverse mode through the march's
+    hand-written backward pass, in float64, for every kind of input the march reads; outside
+    it, ``jax.jvp`` is refused (a custom VJP has no forward mode)."""
+    _, cam, hits, fields_at = _exact_hit_case(True)
+    x = jnp.ones(4)
+
+    def image(x):
+        return render_camera(fields_at(*x), cam, supersample=2, hits=hits).ravel()
+
+    with forward_mode():
+        fwd = jax.jit(jax.jacfwd(image))(x)
+    rev = jax.jit(jax.jacrev(image))(x)
+    assert np.abs(rev).max(axis=0).min() > 1e-3  # every column seen
+    np.testing.assert_allclose(fwd, rev, rtol=1e-10, atol=1e-12 * float(np.abs(rev).max()))
+    with pytest.raises(TypeError, match="custom_vjp"):
+        jax.jvp(image, (x,), (x,))
 
 
 # ------------------------------------------------------------------------------------------

@@ -4,13 +4,14 @@ The residual is √w·(model − target)/RMS(target) over every target pixel of 
 optionally rescaled by a robust loss.  Its Jacobian (pixels × unknowns) is computed once per
 evaluated point by forward mode: each of its n columns costs one tangent light solve (the
 implicit derivative of the fixed point, all n at once, their products matrix-free:
-``SweepSolver.tangents``) and one pass of the camera.  The sweep's camera march has a
-hand-written reverse pass (``jax.custom_vjp``) and no JVP rule, so the cameras' part of a
-column is the transpose of their (linear) vector–Jacobian product,
-``jax.linear_transpose(vjp)``, fed with the light's tangent; reverse mode would need one
-adjoint solve per *pixel*.  (Until stop 42 the whole column was the transpose of the whole
-VJP: the light's part then ran the adjoint's linearised operator transposed back, which kept
-the linearised sweeps, 4.0 against 1.8 GiB at N = 24, ``benchmarks/fit_memory.py``.)  The
+``SweepSolver.tangents``) and one forward-mode pass of the cameras; reverse mode would need
+one adjoint solve per *pixel*.  The sweep's camera march has a hand-written reverse pass
+(``jax.custom_vjp``) and no JVP rule, so the columns are traced inside ``forward_mode()``,
+where the march is the plain scan.  (Until stop 42 the whole column was the transpose of the
+whole VJP: the light's part then ran the adjoint's linearised operator transposed back, which
+kept the linearised sweeps, 4.0 against 1.8 GiB at N = 24, ``benchmarks/fit_memory.py``;
+until stop 60 the cameras' part still was, ``jax.linear_transpose`` of their VJP: 1.05 s for
+the README example's three columns at N = 28, 7× its forward render.)  The
 residual handed to optimistix is a ``jax.custom_jvp`` function whose tangent is ``J @ t`` with
 that J, so optimistix materialises J once per step and its state stays a small array pytree
 (what a checkpoint stores).
@@ -28,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..forward.sweep._march import forward_mode
 from ..scene._description import Scene
 from ..scene._params import Params, set_param
 from ._unknowns import Coordinate, exposure_camera
@@ -102,10 +104,9 @@ class FitProblem:
         return self.images_from(model, light, p, u), light.result
 
     def model_and_jacobian(self, model, u, base: Params):
-        """(images (P,), J (P, n), result code) by forward mode: the light field's tangents
-        by ``jax.jvp`` (one tangent light solve per unknown, all at once), then each column
-        through the cameras as the transpose of their VJP (the march has a hand-written
-        reverse pass and no JVP rule)."""
+        """(images (P,), J (P, n), result code) by forward mode: the light field's tangents by
+        ``jax.jvp`` (one tangent light solve per unknown, all at once), then each column
+        through the cameras by ``jax.jvp`` too (``forward_mode``)."""
         eye = jnp.eye(u.shape[0], dtype=u.dtype)
 
         def light_of(x):
@@ -119,9 +120,9 @@ class FitProblem:
         def images(fl, x):
             return self.images_from(model, eqx.combine(fl, rest), self.params(x, base), x)
 
-        y, vjp = jax.vjp(images, floats, u)
-        jvp = jax.linear_transpose(vjp, y)
-        cols = jax.vmap(lambda t, e: jvp((t, e))[0])(d_floats, eye)
+        with forward_mode():  # the cameras' marches as plain scans, which jax.jvp can take
+            y, cols = jax.vmap(lambda t, e: jax.jvp(images, (floats, u), (t, e)),
+                               out_axes=(None, 0))(d_floats, eye)
         return y, cols.T, light.result
 
 

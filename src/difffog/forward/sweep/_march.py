@@ -18,11 +18,17 @@ Conventions: see ``forward/_camera.py``.
 Gradients: the march has a custom VJP (``_march``) — a reverse scan that re-gathers each step's
 samples, applies the step's hand-written adjoint and scatter-adds into one table accumulator —
 because JAX's transpose of a gather inside a scan adds a dense table-sized cotangent per step.
-It is checked against JAX's autodiff of the plain scan in the tests.
+It is checked against JAX's autodiff of the plain scan in the tests.  A custom VJP has no
+forward mode: marches traced inside :func:`forward_mode` (a fit's Jacobian columns, one
+``jax.jvp`` per unknown) run the plain scan, which ``jax.jvp`` differentiates as it goes,
+keeping nothing (until stop 60 those columns were the transpose of the VJP: 7× a forward
+render for three columns, against ~2×).
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from functools import partial
 from typing import NamedTuple
@@ -47,6 +53,7 @@ __all__ = [
     "TraceResult",
     "march_steps",
     "camera_hits",
+    "forward_mode",
     "render_camera",
     "render_rays",
     "trace_rays",
@@ -59,6 +66,22 @@ HIT_BACKOFF = 1e-2
 SLOPE_CHANNELS = 6
 #: longest march in a periodic-xy domain, in domain diagonals, unless ``max_length`` is given
 PERIODIC_MAX_DIAGONALS = 8.0
+
+_FORWARD_MODE = contextvars.ContextVar("difffog_march_forward_mode", default=False)
+
+
+@contextlib.contextmanager
+def forward_mode():
+    """Within this context, camera marches that are traced (``trace_rays`` and what calls it)
+    are differentiable by forward mode (``jax.jvp``) and not by reverse mode: they run the
+    plain scan instead of the march with its hand-written reverse pass, which has no JVP.
+    The choice is made when a march is traced (a static argument of its compiled program),
+    so a function compiled inside the context keeps it."""
+    token = _FORWARD_MODE.set(True)
+    try:
+        yield
+    finally:
+        _FORWARD_MODE.reset(token)
 
 
 # --------------------------------------------------------------------------------------------
@@ -712,6 +735,17 @@ def _march_bwd(cfg, res, ct):
 _march.defvjp(_march_fwd, _march_bwd)
 
 
+def _march_jvp_able(table, phase, o, d, t0, t_end, cfg: _MarchConfig):
+    """``_march`` as the plain scan (``forward_mode``): the same values, differentiable by
+    ``jax.jvp``."""
+    T, L, _, t_hit = _march_fused(table, phase, o, d, t0, t_end, cfg)
+    return T, L, t_hit
+
+
+def _marcher(forward: bool):
+    return _march_jvp_able if forward else _march
+
+
 def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
     """What a chunk's march needs: (geo, has_sun, coef (R, J), t0, t_end, reached).  The
     marched segment of each ray runs from its box entry to min(box exit, ``stop``) (``stop``:
@@ -743,7 +777,7 @@ def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
 
 
 def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
-                 step: float) -> TraceResult:
+                 step: float, forward: bool = False) -> TraceResult:
     """March one chunk of rays o, d (R, 3) (d unit) through the flat tables of ``fields``
     (``table``: σ_t, j_iso, [j_sun,] sdf; ``rad_table``: radiosity_ext); returns a
     TraceResult of (R,) arrays."""
@@ -751,7 +785,7 @@ def _trace_chunk(fields: LatticeFields, table, rad_table, o, d, *, n_steps: int,
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, None, n_steps, step)
     cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step),
                        slopes=fields.j_slope is not None, sun_exp=_sun_exp(fields))
-    T, L, t_hit = _march(table, phase, o, d, t0, t_end, cfg)
+    T, L, t_hit = _marcher(forward)(table, phase, o, d, t0, t_end, cfg)
 
     hit = (t_end > t0) & jnp.isfinite(t_hit)  # t_end > t0: the ray meets the box
     t_safe = jnp.where(hit, t_hit, t0)
@@ -797,7 +831,7 @@ def _hit_irradiance(surf_table, p, n, geo):
 
 
 def _trace_chunk_exact(fields: LatticeFields, table, surf_table, o, d, hits, *, n_steps: int,
-                       step: float) -> TraceResult:
+                       step: float, forward: bool = False) -> TraceResult:
     """``_trace_chunk`` with exact hits (a RayHits of this chunk): the fog is marched up to the
     hit, and the surface's radiance is rebuilt at the exact point with its own normal, albedo
     and direct sun."""
@@ -806,7 +840,7 @@ def _trace_chunk_exact(fields: LatticeFields, table, surf_table, o, d, hits, *, 
     geo, has_sun, phase, t0, t_end, reached = _segments(fields, o, d, t_hit, n_steps, step)
     cfg = _MarchConfig(geo, phase.shape[1], int(n_steps), float(step), has_sdf=False,
                        slopes=fields.j_slope is not None, sun_exp=_sun_exp(fields))
-    T, L, _ = _march(table, phase, o, d, t0, t_end, cfg)
+    T, L, _ = _marcher(forward)(table, phase, o, d, t0, t_end, cfg)
 
     hit = (shape >= 0) & reached
     if surf_table is not None and fields.albedo is not None and fields.albedo.shape[0]:
@@ -861,9 +895,9 @@ def _sun_exp(fields: LatticeFields) -> bool:
     return fields.sun_dir is not None and fields.sun_depth is not None
 
 
-@partial(jax.jit, static_argnames=("n_steps", "step", "chunk"))
+@partial(jax.jit, static_argnames=("n_steps", "step", "chunk", "forward"))
 def _trace_exact_jit(fields, origins, directions, hits, *, n_steps: int, step: float,
-                     chunk: int):
+                     chunk: int, forward: bool = False):
     dtype = origins.dtype
     table = _flat_table(_source_channels(fields), dtype)
     surf_table = None
@@ -874,13 +908,15 @@ def _trace_exact_jit(fields, origins, directions, hits, *, n_steps: int, step: f
                hits.sun_cos.astype(dtype), hits.sun_depth.astype(dtype))
     (o, d, *hc), n = _chunks([origins, directions, *per_ray], chunk)
     res = jax.lax.map(lambda x: _trace_chunk_exact(fields, table, surf_table, x[0], x[1],
-                                                   tuple(x[2:]), n_steps=n_steps, step=step),
+                                                   tuple(x[2:]), n_steps=n_steps, step=step,
+                                                   forward=forward),
                       (o, d, *hc))
     return TraceResult(*(r.reshape(-1)[:n] for r in res))
 
 
-@partial(jax.jit, static_argnames=("n_steps", "step", "chunk"))
-def _trace_jit(fields, origins, directions, *, n_steps: int, step: float, chunk: int):
+@partial(jax.jit, static_argnames=("n_steps", "step", "chunk", "forward"))
+def _trace_jit(fields, origins, directions, *, n_steps: int, step: float, chunk: int,
+               forward: bool = False):
     dtype = origins.dtype
     table = _flat_table(_source_channels(fields) + [fields.sdf], dtype)  # built once for all chunks
     rad = [fields.radiosity_ext]
@@ -900,7 +936,8 @@ def _trace_jit(fields, origins, directions, *, n_steps: int, step: float, chunk:
     o = origins.reshape(n_chunks, chunk, 3)
     d = directions.reshape(n_chunks, chunk, 3)
     res = jax.lax.map(lambda od: _trace_chunk(fields, table, rad_table, od[0], od[1],
-                                              n_steps=n_steps, step=step), (o, d))
+                                              n_steps=n_steps, step=step, forward=forward),
+                      (o, d))
     return TraceResult(*(r.reshape(-1)[:n] for r in res))
 
 
@@ -918,10 +955,12 @@ def trace_rays(fields: LatticeFields, origins, directions, *, step: float | None
     o = jnp.asarray(origins, dtype).reshape(-1, 3)
     d = jnp.asarray(directions, dtype).reshape(-1, 3)
     d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    forward = _FORWARD_MODE.get()
     if hits is not None:
         return _trace_exact_jit(fields, o, d, hits, n_steps=n_steps, step=step,
-                                chunk=int(chunk))
-    return _trace_jit(fields, o, d, n_steps=n_steps, step=step, chunk=int(chunk))
+                                chunk=int(chunk), forward=forward)
+    return _trace_jit(fields, o, d, n_steps=n_steps, step=step, chunk=int(chunk),
+                      forward=forward)
 
 
 def render_rays(fields: LatticeFields, origins: Float[Array, "... 3"],
