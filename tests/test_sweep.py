@@ -279,6 +279,57 @@ def test_krylov_solver_solves_stops_early_transposes_and_says_when_it_has_not_co
     assert short.result != lx.RESULTS.successful
 
 
+def test_gmres_starts_from_a_guess(x64):
+    """``_krylov.gmres`` from a guess x₀: x₀ = 0 is the start from nothing, step for step; a
+    guess near the solution stops sooner at the same tolerance, with the same answer; the
+    solution itself stops at the first residual."""
+    from difffog.forward.sweep._krylov import gmres
+
+    rng = np.random.default_rng(5)
+    n = 60
+    K = jnp.asarray(0.9 * rng.standard_normal((n, n)) / np.sqrt(n))
+    b = jnp.asarray(rng.random(n))
+
+    def apply_k(u, with_sources):
+        return K @ u + jnp.where(with_sources, b, 0.0)
+
+    def run(x0):
+        return gmres(apply_k, (n,), jnp.float64, restart=30, max_matvecs=200, tol=1e-8, x0=x0)
+
+    x = np.linalg.solve(np.eye(n) - np.asarray(K), np.asarray(b))
+    cold, cold0 = run(None), run(jnp.zeros(n))
+    assert int(cold[2]) == int(cold0[2]) and np.array_equal(cold[0], cold0[0])
+    near = run(jnp.asarray(x * (1 + 1e-3 * rng.standard_normal(n))))
+    exact = run(jnp.asarray(x))
+    for out in (cold, near, exact):
+        assert float(out[3]) <= 1e-8
+        assert np.abs(np.asarray(out[0]) - x).max() <= 1e-7 * np.abs(x).max()
+    assert int(exact[2]) < int(near[2]) < int(cold[2]), (exact[2], near[2], cold[2])
+
+
+def test_light_solve_from_a_nearby_state(fog_balls, x64):
+    """``SweepSolver.solve(..., init=light.state)``: the light of a nearby problem started
+    from a solved one's state takes fewer iterations to the same tolerance and agrees with
+    the start from zero within it; a state of another shape is refused in one line."""
+    scene, geom = fog_balls
+    solver = SweepSolver(M=2, max_iterations=2000, tol=1e-6)
+    solve = eqx.filter_jit(lambda g, p, init: solver.solve(g, p, init))
+    p0 = Params.from_scene(scene, jnp.float64)
+    zeros = tuple(jnp.zeros_like(a) for a in _solve_jit(solver, geom, p0).state)
+    first = solve(geom, p0, zeros)
+    p1 = set_param(p0, scene, "fog.scattering", 1.02 * float(get_param(p0, scene,
+                                                                       "fog.scattering")))
+    cold, warm = solve(geom, p1, zeros), solve(geom, p1, first.state)
+    for light in (first, cold, warm):
+        assert int(light.result) == df.RESULTS.successful
+    assert int(warm.iterations) < int(cold.iterations)
+    peak = float(jnp.max(cold.fluence))
+    assert float(jnp.max(jnp.abs(warm.fluence - cold.fluence))) <= 3e-6 * peak
+    assert float(jnp.max(jnp.abs(first.fluence - cold.fluence))) > 1e-3 * peak  # it moved
+    with pytest.raises(df.SolverError, match="init: a light state of shapes"):
+        solver.solve(geom, p1, (zeros[0][:-1], zeros[1]))
+
+
 # ---------------------------------------------------------------- kernels and devices
 # (7, 1, 5): a plane thinner than M wraps twice; three of the four cases are slow (the default
 # suite's 12-minute budget on 2 cores, stop 56; test_solver_kernels_agree compares the kernels

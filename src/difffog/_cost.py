@@ -357,8 +357,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         # (face-frame copies of 1 + K + 1 channels in and 1 + K out): ~4 (K + 1) floats
         "light solve": n * (SOLVE_BYTES_PER_NODE + 16 * K * f),
         # GMRES: restart + 1 Krylov vectors (+ restart preconditioned ones, flexible GMRES,
-        # where the diffusion preconditioner is chosen), x and b
-        "Krylov vectors": ((2 * restart if _diffusive(scene) else restart) + 3) * state * f,
+        # where the diffusion preconditioner is chosen), x, b, and the light's state (its
+        # fixed point as it leaves the solve, LightField.state, since stop 60)
+        "Krylov vectors": ((2 * restart if _diffusive(scene) else restart) + 4) * state * f,
         # the sweep's carry (M, D, nu + 2M, nv + 2M): CARRY_COPIES of it (measured)
         "face carries": CARRY_COPIES * M * D * nu * nv * f,
         "cameras": rays * RAY_BYTES,

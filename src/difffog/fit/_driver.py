@@ -800,7 +800,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                 return _with_refined_error(res, scene, forward, smaller, downsample,
                                            model_settings, progress, floor, refine_steps)
         if model is not None:
-            y_f, name = _finer_images(st, model, u)
+            y_f, name, light = _finer_images(st, model, u)
         if name is not None:
             if not moved:  # the correction itself
                 res.warnings.append(f"the estimate is not corrected and the model error not "
@@ -816,7 +816,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         if i == 0 and refine_steps > 1:  # iterate the correction with that model
             corrected = _iterated_correction(
                 st, model, u, u_moved, J, y, sqrt_w / scale, known, n / (fine_n - n),
-                refine_steps, label,
+                refine_steps, label, light,
                 lambda k, w=what: meter.update(0, len(checks), **{
                     "N" if a == "resolution" else a: b for a, b in w.items()}, step=k))
     meter.update(len(checks), len(checks))
@@ -866,18 +866,19 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     return res
 
 
-def _finer_images(st, model, u) -> tuple[np.ndarray | None, str | None]:
-    """``model``'s images at the unconstrained unknowns ``u`` (float64, flattened as the
-    residual), or None and why not (its light solve did not converge)."""
-    y_f, code = (np.asarray(a) for a in st.stepper.images(jnp.asarray(u, st.data[0].dtype),
-                                                           (model, st.data)))
+def _finer_images(st, model, u, init=None):
+    """(``model``'s images at the unconstrained unknowns ``u`` (float64, flattened as the
+    residual), None, its light state) or (None, why not (its light solve did not converge),
+    None); ``init``: the light state of an earlier render with ``model`` to start from."""
+    y_f, code, state = st.stepper.images(jnp.asarray(u, st.data[0].dtype), (model, st.data),
+                                         init)
     if int(code) != RESULTS.successful:
-        return None, f"that light solve did not converge ({RESULTS(int(code)).name})"
-    return y_f.astype(np.float64), None
+        return None, f"that light solve did not converge ({RESULTS(int(code)).name})", None
+    return np.asarray(y_f, np.float64), None, state
 
 
 def _iterated_correction(st, model, u, u_first, J, y, weight, known, factor: float,
-                         refine_steps: int, label: str, show):
+                         refine_steps: int, label: str, light, show):
     """The finer model's own best fit, by defect correction from the fit at ``u``: the step
     u_k+1 = u_k − J⁺·w·(y_f(u_k) − y(u)) with the fit's Jacobian J, whose fixed point has
     Jᵀ·w·(y_f − target) = Jᵀ·w·(y(u) − target) = 0 (the fit's own optimality): the finer
@@ -887,7 +888,8 @@ def _iterated_correction(st, model, u, u_first, J, y, weight, known, factor: flo
     as it is known before the checks render (``known``: the standard error and the brightness
     floor's part; and the lattice part, factor × the correction; the steps shrink about tenfold
     each on cloud-plane, so what is left is a hundredth of it), or after
-    ``refine_steps`` renders (``u_first``: where the first step landed).  Returns (estimates,
+    ``refine_steps`` renders (``u_first``: where the first step landed; ``light``: the light
+    state of the first render, where the next starts: its estimate is close).  Returns (estimates,
     renders, {path: the last step, where the steps did not become small}, a note or None)."""
     fitted = before = _physical(st, u)
 
@@ -907,7 +909,7 @@ def _iterated_correction(st, model, u, u_first, J, y, weight, known, factor: flo
                 f"larger than a tenth of the uncertainty; that step is counted in the model "
                 f"error (\"refine_steps\"); refine_steps={refine_steps} sets how many")
         show(renders + 1)
-        y_f, why = _finer_images(st, model, uk)
+        y_f, why, light = _finer_images(st, model, uk, light)
         if why is not None:
             return now, renders, last, (
                 f"the correction to {label} stopped after {renders} steps: at the next, {why}; "

@@ -56,7 +56,8 @@ class Stepper:
         self._term = eqx.filter_jit(self.term_impl)
         self._rj = eqx.filter_jit(lambda u, args: residual_and_jacobian(problem, u, args))
         self._from_state = eqx.filter_jit(lambda info: (info.residual, info.jac.as_matrix()))
-        self._model = eqx.filter_jit(lambda u, args: problem.model(args[0], u, args[1][4]))
+        self._model = eqx.filter_jit(lambda u, args, init: problem.model(args[0], u,
+                                                                         args[1][4], init))
 
     def init(self, u0, args):
         f_struct, aux_struct = jax.eval_shape(self.fn, u0, args)
@@ -82,10 +83,14 @@ class Stepper:
     def terminate(self, u, state, args):
         return self._term(u, state, args)
 
-    def images(self, u, args):
-        """(the model's flattened images at u, light result code): one light solve, compiled
-        once (the least-squares solvers' :meth:`final` calls it too)."""
-        return self._model(u, args)
+    def images(self, u, args, init=None):
+        """(the model's flattened images at u, light result code, light state): one light
+        solve, compiled once per model; ``init``: a light state to start from (the state of
+        an earlier call with this model, e.g. the previous render of the model error's
+        iterated correction), else zero (passed as zeros, so that both are one program)."""
+        if init is None:
+            init = args[0].zero_light_state(args[1][0].dtype)
+        return self._model(u, args, init)
 
     def final(self, u, state, args):
         """Residual, Jacobian, images and light result code at the final u.  A least-squares

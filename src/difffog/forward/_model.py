@@ -122,6 +122,11 @@ class AbstractForwardModel(eqx.Module):
         None."""
         return None
 
+    def zero_light_state(self, dtype):
+        """A light state of zeros (the shape of ``light.state``) for a model whose ``light``
+        takes ``init`` (a warm start, see ``SweepModel.light``), else None.  Default: None."""
+        return None
+
     # -- the same for every model ---------------------------------------------------------
     def params(self, dtype=None) -> Params:
         """The scene's parameters as a pytree (float32 unless x64 is on or ``dtype`` given)."""

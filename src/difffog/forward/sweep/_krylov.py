@@ -43,15 +43,19 @@ def _err(rel, sig):
 
 
 def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, tol: float,
-          progress: Callable | None = None, precondition: Callable | None = None):
+          progress: Callable | None = None, precondition: Callable | None = None, x0=None):
     """Solve (I − K)x = b for flat vectors, with every application of the operator at one site.
 
     ``apply_k(u, with_sources)`` returns Ku + b if ``with_sources`` (a traced bool) else Ku: the
     right-hand side b is ``apply_k(0, True)``.  One call site (rather than separate ones for b,
     the Arnoldi steps and the residuals at restarts) keeps a single copy of the six sweeps in
-    the compiled program.  The iteration starts from x₀ = b (Jacobi's first iterate, so that one
-    application gives what one Jacobi iteration gives); each restart spends one application on
-    the true residual.
+    the compiled program.  The iteration starts from x₁ = Kx₀ + b, Jacobi's first iterate
+    from ``x0`` (a guess, e.g. the solution of a nearby problem; default 0, so that x₁ = b and
+    one application gives what one Jacobi iteration gives), whose residual b − (I − K)x₀ is
+    x₁ − x₀; each restart spends one application on the true residual at x, b − (I − K)x =
+    (x₁ − x₀) − (I − K)(x − x₀), which needs neither b nor Kx₀ apart.  The stopping test is
+    relative to the solution (‖x‖), not to the first residual, so a guess close to the
+    solution stops sooner.
 
     restart: Krylov steps per cycle; max_matvecs: cap on applications of K (b included); tol:
     stop once the estimated relative error ≤ tol (0: run to the cap).
@@ -70,6 +74,7 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
     idx1 = jnp.arange(m + 1)
     tiny = jnp.finfo(dt).tiny
     zn = jnp.zeros((n,), dt)
+    xg = zn if x0 is None else jnp.asarray(x0, dt)  # the guess x₀
 
     def solve_y(R, g, j):  # y of the current cycle (entries > j zero)
         live = idx <= j
@@ -88,8 +93,8 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
         else:
             z, Z = V[j], None
         pn = jnp.where(is1, jnp.maximum(c["pn"], jnp.linalg.norm(z)), c["pn"])
-        u = jnp.where(is1, z, x)
-        u = jnp.where(is0, zn, u)
+        u = jnp.where(is1, z, x - xg)  # phase 2: (I − K)(x − x₀), see above
+        u = jnp.where(is0, xg, u)
         y = apply_k(u, is0)
         k = c["k"] + 1
         Au = u - y  # (I − K)u
@@ -158,7 +163,7 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
             phase=jnp.where(is1, jnp.where(finish, 2, 1), jnp.where(is0, 2, 1)),
             j=jnp.where(is1, j + 1, 0),
             x=x_new,
-            b=jnp.where(is0, y, b),
+            b=jnp.where(is0, y - xg, b),  # the residual at x₀
             V=V,
             H=jnp.where(is1, H, 0.0),
             R=jnp.where(is1, R1, 0.0),

@@ -41,6 +41,10 @@ class LightField(AbstractLight):
         (≥ 0; ``fluence`` holds it clipped to 0): the linear scheme's where one lattice step
         spans many mean free paths (issue 14's cube at N = 8, ζ = 100: 0.11); GMRES's residual
         elsewhere (~tol).  ``difffog.render`` warns above 1% (``forward._model.DIP_WARNING``).
+    state: the light solve's own state at its fixed point, (Λ [with the moments as channels],
+        E: the SURFACE nodes' scattered irradiance), before the clip to Λ ≥ 0: what a solve of
+        a nearby problem on the same model starts from (``SweepModel.light(params,
+        init=light.state)``, a fit's next step), or None.
     origin, h: the lattice's lower corner and spacing (static).
     """
 
@@ -59,6 +63,7 @@ class LightField(AbstractLight):
     source_slope: Float[Array, "nx ny nz 3"] | None = None
     fluence_slope: Float[Array, "nx ny nz 3"] | None = None
     dip: Float[Array, ""] | None = None
+    state: tuple[Array, Array] | None = None
     origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
     h: float = eqx.field(static=True, default=1.0)
 

@@ -777,6 +777,12 @@ class SweepModel(AbstractForwardModel):
         if self.geometry.terms is not None:
             check_terms(self.geometry.terms, params)
 
+    def zero_light_state(self, dtype):
+        """(Λ, E) zeros, the shape of ``LightField.state``: where ``light(params, init=...)``
+        starts when it starts from nothing."""
+        g = self.geometry
+        return jnp.zeros(g.fluence_shape, dtype), jnp.zeros(g.shape, dtype)
+
     def edge_pixels(self) -> dict[str, np.ndarray] | None:
         """{camera: (H, W) bool}: pixels that straddle a geometric or a shadow edge, from the
         cameras' exact hits (``_march.edge_pixels``); None where the cameras find their hits
@@ -869,10 +875,13 @@ class SweepModel(AbstractForwardModel):
                 for h, plan in zip(hits, ops.hit_plans))
         return geom, cg, jnp.where(solid, 0.0, fog), hits
 
-    def light(self, params: Params) -> LightField:
+    def light(self, params: Params, init=None) -> LightField:
+        """The light field at ``params``; ``init``: a light state to start the iteration from
+        (``LightField.state`` of a solve on this model at nearby parameters: a fit's last
+        step), else zero."""
         geom, cg, _, hits = self._with_density(params, cameras=False)
         geom, *_ = self._with_sun(params, geom, cg, None)
-        return self.solver.solve(geom, params)
+        return self.solver.solve(geom, params, init)
 
     def images_from(self, light: LightField, params: Params) -> dict[str, jax.Array]:
         geom, cg, density, hits = self._with_density(params)

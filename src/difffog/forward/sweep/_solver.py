@@ -367,6 +367,9 @@ class _Problem(eqx.Module):
     sun_beam: jax.Array | None = None
     sky_beam: jax.Array | None = None
     sky_moments_beam: jax.Array | None = None
+    # a guess of the light state (Λ, E) to start the iteration from (``SweepSolver.solve``'s
+    # ``init``; None: from zero)
+    init: tuple[jax.Array, jax.Array] | None = None
 
 
 def _report(meter: AbstractProgressMeter):
@@ -468,6 +471,11 @@ def _fluence_slope(lam, pb: _Problem, sun: bool):
 def _zero_state(pb: _Problem):
     dt = pb.sigma_t.dtype
     return jnp.zeros(pb.geom.fluence_shape, dt), jnp.zeros(pb.geom.shape, dt)
+
+
+def _start_state(pb: _Problem):
+    """Where the iteration starts: the problem's ``init`` guess, or zero."""
+    return _zero_state(pb) if pb.init is None else pb.init
 
 
 def segment_depth(sigma_t, M: int, axis: int, periodic: bool):
@@ -657,8 +665,8 @@ def _iterate(pb: _Problem):
             jax.debug.callback(report, k + 1, d, err)
         return new, k + 1, d, err, hist.at[k].set(d)
 
-    init = (_zero_state(pb), jnp.asarray(0), jnp.asarray(jnp.inf, dt), jnp.asarray(jnp.inf, dt),
-            hist0)
+    init = (_start_state(pb), jnp.asarray(0), jnp.asarray(jnp.inf, dt),
+            jnp.asarray(jnp.inf, dt), hist0)
     state, k, _, err, hist = jax.lax.while_loop(cond, body, init)
     return state, (hist, k, err)
 
@@ -709,7 +717,8 @@ def _iterate_gmres(pb: _Problem):
     size = n + (math.prod(shape) if surfaces else 0)
     x, hist, k, err = gmres(apply_k, (size,), dt, restart=pb.restart,
                             max_matvecs=pb.max_iterations, tol=pb.tol,
-                            progress=_report(pb.progress), precondition=precondition)
+                            progress=_report(pb.progress), precondition=precondition,
+                            x0=None if pb.init is None else flat(pb.init))
     # the fixed point as GMRES found it; ``_non_negative`` projects it after the implicit
     # function, so that the implicit derivative is taken at the fixed point itself
     return unflat(x), (hist, k, err)
@@ -1243,13 +1252,26 @@ class SweepSolver(eqx.Module):
             recompute=self.resolved_sweep_residuals(geom) == "recompute",
         )
 
-    def solve(self, geom: SweepGeometry, params: Params) -> LightField:
+    def solve(self, geom: SweepGeometry, params: Params, init=None) -> LightField:
         """The converged light field (differentiable in ``params``), with its result code:
         ``RESULTS.successful`` when the estimated error reached ``tol`` (or ``tol`` = 0 and the
-        iterations ran), else ``max_iterations_reached``, ``stagnated`` or ``nonfinite``."""
+        iterations ran), else ``max_iterations_reached``, ``stagnated`` or ``nonfinite``.
+        ``init``: a light state to start from (``LightField.state`` of a solve on the same
+        geometry, at nearby parameters), else zero; the answer is the same to ``tol``, and
+        its derivatives do not depend on it (it is a constant of the solve)."""
         if geom.terms is not None:
             params = _check_terms(geom.terms, params)
         pb = self.problem(geom, params)
+        if init is not None:
+            init = jax.tree.map(jax.lax.stop_gradient, tuple(init))
+            want = jax.tree.map(jnp.shape, _zero_state(pb))
+            if jax.tree.map(jnp.shape, init) != want:
+                raise SolverError(f"init: a light state of shapes {want} (LightField.state of "
+                                  f"a solve on this model), got "
+                                  f"{jax.tree.map(jnp.shape, init)}")
+            dt = pb.sigma_t.dtype
+            pb = eqx.tree_at(lambda p: p.init, pb, tuple(a.astype(dt) for a in init),
+                             is_leaf=lambda x: x is None)
         # The adjoint has the forward's spectrum: budget it like the forward (2 ×
         # max_iterations products, at least 4 cycles of 40).  On a device mesh the adjoint's
         # GMRES converged far more slowly than on one device (fog-balls N = 11, mesh (1, 2, 2),
@@ -1268,6 +1290,7 @@ class SweepSolver(eqx.Module):
             transposed=(_rewrite_linear_transposed
                         if matrix_free and self.resolved_adjoint(pb) == "transposed" else None))
         dip = _dip(root[0][..., 0] if geom.channels else root[0], pb.fog_mask)
+        root_state = jax.tree.map(jax.lax.stop_gradient, root)
         root = _non_negative(root, geom.channels)
         q, b = _sources(root, pb)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
@@ -1298,6 +1321,7 @@ class SweepSolver(eqx.Module):
             error_estimate=err,
             result=_result_code(root, k, err, self.tol, self.max_iterations),
             dip=dip,
+            state=root_state,
             origin=geom.origin,
             h=geom.h,
         )
