@@ -21,8 +21,8 @@ because JAX's transpose of a gather inside a scan adds a dense table-sized cotan
 It is checked against JAX's autodiff of the plain scan in the tests.  A custom VJP has no
 forward mode: marches traced inside :func:`forward_mode` (a fit's Jacobian columns, one
 ``jax.jvp`` per unknown) run the plain scan, which ``jax.jvp`` differentiates as it goes,
-keeping nothing (until stop 60 those columns were the transpose of the VJP: 7× a forward
-render for three columns, against ~2×).
+keeping nothing (until stop 60 those columns were the transpose of the VJP: three of them
+took 7× a forward render).
 """
 
 from __future__ import annotations
