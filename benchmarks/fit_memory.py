@@ -1,6 +1,6 @@
 """Where a fit's memory goes: XLA's temporaries of the compiled images and of their Jacobian as
 the fit computes it (``FitProblem.model_and_jacobian``: the light field's tangents by forward
-mode, one tangent light solve per unknown, all at once, fed to the cameras' transposed VJP),
+mode, one tangent light solve per unknown, all at once, fed to the cameras by forward mode),
 for cloud-plane with ζ, γ and g unknown, with the run time of each Jacobian (compiled; one
 warm run each) and how far its columns are from the fit's.
 
@@ -108,6 +108,8 @@ def main(argv=None):
     import jax
     import jax.numpy as jnp
 
+    from difffog.forward.sweep._march import forward_mode
+
     model, problem, base, u0 = setup(a.N, a.M, 3, a.downsample)
     eye = jnp.eye(u0.shape[0], dtype=u0.dtype)
 
@@ -134,7 +136,11 @@ def main(argv=None):
     def model_from(light, u):  # FitProblem.model with the light given
         return problem.images_from(model, light, problem.params(u, base), u)
 
-    def camera_jacobian(u):  # the cameras' part, the light held fixed
+    def camera_jacobian(u):  # the cameras' part, the light held fixed, as the fit takes it
+        with forward_mode():
+            return jax.jacfwd(lambda v: model_from(light0, v))(u)
+
+    def camera_jacobian_transposed(u):  # the same before stop 60: the transpose of the VJP
         return transposed_jacobian(lambda v: model_from(light0, v), u)
 
     def one_at_a_time(u):  # the fit's route with the tangent solves one after another
@@ -144,9 +150,10 @@ def main(argv=None):
         floats, rest = eqx.partition(light, eqx.is_inexact_array)
         d_floats = eqx.filter(dots, eqx.is_inexact_array)
         g = lambda fl, v: model_from(eqx.combine(fl, rest), v)  # noqa: E731
-        y, vjp = jax.vjp(g, floats, u)
-        jt = jax.linear_transpose(vjp, y)
-        return y, jax.lax.map(lambda de: jt(de)[0], (d_floats, eye)).T
+        with forward_mode():
+            y = g(floats, u)
+            cols = jax.lax.map(lambda de: jax.jvp(g, (floats, u), de)[1], (d_floats, eye))
+        return y, cols.T
 
     rows, ref = [], None
     for name, fn, run in (
@@ -155,6 +162,8 @@ def main(argv=None):
             ("  the same, tangents linearised", lambda u: jacobian(u, linearised), True),
             ("  the same, tangent solves one at a time (lax.map)", one_at_a_time, True),
             ("  its cameras alone (light fixed)", camera_jacobian, False),
+            ("  its cameras alone, the transpose of their VJP (before stop 60)",
+             camera_jacobian_transposed, False),
             ("Jacobian, transpose of the whole VJP (before stop 42)", reverse_route, True),
             ("  its light field alone", light_jacobian, False)):
         compiled = jax.jit(fn).lower(u0).compile()

@@ -130,13 +130,17 @@ RECOMPUTED_BYTES_SUBSTEP = 210
 #: --tangents``, stop 42): the Krylov vectors of each tangent's (flexible) GMRES and the
 #: batched sweeps' temporaries
 TANGENT_BYTES_PER_STATE = 600
-#: a gradient or a fit's Jacobian differentiates the cameras in reverse mode (the march's
-#: hand-written VJP; a fit's columns are its transpose): its residuals, once whatever the
-#: number of unknowns, per ray and march step (2·max(lattice shape) steps): cloud-plane, both
-#: cameras / 4 (12454 rays) at N = 16 / 24 / 32: 714 / 961 / 1222 MiB of XLA temporaries,
-#: ~1240-1290 B per ray and step; 940 MiB with one unknown instead of three (stop 42,
-#: ``benchmarks/fit_memory.py --cameras``)
+#: a gradient differentiates the cameras in reverse mode (the march's hand-written VJP): its
+#: residuals, per ray and march step (2·max(lattice shape) steps): cloud-plane, both cameras
+#: / 4 (12454 rays) at N = 16 / 24 / 32: 714 / 961 / 1222 MiB of XLA temporaries, ~1240-1290 B
+#: per ray and step (stop 42, ``benchmarks/fit_memory.py --cameras``, the transpose of the
+#: VJP that a fit's columns were until stop 60)
 CAMERA_VJP_BYTES_PER_RAY_STEP = 1300
+#: a fit's Jacobian takes the cameras' columns by forward mode (``_march.forward_mode``, since
+#: stop 60), which keeps nothing per step: its XLA temporaries per ray, march step and
+#: unknown: cloud-plane at N = 24, 3 unknowns, 12454 rays, 64 steps: 54 MiB (against 2156 MiB
+#: for the transpose of the VJP in the same run; ``benchmarks/fit_memory.py``)
+CAMERA_JVP_BYTES_PER_RAY_STEP = 25
 
 
 def linearised_sweep_bytes(nodes: int, M: int, linear: bool, K: int, residuals: str,
@@ -366,8 +370,11 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     }
     resolved = _scheme(scene, resolution, M, phase_order, scheme)
     linear, substep = resolved == "linear", resolved == "substep"
-    if gradient or tangent_solves:
+    if gradient:
         mem["cameras' VJP"] = int(CAMERA_VJP_BYTES_PER_RAY_STEP * rays * 2 * max(shape))
+    if tangent_solves:
+        mem["cameras' columns"] = int(CAMERA_JVP_BYTES_PER_RAY_STEP * rays * 2 * max(shape)
+                                      * int(tangent_solves))
     if tangent_solves:
         # each tangent's GMRES and its share of the vmapped sweeps: TANGENT_BYTES_PER_STATE per
         # number of the solve's state (nothing per direction: the products are matrix-free)
