@@ -44,7 +44,7 @@ class LightField(AbstractLight):
     state: the light solve's own state at its fixed point, (Λ [with the moments as channels],
         E: the SURFACE nodes' scattered irradiance), before the clip to Λ ≥ 0: what a solve of
         a nearby problem on the same model starts from (``SweepModel.light(params,
-        init=light.state)``, a fit's next step), or None.
+        init=light.state)``: the model error's next render of its fine model), or None.
     origin, h: the lattice's lower corner and spacing (static).
     """
 
