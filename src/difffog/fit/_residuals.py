@@ -98,11 +98,12 @@ class FitProblem:
 
     def model(self, model, u, base: Params, init=None):
         """(flattened images (P,) times their exposures, the light solve's result code, its
-        light state) at unknowns u; ``init``: the light state to start from (see
-        :func:`light_state`)."""
+        light state) at unknowns u.  The light state is what a later light solve of the same
+        model can start from (``init``): the sweep's ``LightField.state``, a constant of the
+        solve; None for a model whose light has none."""
         p = self.params(u, base)
         light = _light(model, p, init)
-        return self.images_from(model, light, p, u), light.result, light_state(light)
+        return self.images_from(model, light, p, u), light.result, getattr(light, "state", None)
 
     def model_and_jacobian(self, model, u, base: Params):
         """(images (P,), J (P, n), result code) by forward mode: the light field's tangents by
@@ -132,14 +133,6 @@ def _light(model, p: Params, init):
     has a ``state`` takes ``light(p, init=...)``; any other is called as the interface
     defines it)."""
     return model.light(p) if init is None else model.light(p, init=init)
-
-
-def light_state(light):
-    """What a later light solve of the same model can start from: ``light.state`` (the
-    sweep's; a constant, no gradient flows through it), or None (a model that does not
-    iterate, or whose light has no state)."""
-    state = getattr(light, "state", None)
-    return None if state is None else jax.tree.map(jax.lax.stop_gradient, state)
 
 
 def _model_cj(problem: FitProblem, model, u, base: Params):

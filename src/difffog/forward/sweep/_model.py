@@ -27,7 +27,7 @@ from ._lightfield import LightField
 from ._harmonics import moment_coefficients
 from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _flat_table, _interp, camera_hits,
                      edge_pixels, march_step, render_camera, step_count)
-from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth
+from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth, zero_state
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
 
@@ -780,8 +780,7 @@ class SweepModel(AbstractForwardModel):
     def zero_light_state(self, dtype):
         """(Λ, E) zeros, the shape of ``LightField.state``: where ``light(params, init=...)``
         starts when it starts from nothing."""
-        g = self.geometry
-        return jnp.zeros(g.fluence_shape, dtype), jnp.zeros(g.shape, dtype)
+        return zero_state(self.geometry, dtype)
 
     def edge_pixels(self) -> dict[str, np.ndarray] | None:
         """{camera: (H, W) bool}: pixels that straddle a geometric or a shadow edge, from the

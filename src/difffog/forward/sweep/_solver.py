@@ -468,9 +468,14 @@ def _fluence_slope(lam, pb: _Problem, sun: bool):
     return grad
 
 
+def zero_state(geom: SweepGeometry, dtype):
+    """The light state (Λ [with the moments as channels], E) of ``geom`` at zero: where the
+    iteration starts without a guess (``SweepModel.zero_light_state``)."""
+    return jnp.zeros(geom.fluence_shape, dtype), jnp.zeros(geom.shape, dtype)
+
+
 def _zero_state(pb: _Problem):
-    dt = pb.sigma_t.dtype
-    return jnp.zeros(pb.geom.fluence_shape, dt), jnp.zeros(pb.geom.shape, dt)
+    return zero_state(pb.geom, pb.sigma_t.dtype)
 
 
 def _start_state(pb: _Problem):
@@ -1264,11 +1269,11 @@ class SweepSolver(eqx.Module):
         pb = self.problem(geom, params)
         if init is not None:
             init = jax.tree.map(jax.lax.stop_gradient, tuple(init))
-            want = jax.tree.map(jnp.shape, _zero_state(pb))
-            if jax.tree.map(jnp.shape, init) != want:
+            want = (tuple(geom.fluence_shape), tuple(geom.shape))
+            got = tuple(tuple(jnp.shape(a)) for a in init)
+            if got != want:
                 raise SolverError(f"init: a light state of shapes {want} (LightField.state of "
-                                  f"a solve on this model), got "
-                                  f"{jax.tree.map(jnp.shape, init)}")
+                                  f"a solve on this model), got {got}")
             dt = pb.sigma_t.dtype
             pb = eqx.tree_at(lambda p: p.init, pb, tuple(a.astype(dt) for a in init),
                              is_leaf=lambda x: x is None)
