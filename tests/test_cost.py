@@ -227,8 +227,11 @@ def test_a_fit_jacobian_estimate_counts_one_matrix_free_tangent_solve_per_unknow
     assert one.memory["tangent solves"] == TANGENT_BYTES_PER_STATE * state
     assert three.memory["tangent solves"] == 3 * one.memory["tangent solves"]
     assert "linearised sweeps" not in three.memory and "adjoint" not in three.memory
+    # each tangent's start and result: three state vectors (since stop 61)
+    assert three.memory["tangents' starts"] == 3 * 3 * state * 4
     assert (three.peak_bytes - plain.peak_bytes
-            == three.memory["tangent solves"] + three.memory["cameras' columns"])
+            == three.memory["tangent solves"] + three.memory["cameras' columns"]
+            + three.memory["tangents' starts"])
     # the cameras' columns by forward mode (since stop 60), one per unknown, no reverse pass
     assert three.memory["cameras' columns"] == 3 * one.memory["cameras' columns"] > 0
     assert "cameras' VJP" not in three.memory

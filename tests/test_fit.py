@@ -186,6 +186,36 @@ def test_fit_jacobian_tangents_matrix_free_equal_the_linearised_and_differences(
         SweepSolver(tangents="dense")
 
 
+def test_jacobian_tangent_solves_start_from_the_given_tangents():
+    """``FitProblem.jacobian_and_tangents(..., guess)``: the tangent solves start from
+    ``guess`` (a fit's last step's tangents) and return the light state's tangents.  With a
+    loose tangent tolerance, each Jacobian started from the last one's tangents at the same
+    point is closer to the converged one: from zero twice gives the same J to the bit (the
+    guess would be ignored), from the tangents it moves, by less each time."""
+    scene = _small_scene()
+    small = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(8, 6))
+                                        for c in scene.cameras))
+    fwd = SweepModel(small, resolution=10, supersample=1,
+                     solver=SweepSolver(M=2, max_iterations=500, tol=1e-6, adjoint_rtol=3e-2))
+    coords = (Coordinate("fog.scattering", 0.0, math.inf),
+              Coordinate("shape.walls.albedo", 0.0, 1.0))
+    pb = FitProblem(fwd.scene, coords, ("top", "oblique"), "linear")
+    base = fwd.params(jnp.float32)
+    u = jnp.asarray([c.to_u(TRUTH[c.path]) for c in coords], jnp.float32)
+    jac = eqx.filter_jit(pb.jacobian_and_tangents)
+    _, J0, code, T0 = jac(fwd, u, base, None)
+    _, J0b, _, _ = jac(fwd, u, base, None)
+    _, J1, _, T1 = jac(fwd, u, base, T0)
+    _, J2, _, _ = jac(fwd, u, base, T1)
+    assert int(code) == df.RESULTS.successful
+    assert jax.tree.structure(T0) == jax.tree.structure(fwd.zero_light_state(jnp.float32))
+    assert all(a.shape[0] == len(coords) for a in jax.tree.leaves(T0))
+    J0, J0b, J1, J2 = (np.asarray(a, np.float64) for a in (J0, J0b, J1, J2))
+    assert np.array_equal(J0, J0b)
+    first, second = np.abs(J1 - J0).max(), np.abs(J2 - J1).max()
+    assert 0 < second < 0.5 * first <= 0.05 * np.abs(J0).max()
+
+
 # ------------------------------------------------------------------ sweep fits
 @pytest.mark.slow  # 75-88 s (the suite's 12-minute budget): the default suite recovers the
 # same unknowns from noisy images (test_noisy_fit_standard_errors_cover_the_truth)

@@ -330,6 +330,47 @@ def test_light_solve_from_a_nearby_state(fog_balls, x64):
         solver.solve(geom, p1, (zeros[0][:-1], zeros[1]))
 
 
+def test_tangent_solve_starts_from_the_inits_tangent(fog_balls, x64):
+    """Inside ``forward_mode()`` a light solve's tangent solve starts from ``init``'s tangent
+    (a fit's Jacobian from the last step's tangents) and ``state`` carries its tangent: from
+    the exact tangent a loose tangent solve stays on it (far closer than the same solve from
+    zero), from a poor guess it still reaches its tolerance; outside ``forward_mode()`` the
+    tangent of ``init`` is ignored and ``state`` has none."""
+    from difffog.forward.sweep._march import forward_mode
+
+    scene, geom = fog_balls
+    p0 = Params.from_scene(scene, jnp.float64)
+    z0 = float(get_param(p0, scene, "fog.scattering"))
+    zeros = tuple(jnp.zeros_like(a) for a in _solve_jit(SweepSolver(M=2), geom, p0).state)
+
+    def tangent(solver, guess, inside=True):
+        def state(z, s):
+            return solver.solve(geom, set_param(p0, scene, "fog.scattering", z), s).state
+
+        def run(guess):
+            if not inside:
+                return jax.jvp(state, (z0, zeros), (1.0, guess))[1]
+            with forward_mode():
+                return jax.jvp(state, (z0, zeros), (1.0, guess))[1]
+        return jnp.concatenate([a.ravel() for a in eqx.filter_jit(run)(guess)])
+
+    tight = SweepSolver(M=2, max_iterations=2000, tol=1e-10, adjoint_rtol=1e-10)
+    exact = tangent(tight, zeros)
+    n0 = zeros[0].size
+    as_state = (exact[:n0].reshape(zeros[0].shape), exact[n0:].reshape(zeros[1].shape))
+    loose = SweepSolver(M=2, max_iterations=2000, tol=1e-10, adjoint_rtol=1e-2)
+    cold, warm = tangent(loose, zeros), tangent(loose, as_state)
+    scale = float(jnp.linalg.norm(exact))
+    assert scale > 0
+    err_cold = float(jnp.linalg.norm(cold - exact)) / scale
+    err_warm = float(jnp.linalg.norm(warm - exact)) / scale
+    assert 1e-6 < err_cold <= 1e-2 and err_warm < 1e-2 * err_cold
+    poor = tuple(3.0 * a for a in as_state)
+    assert float(jnp.linalg.norm(tangent(tight, poor) - exact)) <= 1e-8 * scale
+    # outside forward_mode(): init's tangent is not a start, and the state has no tangent
+    assert float(jnp.max(jnp.abs(tangent(loose, as_state, inside=False)))) == 0.0
+
+
 # ---------------------------------------------------------------- kernels and devices
 # (7, 1, 5): a plane thinner than M wraps twice; three of the four cases are slow (the default
 # suite's 12-minute budget on 2 cores, stop 56; test_solver_kernels_agree compares the kernels

@@ -379,6 +379,10 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         # each tangent's GMRES and its share of the vmapped sweeps: TANGENT_BYTES_PER_STATE per
         # number of the solve's state (nothing per direction: the products are matrix-free)
         mem["tangent solves"] = int(tangent_solves) * TANGENT_BYTES_PER_STATE * state
+        # where they start and what they reach (a fit's next step starts from its last
+        # accepted point's tangents, since stop 61): the guesses in the step's data, the new
+        # tangents and their copy in the optimizer's state
+        mem["tangents' starts"] = 3 * int(tangent_solves) * state * f
     if gradient:
         mem["adjoint"] = 41 * state * f  # lineax GMRES, restart 40
     if gradient or (tangent_solves and tangents == "linearised"):

@@ -38,7 +38,7 @@ from ..scene._params import SUN_PATHS
 from . import _checkpoint
 from ._images import load_files
 from ._result import FitResult, IdentifiabilityWarning, level_label, result_name, statistics
-from ._residuals import LOSSES
+from ._residuals import LOSSES, tangent_start
 from ._stepper import make_optimizer, stepper_for
 from ._targets import prepare_targets, reduced_scene
 from ._unknowns import Coordinate, as_unknowns, coordinates, exposure_camera, within_bounds
@@ -212,9 +212,10 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
     flat_w = np.concatenate([wts[n].ravel() for n in names])
     m = int(np.count_nonzero(flat_w))
     scale = float(np.sqrt(np.sum(flat_w * flat_t ** 2) / np.sum(flat_w))) or 1.0
-    data = (jnp.asarray(flat_t, dtype), jnp.asarray(np.sqrt(flat_w), dtype),
-            jnp.asarray(scale, dtype), jnp.asarray(loss_scale, dtype), base)
     run = _traced_sun_form(model, unknowns, sun_memo)
+    data = (jnp.asarray(flat_t, dtype), jnp.asarray(np.sqrt(flat_w), dtype),
+            jnp.asarray(scale, dtype), jnp.asarray(loss_scale, dtype), base,
+            tangent_start(run, len(coords), dtype))
     stepper = stepper_for(run, coords, names, loss, opt)
     inits = (_exposure_starts(stepper, (run, data), coords, given, names, tgt, wts, dtype)
              if None in given else given)

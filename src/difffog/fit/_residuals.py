@@ -105,17 +105,35 @@ class FitProblem:
         light = _light(model, p, init)
         return self.images_from(model, light, p, u), light.result, getattr(light, "state", None)
 
-    def model_and_jacobian(self, model, u, base: Params):
+    def model_and_jacobian(self, model, u, base: Params, guess=None):
         """(images (P,), J (P, n), result code) by forward mode: the light field's tangents by
         ``jax.jvp`` (one tangent light solve per unknown, all at once), then each column
-        through the cameras by ``jax.jvp`` too (``forward_mode``)."""
-        eye = jnp.eye(u.shape[0], dtype=u.dtype)
+        through the cameras by ``jax.jvp`` too (``forward_mode``).  ``guess``: see
+        :meth:`jacobian_and_tangents`."""
+        return self.jacobian_and_tangents(model, u, base, guess)[:3]
 
-        def light_of(x):
-            return model.light(self.params(x, base))
+    def jacobian_and_tangents(self, model, u, base: Params, guess=None):
+        """:meth:`model_and_jacobian` and the light state's tangents (n, *state): column k is
+        ∂(light state)/∂u_k, where the tangent solves of a later call at a nearby u may start
+        (``guess``; None: from zero).  For a model without a light state
+        (``zero_light_state`` None) the tangents are None and ``guess`` is not used."""
+        n = u.shape[0]
+        eye = jnp.eye(n, dtype=u.dtype)
+        s0 = model.zero_light_state(u.dtype)
+        if s0 is not None and guess is None:
+            guess = tangent_start(model, n, u.dtype)
 
-        light, dots = jax.vmap(lambda e: jax.jvp(light_of, (u,), (e,)),
-                               out_axes=(None, 0))(eye)
+        def light_of(x, s):
+            return _light(model, self.params(x, base), s)
+
+        with forward_mode():  # the light's init tangent starts its tangent solves
+            if s0 is None:
+                light, dots = jax.vmap(lambda e: jax.jvp(lambda x: light_of(x, None), (u,), (e,)),
+                                       out_axes=(None, 0))(eye)
+            else:
+                light, dots = jax.vmap(lambda e, g: jax.jvp(light_of, (u, s0), (e, g)),
+                                       out_axes=(None, 0))(eye, guess)
+        tangents = None if s0 is None else dots.state
         floats, rest = eqx.partition(light, eqx.is_inexact_array)
         d_floats = eqx.filter(dots, eqx.is_inexact_array)
 
@@ -125,7 +143,16 @@ class FitProblem:
         with forward_mode():  # the cameras' marches as plain scans, which jax.jvp can take
             y, cols = jax.vmap(lambda t, e: jax.jvp(images, (floats, u), (t, e)),
                                out_axes=(None, 0))(d_floats, eye)
-        return y, cols.T, light.result
+        return y, cols.T, light.result, tangents
+
+
+def tangent_start(model, n: int, dtype):
+    """n zero light-state tangents (the tangent solves' start without a guess), or None for a
+    model without a light state."""
+    s0 = model.zero_light_state(dtype)
+    if s0 is None:
+        return None
+    return jax.tree.map(lambda a: jnp.zeros((n,) + a.shape, a.dtype), s0)
 
 
 def _light(model, p: Params, init):
@@ -135,47 +162,56 @@ def _light(model, p: Params, init):
     return model.light(p) if init is None else model.light(p, init=init)
 
 
-def _model_cj(problem: FitProblem, model, u, base: Params):
+def _model_cj(problem: FitProblem, model, u, base: Params, guess):
     """The images and result code at u, with the tangent J·t of the images from
-    :meth:`FitProblem.model_and_jacobian` (the result code has no tangent).  Its light solve
-    starts from zero: started from the last step's light (a warm start) it took 10-11 GMRES
-    steps instead of 14 (fog-balls, N = 28), but the images then carry the light's tolerance
-    as noise that depends on the path (1e-5 relative), which near the optimum made the
-    Levenberg–Marquardt trial points look worse than they were: 7 steps, 3 of them rejected,
-    against 5 (stop 60)."""
+    :meth:`FitProblem.jacobian_and_tangents` (the result code has no tangent), and the light
+    state's tangents there (n, *state), the next evaluation's ``guess``: the tangent solves
+    start from the last evaluation's tangents, which a nearby point's solves then reach in
+    fewer GMRES steps (their path-dependent error reaches only J, not the residual).  Without
+    a Jacobian (the primal alone: shapes) the tangents are ``guess`` as given.
+
+    The light solve itself starts from zero: started from the last step's light (a warm
+    start) it took 10-11 GMRES steps instead of 14 (fog-balls, N = 28), but the images then
+    carry the light's tolerance as noise that depends on the path (1e-5 relative), which
+    near the optimum made the Levenberg–Marquardt trial points look worse than they were: 7
+    steps, 3 of them rejected, against 5 (stop 60)."""
 
     @jax.custom_jvp
-    def f(u, base):
-        return problem.model(model, u, base)[:2]
+    def f(u, base, guess):
+        y, code, _ = problem.model(model, u, base)
+        return y, code, guess
 
     @f.defjvp
     def _jvp(primals, tangents):
-        (u_, base_), (t, _) = primals, tangents  # base is data: its tangent is ignored
-        y, J, code = problem.model_and_jacobian(model, u_, base_)
-        return (y, code), (J @ t, np.zeros(np.shape(code), jax.dtypes.float0))
+        (u_, base_, guess_), (t, _, _) = primals, tangents  # base and guess are data
+        y, J, code, nxt = problem.jacobian_and_tangents(model, u_, base_, guess_)
+        out = (y, code, nxt)
+        return out, (J @ t, np.zeros(np.shape(code), jax.dtypes.float0),
+                     jax.tree.map(jnp.zeros_like, nxt))
 
-    return f(u, base)
+    return f(u, base, guess)
 
 
 def residual(problem: FitProblem, u, args):
     """(weighted, normalised, robustly rescaled residuals (P,), light result code, the model's
-    images (P,) behind them).
+    images (P,) behind them, the light state's tangents at u: the next evaluation's guess).
 
-    args = (model, (target, sqrt_w, scale, loss_scale, base)): the images flattened over the
-    cameras, the weights' square roots, the target's RMS, the robust loss's threshold and the
-    parameters that are not fitted."""
-    model, (target, sw, scale, c, base) = args
-    y, code = _model_cj(problem, model, u, base)
+    args = (model, (target, sqrt_w, scale, loss_scale, base, guess)): the images flattened
+    over the cameras, the weights' square roots, the target's RMS, the robust loss's
+    threshold, the parameters that are not fitted, and where the tangent solves start
+    (:func:`tangent_start`, or an earlier evaluation's tangents)."""
+    model, (target, sw, scale, c, base, guess) = args
+    y, code, nxt = _model_cj(problem, model, u, base, guess)
     r = sw * (y - target) / scale
     if problem.loss != "linear":
         r = r * robust_factor((r / c) ** 2, problem.loss)
-    return r, code, y
+    return r, code, y, nxt
 
 
 def residual_and_jacobian(problem: FitProblem, u, args):
     """Residual, its Jacobian and the model images at u (for the statistics)."""
-    model, (target, sw, scale, c, base) = args
-    y, J, code = problem.model_and_jacobian(model, u, base)
+    model, (target, sw, scale, c, base, guess) = args
+    y, J, code = problem.model_and_jacobian(model, u, base, guess)
     r = sw * (y - target) / scale
     Jr = (sw / scale)[:, None] * J
     if problem.loss != "linear":

@@ -33,10 +33,12 @@ def make_optimizer(optimizer, rtol: float, atol: float):
 class Stepper:
     """init / step / terminate of ``optimizer`` on ``problem``, each compiled once.
 
-    The residual function returns aux = (loss, light result code, images) so that the driver
-    sees, at every accepted point, whether the light solve behind it converged, and has the
-    images there without another (separately compiled) light solve.  ``args`` is
-    (model, data): the forward model and the per-fit data (:func:`residual`).
+    The residual function returns aux = (loss, light result code, images, the light state's
+    tangents) so that the driver sees, at every accepted point, whether the light solve
+    behind it converged, and has the images there without another (separately compiled)
+    light solve; each step starts its tangent solves from the last accepted point's tangents
+    (the guess slot of ``data``, :func:`residual`; zero at the first step).  ``args`` is
+    (model, data): the forward model and the per-fit data.
     """
 
     def __init__(self, problem: FitProblem, optimizer):
@@ -46,9 +48,10 @@ class Stepper:
         self.options = {} if self.minimise else {"jac": "fwd"}
 
         def fn(u, args):
-            r, code, y = residual(problem, u, args)
+            r, code, y, tangents = residual(problem, u, args)
             loss = 0.5 * jnp.sum(r * r)
-            return (loss, (loss, code, y)) if self.minimise else (r, (loss, code, y))
+            aux = (loss, code, y, tangents)
+            return (loss, aux) if self.minimise else (r, aux)
 
         self.fn = fn
         self._static = None
@@ -72,7 +75,8 @@ class Stepper:
         return eqx.combine(dyn, self._static)
 
     def step_impl(self, u, state, args):
-        return self.optimizer.step(self.fn, u, args, self.options, state, frozenset())
+        return self.optimizer.step(self.fn, u, _with_guess(args, state), self.options, state,
+                                   frozenset())
 
     def term_impl(self, u, state, args):
         return self.optimizer.terminate(self.fn, u, args, self.options, state, frozenset())
@@ -100,9 +104,19 @@ class Stepper:
         info = getattr(state, "f_info", None)
         if isinstance(info, optx.FunctionInfo.ResidualJac):
             r, J = self._from_state(info)
-            _, code, y = state.aux  # what self.fn returned at u
+            _, code, y, _ = state.aux  # what self.fn returned at u
             return r, J, y, code
         return self._rj(u, args)
+
+
+def _with_guess(args, state):
+    """``args`` with the light state's tangents of the optimizer's last accepted point (its
+    aux; zero before the first step) as where the next tangent solves start."""
+    aux = getattr(state, "aux", None)
+    if aux is None or aux[3] is None:
+        return args
+    model, data = args
+    return model, data[:5] + (aux[3],)
 
 
 # Compiled steppers of recent fits, so that fitting new targets (or from a new start) with

@@ -41,7 +41,7 @@ from ._krylov import gmres
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
                 precondition: Callable | None = None, linear: Callable | None = None,
-                transposed: Callable | None = None):
+                transposed: Callable | None = None, guess=None):
     """``solve(inputs) -> (root, aux)``, differentiated implicitly through ``rewrite``.
 
     solve: inputs → (root, aux); root is the fixed point, aux anything (no gradient flows
@@ -62,9 +62,15 @@ def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.Ab
     transposed: (v, inputs) → (∂G/∂x)ᵀ·v computed directly (or None), with ``linear``: the
         adjoint solve (reverse mode) then applies it, matrix-free, instead of transposing
         ``linear``'s linearisation.  A module-level function.
+    guess: None, or a pytree with the root's structure whose *tangent* is where the tangent
+        solve starts: a guess of the root's tangent (e.g. the one at a nearby point, where a
+        fit's last step was).  Its value is not used, and the answer is the same to the
+        linear solver's tolerance.  Forward mode only: a start that moves with the tangent
+        makes the tangent solve affine in it, which reverse mode cannot transpose, so give it
+        a zero (stopped) tangent there.
     """
-    root, aux = _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear,
-                             transposed)
+    root, aux = _fixed_point(solve, rewrite, inputs, guess, linear_solver, precondition,
+                             linear, transposed)
     return root, jax.tree.map(jax.lax.stop_gradient, aux)
 
 
@@ -81,8 +87,8 @@ class Preconditioner(eqx.Module):
 
 
 @eqx.filter_custom_jvp
-def _fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear, transposed):
-    del rewrite, linear_solver, precondition, linear, transposed
+def _fixed_point(solve, rewrite, inputs, guess, linear_solver, precondition, linear, transposed):
+    del rewrite, guess, linear_solver, precondition, linear, transposed
     return jax.tree.map(jnp.asarray, solve(inputs))
 
 
@@ -93,8 +99,8 @@ def _for_operator(root, args):
 
 @_fixed_point.def_jvp
 def _fixed_point_jvp(primals, tangents):
-    solve, rewrite, inputs, linear_solver, precondition, linear, transposed = primals
-    _, _, t_inputs, _, _, _, _ = tangents
+    solve, rewrite, inputs, _, linear_solver, precondition, linear, transposed = primals
+    _, _, t_inputs, t_guess, _, _, _, _ = tangents
     root, aux = fixed_point(solve, rewrite, inputs, linear_solver, precondition, linear,
                             transposed)
     # inputs without a tangent (integer masks, static geometry) are held fixed
@@ -110,6 +116,9 @@ def _fixed_point_jvp(primals, tangents):
         operator = AffineJacobian(linear, inputs, operator, transposed)
     pre = None if precondition is None else precondition(inputs)
     options = {} if pre is None else {"preconditioner": pre}
+    start = _start(t_guess, root)
+    if start is not None:  # the solve is for −(the root's tangent)
+        options["y0"] = start
     x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
     t_root = jax.tree.map(jnp.negative, x_dot)
     t_aux = jax.tree.map(_zero_tangent, aux)
@@ -192,6 +201,17 @@ lx.tridiagonal.register(AffineJacobianT)(
     lambda operator: (lambda d, lo, up: (d, up, lo))(*lx.tridiagonal(operator.of.jacobian)))
 
 
+def _start(t_guess, root):
+    """The tangent solve's start, −``t_guess`` in the root's dtypes, or None where the guess
+    has no tangent (None, or a symbolic zero in any leaf)."""
+    if t_guess is None:
+        return None
+    leaves = jax.tree.leaves(t_guess, is_leaf=lambda t: t is None)
+    if any(t is None for t in leaves):
+        return None
+    return jax.tree.map(lambda t, r: -jnp.asarray(t, r.dtype), t_guess, root)
+
+
 def _zero_tangent(x):
     """A zero tangent for ``x``: float0 for integer and boolean arrays, as JAX requires."""
     if jnp.issubdtype(x.dtype, jnp.inexact):
@@ -219,6 +239,8 @@ class KrylovSolver(lx.AbstractLinearSolver):
 
     A :class:`Preconditioner` in the solve's options (``options["preconditioner"]``) makes it
     flexible GMRES with that right preconditioner; the transposed solve gets its transpose.
+    ``options["y0"]`` (the solution's structure): where the iteration starts (else zero);
+    the transposed solve starts from zero.
     """
 
     rtol: float = eqx.field(static=True)
@@ -245,9 +267,11 @@ class KrylovSolver(lx.AbstractLinearSolver):
         def precondition(u):
             return jax.flatten_util.ravel_pytree(pre.apply(unravel(u)))[0]
 
+        y0 = options.get("y0")
+        x0 = None if y0 is None else jax.flatten_util.ravel_pytree(y0)[0].astype(b.dtype)
         x, _, k, err = gmres(apply_k, b.shape, b.dtype, restart=self.restart,
                              max_matvecs=self.max_matvecs, tol=self.rtol,
-                             precondition=None if pre is None else precondition)
+                             precondition=None if pre is None else precondition, x0=x0)
         ok = (err <= self.rtol) & jnp.all(jnp.isfinite(x))
         result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
         return unravel(x), result, {"num_steps": k}

@@ -54,6 +54,7 @@ __all__ = [
     "march_steps",
     "camera_hits",
     "forward_mode",
+    "in_forward_mode",
     "render_camera",
     "render_rays",
     "trace_rays",
@@ -76,12 +77,20 @@ def forward_mode():
     are differentiable by forward mode (``jax.jvp``) and not by reverse mode: they run the
     plain scan instead of the march with its hand-written reverse pass, which has no JVP.
     The choice is made when a march is traced (a static argument of its compiled program),
-    so a function compiled inside the context keeps it."""
+    so a function compiled inside the context keeps it.  Light solves traced inside it
+    (``SweepSolver.solve``) keep their ``init``'s tangent as where their tangent solve starts,
+    and their ``LightField.state`` carries its tangent (a fit's Jacobian starts each column's
+    solve from the last step's)."""
     token = _FORWARD_MODE.set(True)
     try:
         yield
     finally:
         _FORWARD_MODE.reset(token)
+
+
+def in_forward_mode() -> bool:
+    """Whether what is traced now is inside :func:`forward_mode`."""
+    return _FORWARD_MODE.get()
 
 
 # --------------------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ from ._dsa import DiffusionPreconditioner, neighbour, on_fluence
 from ._harmonics import MAX_ORDER, basis, delta_m, moment_coefficients
 from ._krylov import gmres
 from ._lightfield import LightField
+from ._march import in_forward_mode
 from ...scene._params import Params
 from ._terms import TERMS, Terms, choose_terms, terms_violation
 from ._uncollided import sky_uncollided, sun_transmittance
@@ -1263,19 +1264,24 @@ class SweepSolver(eqx.Module):
         iterations ran), else ``max_iterations_reached``, ``stagnated`` or ``nonfinite``.
         ``init``: a light state to start from (``LightField.state`` of a solve on the same
         geometry, at nearby parameters), else zero; the answer is the same to ``tol``, and
-        its derivatives do not depend on it (it is a constant of the solve)."""
+        its derivatives do not depend on it (it is a constant of the solve).  Traced inside
+        ``forward_mode()``, ``init``'s tangent is where the tangent solve starts (a guess of
+        the state's tangent: a fit's last step's), and ``state`` keeps its tangent."""
         if geom.terms is not None:
             params = _check_terms(geom.terms, params)
         pb = self.problem(geom, params)
+        guess = None
         if init is not None:
-            init = jax.tree.map(jax.lax.stop_gradient, tuple(init))
             want = (tuple(geom.fluence_shape), tuple(geom.shape))
             got = tuple(tuple(jnp.shape(a)) for a in init)
             if got != want:
                 raise SolverError(f"init: a light state of shapes {want} (LightField.state of "
                                   f"a solve on this model), got {got}")
             dt = pb.sigma_t.dtype
-            pb = eqx.tree_at(lambda p: p.init, pb, tuple(a.astype(dt) for a in init),
+            init = tuple(a.astype(dt) for a in init)
+            if in_forward_mode():  # init's tangent: where the tangent solve starts
+                guess = init
+            pb = eqx.tree_at(lambda p: p.init, pb, jax.tree.map(jax.lax.stop_gradient, init),
                              is_leaf=lambda x: x is None)
         # The adjoint has the forward's spectrum: budget it like the forward (2 ×
         # max_iterations products, at least 4 cycles of 40).  On a device mesh the adjoint's
@@ -1293,9 +1299,12 @@ class SweepSolver(eqx.Module):
             _solve_fixed_point, _rewrite, pb, linear_solver, precondition=_preconditioner,
             linear=_rewrite_linear if matrix_free else None,
             transposed=(_rewrite_linear_transposed
-                        if matrix_free and self.resolved_adjoint(pb) == "transposed" else None))
+                        if matrix_free and self.resolved_adjoint(pb) == "transposed" else None),
+            guess=guess)
         dip = _dip(root[0][..., 0] if geom.channels else root[0], pb.fog_mask)
-        root_state = jax.tree.map(jax.lax.stop_gradient, root)
+        # a constant of the solve, except under forward_mode(), where its tangent is what a
+        # later tangent solve may start from
+        root_state = root if in_forward_mode() else jax.tree.map(jax.lax.stop_gradient, root)
         root = _non_negative(root, geom.channels)
         q, b = _sources(root, pb)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
