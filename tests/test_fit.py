@@ -188,7 +188,8 @@ def test_fit_jacobian_tangents_matrix_free_equal_the_linearised_and_differences(
 
 def test_jacobian_tangent_solves_start_from_the_given_tangents():
     """``FitProblem.jacobian_and_tangents(..., guess)``: the tangent solves start from
-    ``guess`` (a fit's last step's tangents) and return the light state's tangents.  With a
+    ``guess`` (a fit's last step's tangents) and return the light state's tangents (and the
+    light state at u, where the model error's finer renders start).  With a
     loose tangent tolerance, each Jacobian started from the last one's tangents at the same
     point is closer to the converged one: from zero twice gives the same J to the bit (the
     guess would be ignored), from the tangents it moves, by less each time."""
@@ -203,13 +204,16 @@ def test_jacobian_tangent_solves_start_from_the_given_tangents():
     base = fwd.params(jnp.float32)
     u = jnp.asarray([c.to_u(TRUTH[c.path]) for c in coords], jnp.float32)
     jac = eqx.filter_jit(pb.jacobian_and_tangents)
-    _, J0, code, T0 = jac(fwd, u, base, None)
-    _, J0b, _, _ = jac(fwd, u, base, None)
-    _, J1, _, T1 = jac(fwd, u, base, T0)
-    _, J2, _, _ = jac(fwd, u, base, T1)
+    _, J0, code, T0, _ = jac(fwd, u, base, None)
+    _, J0b, _, _, _ = jac(fwd, u, base, None)
+    _, J1, _, T1, _ = jac(fwd, u, base, T0)
+    _, J2, _, _, state = jac(fwd, u, base, T1)
     assert int(code) == df.RESULTS.successful
     assert jax.tree.structure(T0) == jax.tree.structure(fwd.zero_light_state(jnp.float32))
     assert all(a.shape[0] == len(coords) for a in jax.tree.leaves(T0))
+    light = eqx.filter_jit(lambda m, p: m.light(p))(fwd, pb.params(u, base))
+    assert all(np.allclose(a, b, rtol=1e-4, atol=1e-6 * float(jnp.max(b)))
+               for a, b in zip(state, light.state))  # and the light state at u
     J0, J0b, J1, J2 = (np.asarray(a, np.float64) for a in (J0, J0b, J1, J2))
     assert np.array_equal(J0, J0b)
     first, second = np.abs(J1 - J0).max(), np.abs(J2 - J1).max()

@@ -381,8 +381,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         mem["tangent solves"] = int(tangent_solves) * TANGENT_BYTES_PER_STATE * state
         # where they start and what they reach (a fit's next step starts from its last
         # accepted point's tangents, since stop 61): the guesses in the step's data, the new
-        # tangents and their copy in the optimizer's state
-        mem["tangents' starts"] = 3 * int(tangent_solves) * state * f
+        # tangents and their copy in the optimizer's state, which holds the light state too
+        mem["tangents' starts"] = (3 * int(tangent_solves) + 1) * state * f
     if gradient:
         mem["adjoint"] = 41 * state * f  # lineax GMRES, restart 40
     if gradient or (tangent_solves and tangents == "linearised"):

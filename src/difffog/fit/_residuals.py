@@ -110,13 +110,14 @@ class FitProblem:
         ``jax.jvp`` (one tangent light solve per unknown, all at once), then each column
         through the cameras by ``jax.jvp`` too (``forward_mode``).  ``guess``: see
         :meth:`jacobian_and_tangents`."""
-        return self.jacobian_and_tangents(model, u, base, guess)[:3]
+        return tuple(self.jacobian_and_tangents(model, u, base, guess)[:3])
 
     def jacobian_and_tangents(self, model, u, base: Params, guess=None):
-        """:meth:`model_and_jacobian` and the light state's tangents (n, *state): column k is
+        """:meth:`model_and_jacobian`, the light state's tangents (n, *state): column k is
         ∂(light state)/∂u_k, where the tangent solves of a later call at a nearby u may start
-        (``guess``; None: from zero).  For a model without a light state
-        (``zero_light_state`` None) the tangents are None and ``guess`` is not used."""
+        (``guess``; None: from zero), and the light state at u (``LightField.state``).  For a
+        model without a light state (``zero_light_state`` None) both are None and ``guess``
+        is not used."""
         n = u.shape[0]
         eye = jnp.eye(n, dtype=u.dtype)
         s0 = model.zero_light_state(u.dtype)
@@ -143,7 +144,8 @@ class FitProblem:
         with forward_mode():  # the cameras' marches as plain scans, which jax.jvp can take
             y, cols = jax.vmap(lambda t, e: jax.jvp(images, (floats, u), (t, e)),
                                out_axes=(None, 0))(d_floats, eye)
-        return y, cols.T, light.result, tangents
+        state = None if s0 is None else jax.tree.map(jax.lax.stop_gradient, light.state)
+        return y, cols.T, light.result, tangents, state
 
 
 def tangent_start(model, n: int, dtype):
@@ -165,10 +167,11 @@ def _light(model, p: Params, init):
 def _model_cj(problem: FitProblem, model, u, base: Params, guess):
     """The images and result code at u, with the tangent J·t of the images from
     :meth:`FitProblem.jacobian_and_tangents` (the result code has no tangent), and the light
-    state's tangents there (n, *state), the next evaluation's ``guess``: the tangent solves
+    state's tangents there (n, *state), the next evaluation's ``guess`` (the tangent solves
     start from the last evaluation's tangents, which a nearby point's solves then reach in
-    fewer GMRES steps (their path-dependent error reaches only J, not the residual).  Without
-    a Jacobian (the primal alone: shapes) the tangents are ``guess`` as given.
+    fewer GMRES steps; their path-dependent error reaches only J, not the residual), and the
+    light state at u (where a finer model's render may start, resampled).  Without a Jacobian
+    (the primal alone: shapes) the tangents are ``guess`` as given.
 
     The light solve itself starts from zero: started from the last step's light (a warm
     start) it took 10-11 GMRES steps instead of 14 (fog-balls, N = 28), but the images then
@@ -178,34 +181,35 @@ def _model_cj(problem: FitProblem, model, u, base: Params, guess):
 
     @jax.custom_jvp
     def f(u, base, guess):
-        y, code, _ = problem.model(model, u, base)
-        return y, code, guess
+        y, code, state = problem.model(model, u, base)
+        return y, code, guess, state
 
     @f.defjvp
     def _jvp(primals, tangents):
         (u_, base_, guess_), (t, _, _) = primals, tangents  # base and guess are data
-        y, J, code, nxt = problem.jacobian_and_tangents(model, u_, base_, guess_)
-        out = (y, code, nxt)
+        y, J, code, nxt, state = problem.jacobian_and_tangents(model, u_, base_, guess_)
+        out = (y, code, nxt, state)
         return out, (J @ t, np.zeros(np.shape(code), jax.dtypes.float0),
-                     jax.tree.map(jnp.zeros_like, nxt))
+                     *jax.tree.map(jnp.zeros_like, (nxt, state)))
 
     return f(u, base, guess)
 
 
 def residual(problem: FitProblem, u, args):
     """(weighted, normalised, robustly rescaled residuals (P,), light result code, the model's
-    images (P,) behind them, the light state's tangents at u: the next evaluation's guess).
+    images (P,) behind them, the light state's tangents at u: the next evaluation's guess,
+    the light state at u).
 
     args = (model, (target, sqrt_w, scale, loss_scale, base, guess)): the images flattened
     over the cameras, the weights' square roots, the target's RMS, the robust loss's
     threshold, the parameters that are not fitted, and where the tangent solves start
     (:func:`tangent_start`, or an earlier evaluation's tangents)."""
     model, (target, sw, scale, c, base, guess) = args
-    y, code, nxt = _model_cj(problem, model, u, base, guess)
+    y, code, nxt, state = _model_cj(problem, model, u, base, guess)
     r = sw * (y - target) / scale
     if problem.loss != "linear":
         r = r * robust_factor((r / c) ** 2, problem.loss)
-    return r, code, y, nxt
+    return r, code, y, nxt, state
 
 
 def residual_and_jacobian(problem: FitProblem, u, args):

@@ -34,11 +34,12 @@ class Stepper:
     """init / step / terminate of ``optimizer`` on ``problem``, each compiled once.
 
     The residual function returns aux = (loss, light result code, images, the light state's
-    tangents) so that the driver sees, at every accepted point, whether the light solve
-    behind it converged, and has the images there without another (separately compiled)
-    light solve; each step starts its tangent solves from the last accepted point's tangents
-    (the guess slot of ``data``, :func:`residual`; zero at the first step).  ``args`` is
-    (model, data): the forward model and the per-fit data.
+    tangents, the light state) so that the driver sees, at every accepted point, whether the
+    light solve behind it converged, and has the images there without another (separately
+    compiled) light solve, and the light state where the model error's finer renders start;
+    each step starts its tangent solves from the last accepted point's tangents (the guess
+    slot of ``data``, :func:`residual`; zero at the first step).  ``args`` is (model, data):
+    the forward model and the per-fit data.
     """
 
     def __init__(self, problem: FitProblem, optimizer):
@@ -48,9 +49,9 @@ class Stepper:
         self.options = {} if self.minimise else {"jac": "fwd"}
 
         def fn(u, args):
-            r, code, y, tangents = residual(problem, u, args)
+            r, code, y, tangents, state = residual(problem, u, args)
             loss = 0.5 * jnp.sum(r * r)
-            aux = (loss, code, y, tangents)
+            aux = (loss, code, y, tangents, state)
             return (loss, aux) if self.minimise else (r, aux)
 
         self.fn = fn
@@ -97,16 +98,17 @@ class Stepper:
         return self._model(u, args, init)
 
     def final(self, u, state, args):
-        """Residual, Jacobian, images and light result code at the final u.  A least-squares
-        solver's state holds the residual, the (linearised) Jacobian and (in its aux) the
-        images and the result code at u already: reuse them, so nothing is solved or
-        compiled again (BFGS: everything)."""
+        """Residual, Jacobian, images, light result code and light state (None where not
+        known) at the final u.  A least-squares solver's state holds the residual, the
+        (linearised) Jacobian and (in its aux) the images, the result code and the light
+        state at u already: reuse them, so nothing is solved or compiled again (BFGS:
+        everything but the light state)."""
         info = getattr(state, "f_info", None)
         if isinstance(info, optx.FunctionInfo.ResidualJac):
             r, J = self._from_state(info)
-            _, code, y, _ = state.aux  # what self.fn returned at u
-            return r, J, y, code
-        return self._rj(u, args)
+            _, code, y, _, light = state.aux  # what self.fn returned at u
+            return r, J, y, code, light
+        return (*self._rj(u, args), None)
 
 
 def _with_guess(args, state):

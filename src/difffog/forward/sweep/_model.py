@@ -50,6 +50,45 @@ def _nearest_index(mask: np.ndarray) -> np.ndarray:
     return np.ravel_multi_index(tuple(idx), mask.shape)
 
 
+def _resample(lam, irr, src, dst):
+    """``SweepModel.resampled_state`` on the host: Λ (with any channels) trilinear between the
+    fluid nodes of lattice ``src`` (SOLID corners weigh 0, the rest renormalised; a node with
+    no fluid corner takes the nearest fluid node), E from ``src``'s surface node nearest to
+    each of ``dst``'s SURFACE nodes (0 elsewhere).  The lattices are axis-aligned, so each
+    axis's corners and weights are 1-D."""
+    nt = np.asarray(src.node_type)
+    fluid = (nt != SOLID).astype(np.float64)
+    lo, cells = [], []
+    for a in range(3):
+        x = (np.asarray(dst.origin, np.float64)[a] + (np.arange(dst.shape[a]) + 0.5) * dst.h
+             - src.origin[a]) / src.h - 0.5
+        x = np.clip(x, 0, nt.shape[a] - 1)
+        i0 = np.clip(np.floor(x).astype(np.int64), 0, max(nt.shape[a] - 2, 0))
+        lo.append((i0, np.minimum(i0 + 1, nt.shape[a] - 1), x - i0))
+        cells.append(np.clip(np.rint(x).astype(np.int64), 0, nt.shape[a] - 1))
+    extra = lam.shape[3:]
+    num = np.zeros(tuple(dst.shape) + extra)
+    den = np.zeros(tuple(dst.shape))
+    for d in np.ndindex(2, 2, 2):
+        idx = [lo[a][d[a]] for a in range(3)]
+        w = [lo[a][2] if d[a] else 1.0 - lo[a][2] for a in range(3)]
+        wf = (w[0][:, None, None] * w[1][None, :, None] * w[2][None, None, :]
+              * fluid[np.ix_(*idx)])
+        den += wf
+        num += wf.reshape(wf.shape + (1,) * len(extra)) * lam[np.ix_(*idx)]
+    out = num / np.maximum(den, 1e-30).reshape(den.shape + (1,) * len(extra))
+    none = den <= 0
+    near = np.ix_(*cells)
+    if none.any():
+        flat = _nearest_index(nt != SOLID)[near][none]
+        out[none] = lam.reshape((-1,) + extra)[flat]
+    e = np.zeros(tuple(dst.shape))
+    surf = np.asarray(dst.node_type) == SURFACE
+    if surf.any() and (nt == SURFACE).any():
+        e = np.where(surf, irr.reshape(-1)[_nearest_index(nt == SURFACE)[near]], 0.0)
+    return out, e
+
+
 def _fog_support(scene: Scene, lattice):
     """The box with all the fog ((lo, hi), the fog's region within the domain; x, y of the
     lattice's box for a periodic-xy domain) and per axis the index range of the nodes inside
@@ -781,6 +820,22 @@ class SweepModel(AbstractForwardModel):
         """(Λ, E) zeros, the shape of ``LightField.state``: where ``light(params, init=...)``
         starts when it starts from nothing."""
         return zero_state(self.geometry, dtype)
+
+    def resampled_state(self, state, source: "SweepModel"):
+        """``source``'s light state (``LightField.state`` of a solve with ``source``) carried
+        onto this model's lattice: a guess to start this model's light solve from
+        (``light(params, init=...)``) when it renders the same scene at the same parameters
+        on another lattice or direction set (a fit's model error renders finer models at
+        the estimate).  Λ (and its moments) trilinear between the source's fluid nodes, E
+        from the source's nearest surface node.  The solve's answer does not depend on the
+        guess (only its iterations do).  None where the states do not correspond (another
+        number of moments)."""
+        src, dst = source.lattice, self.lattice
+        if tuple(source.geometry.fluence_shape[3:]) != tuple(self.geometry.fluence_shape[3:]):
+            return None
+        lam, irr = (np.asarray(a, np.float64) for a in state)
+        out, e = _resample(lam, irr, src, dst)
+        return (jnp.asarray(out, state[0].dtype), jnp.asarray(e, state[1].dtype))
 
     def edge_pixels(self) -> dict[str, np.ndarray] | None:
         """{camera: (H, W) bool}: pixels that straddle a geometric or a shadow edge, from the
