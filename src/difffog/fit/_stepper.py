@@ -56,6 +56,7 @@ class Stepper:
 
         self.fn = fn
         self._static = None
+        self._init = eqx.filter_jit(self.init_impl)
         self._step = eqx.filter_jit(self.step_impl)
         self._term = eqx.filter_jit(self.term_impl)
         self._rj = eqx.filter_jit(lambda u, args: residual_and_jacobian(problem, u, args))
@@ -63,10 +64,15 @@ class Stepper:
         self._model = eqx.filter_jit(lambda u, args, init: problem.model(args[0], u,
                                                                          args[1][4], init))
 
-    def init(self, u0, args):
+    def init_impl(self, u0, args):
         f_struct, aux_struct = jax.eval_shape(self.fn, u0, args)
-        state = self.optimizer.init(self.fn, u0, args, self.options, f_struct, aux_struct,
-                                    frozenset())
+        return self.optimizer.init(self.fn, u0, args, self.options, f_struct, aux_struct,
+                                   frozenset())
+
+    def init(self, u0, args):
+        # compiled, so that the optimizer's shapes (a trace of the linearised residual: ~2 s
+        # of Python for the README example) are found once per stepper, not once per fit
+        state = self._init(u0, args)
         # The state's static part holds a closure-converted jaxpr (the linearised residual)
         # that compares by identity: reuse the first fit's so that later fits with this
         # stepper hit the compilation cache instead of compiling the step again.
