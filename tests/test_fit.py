@@ -288,8 +288,12 @@ def test_a_fit_model_built_again_steps_with_the_compiled_stepper():
     from difffog.fit._stepper import stepper_for
     from helpers import build_fit_model
 
+    from difffog.fit import _driver
+
     coords = tuple(Coordinate(p, 0.0, math.inf) for p in ("fog.scattering", "fog.absorption"))
-    a, b = build_fit_model("sweep"), build_fit_model("sweep")
+    a = build_fit_model("sweep")
+    _driver._MODELS.clear()  # built anew, not the model cache's
+    b = build_fit_model("sweep")
     assert a is not b
     first = stepper_for(a, coords, ("top", "oblique"), "linear", "lm")
     assert stepper_for(b, coords, ("top", "oblique"), "linear", "lm") is first
@@ -297,6 +301,25 @@ def test_a_fit_model_built_again_steps_with_the_compiled_stepper():
     other = make_model(_small_scene(), "sweep", cameras=["top", "oblique"], resolution=10,
                        downsample=8, model_settings={"M": 2, "tol": 1e-6})
     assert stepper_for(other, coords, ("top", "oblique"), "linear", "lm") is not first
+
+
+def test_fit_models_are_kept_for_the_next_fit_when_small(monkeypatch):
+    """``make_model`` keeps the last few models it built (the same fit again in a process does
+    not prepare them again): the same scene and settings give the same model, other settings
+    another; a lattice above ``MODEL_CACHE_NODES`` is not kept."""
+    from difffog.fit import _driver
+
+    kw = dict(cameras=["top", "oblique"], downsample=8, model_settings={"M": 2, "tol": 1e-6})
+    a = make_model(_small_scene(), "sweep", resolution=10, **kw)
+    assert make_model(_small_scene(), "sweep", resolution=10, **kw) is a
+    b = make_model(_small_scene(), "sweep", resolution=11, **kw)
+    assert b is not a and make_model(_small_scene(), "sweep", resolution=11, **kw) is b
+    assert make_model(_small_scene(), "sweep", resolution=10, **kw) is a
+    _driver._MODELS.clear()
+    monkeypatch.setattr(_driver, "MODEL_CACHE_NODES", 10 ** 3)  # below these lattices
+    c = make_model(_small_scene(), "sweep", resolution=10, **kw)
+    assert c is not a and make_model(_small_scene(), "sweep", resolution=10, **kw) is not c
+    assert not _driver._MODELS
 
 
 # slow: the default suite's 12-minute budget on 2 cores (stop 56);

@@ -73,12 +73,41 @@ def make_model(scene: Scene, forward="sweep", *, cameras: list[str], downsample:
         full["edge_samples"] = fit_edge_samples(downsample)
     # the memory guard: a fit's Jacobian holds one tangent solve's Krylov vectors per unknown
     # besides the forward solve (0 unknowns: a model that only renders, the model error's)
-    guard(small, forward, force=force, tangent_solves=max(0, int(unknowns)),
-          what=f"the fit's {forward} model", **full)
+    est = guard(small, forward, force=force, tangent_solves=max(0, int(unknowns)),
+                what=f"the fit's {forward} model", **full)
     if sun and not entry.traces_sun:  # before building it
         raise _fixed_sun(f"the {forward} forward model")
-    model = entry.build(small, **full)
-    return _with_sun(model, sun) if sun else model
+    key = _model_key(scene, forward, cameras, downsample, full, sun)
+    model = _MODELS.pop(key, None) if key is not None else None
+    if model is None:
+        model = entry.build(small, **full)
+        model = _with_sun(model, sun) if sun else model
+    if key is not None and math.prod(getattr(est, "shape", (math.inf,))) <= MODEL_CACHE_NODES:
+        _MODELS[key] = model  # the most recent last
+        while len(_MODELS) > MODEL_CACHE_SIZE:
+            _MODELS.pop(next(iter(_MODELS)))
+    return model
+
+
+# Forward models that fits built recently (a fit's own and its model error's finer ones), so
+# that the same fit again in a process (a notebook cell run twice) does not prepare them
+# again: ~1 s of host set-up for the README example's four.  Only lattices of up to
+# MODEL_CACHE_NODES nodes are kept (their models hold tens of MB, not the GBs a fine cloud's
+# would), at most MODEL_CACHE_SIZE of them.  A model is immutable, so sharing one is safe.
+_MODELS: dict = {}
+MODEL_CACHE_SIZE = 4
+MODEL_CACHE_NODES = 80 ** 3
+
+
+def _model_key(scene, forward, cameras, downsample, full, sun):
+    """The cache key of a built model, or None where a setting cannot be hashed."""
+    key = (scene, forward, tuple(cameras), int(downsample),
+           tuple(sorted(full.items())), sun if isinstance(sun, bool) else float(sun))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
 
 
 def _fixed_sun(what: str) -> DifffogError:
