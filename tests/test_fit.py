@@ -306,7 +306,8 @@ def test_a_fit_model_built_again_steps_with_the_compiled_stepper():
 def test_fit_models_are_kept_for_the_next_fit_when_small(monkeypatch):
     """``make_model`` keeps the last few models it built (the same fit again in a process does
     not prepare them again): the same scene and settings give the same model, other settings
-    another; a lattice above ``MODEL_CACHE_NODES`` is not kept."""
+    another (and so does the float64 switch); a lattice above ``MODEL_CACHE_NODES`` is not
+    kept."""
     from difffog.fit import _driver
 
     kw = dict(cameras=["top", "oblique"], downsample=8, model_settings={"M": 2, "tol": 1e-6})
@@ -315,6 +316,13 @@ def test_fit_models_are_kept_for_the_next_fit_when_small(monkeypatch):
     b = make_model(_small_scene(), "sweep", resolution=11, **kw)
     assert b is not a and make_model(_small_scene(), "sweep", resolution=11, **kw) is b
     assert make_model(_small_scene(), "sweep", resolution=10, **kw) is a
+    key = _driver._model_key(_small_scene(), "sweep", kw["cameras"], 8, {}, False)
+    old = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", not old)  # the key only: no array is built
+    try:
+        assert _driver._model_key(_small_scene(), "sweep", kw["cameras"], 8, {}, False) != key
+    finally:
+        jax.config.update("jax_enable_x64", old)
     _driver._MODELS.clear()
     monkeypatch.setattr(_driver, "MODEL_CACHE_NODES", 10 ** 3)  # below these lattices
     c = make_model(_small_scene(), "sweep", resolution=10, **kw)

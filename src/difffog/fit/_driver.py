@@ -100,9 +100,11 @@ MODEL_CACHE_NODES = 80 ** 3
 
 
 def _model_key(scene, forward, cameras, downsample, full, sun):
-    """The cache key of a built model, or None where a setting cannot be hashed."""
+    """The cache key of a built model, or None where a setting cannot be hashed (with JAX's
+    float64 switch: a model's arrays take the default dtype where it does not say one)."""
     key = (scene, forward, tuple(cameras), int(downsample),
-           tuple(sorted(full.items())), sun if isinstance(sun, bool) else float(sun))
+           tuple(sorted(full.items())), sun if isinstance(sun, bool) else float(sun),
+           bool(jax.config.jax_enable_x64))
     try:
         hash(key)
     except TypeError:
