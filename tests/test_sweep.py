@@ -399,6 +399,47 @@ def test_a_light_starts_from_another_lattices_light_resampled():
     assert float(jnp.max(jnp.abs(warm.fluence - cold.fluence))) <= 1e-4 * peak
 
 
+def test_resampling_a_light_state_wraps_periodic_sides_and_skips_solids():
+    """``_model._resample`` (``SweepModel.resampled_state`` on the host): a field periodic in x
+    carried onto a finer periodic-xy lattice is trilinear in the interior and across the
+    wrapped sides alike (continued by the edge node, an open lattice's sides are further off);
+    a SOLID node's value never reaches a fluid one; E comes from the nearest surface node."""
+    from types import SimpleNamespace
+
+    from difffog.forward.sweep._model import _resample
+    from difffog.geometry._lattice import FREE
+
+    def lattice(n, boundary, nt=None):
+        shape = (n, 4, 3)
+        return SimpleNamespace(shape=shape, h=1.0 / n, origin=(0.0, 0.0, 0.0), boundary=boundary,
+                               node_type=np.full(shape, FREE) if nt is None else nt)
+
+    src, dst = lattice(8, "periodic-xy"), lattice(20, "periodic-xy")
+    x_src = (np.arange(8) + 0.5) / 8
+    x_dst = (np.arange(20) + 0.5) / 20
+    lam = np.broadcast_to(np.sin(2 * np.pi * x_src)[:, None, None], src.shape).copy()
+    exact = np.sin(2 * np.pi * x_dst)
+    wrapped = _resample(lam, np.zeros(src.shape), src, dst)[0][:, 0, 0]
+    err = np.abs(wrapped - exact)
+    assert err.max() <= 0.08 and err[[0, -1]].max() <= 1.01 * err[1:-1].max()
+    clipped = _resample(lam, np.zeros(src.shape), lattice(8, "open"),
+                        lattice(20, "open"))[0][:, 0, 0]
+    assert np.abs(clipped - exact)[[0, -1]].max() > 2 * err.max()
+    # a SOLID node holding anything: the fluid nodes around it do not see it
+    nt = np.full(src.shape, FREE)
+    nt[3, 1, 1] = SOLID
+    nt[4, 1, 1] = SURFACE
+    solid = lattice(8, "open", nt)
+    lam = np.ones(src.shape)
+    lam[3, 1, 1] = 1e6
+    irr = np.zeros(src.shape)
+    irr[4, 1, 1] = 7.0
+    nt_dst = np.full(dst.shape, FREE)
+    nt_dst[10, 1, 1] = SURFACE
+    out, e = _resample(lam, irr, solid, lattice(20, "open", nt_dst))
+    assert np.allclose(out, 1.0) and e[10, 1, 1] == 7.0 and np.count_nonzero(e) == 1
+
+
 # ---------------------------------------------------------------- kernels and devices
 # (7, 1, 5): a plane thinner than M wraps twice; three of the four cases are slow (the default
 # suite's 12-minute budget on 2 cores, stop 56; test_solver_kernels_agree compares the kernels

@@ -55,17 +55,24 @@ def _resample(lam, irr, src, dst):
     fluid nodes of lattice ``src`` (SOLID corners weigh 0, the rest renormalised; a node with
     no fluid corner takes the nearest fluid node), E from ``src``'s surface node nearest to
     each of ``dst``'s SURFACE nodes (0 elsewhere).  The lattices are axis-aligned, so each
-    axis's corners and weights are 1-D."""
+    axis's corners and weights are 1-D; a periodic-xy lattice wraps in x and y, any other is
+    continued by its edge nodes."""
     nt = np.asarray(src.node_type)
     fluid = (nt != SOLID).astype(np.float64)
     lo, cells = [], []
     for a in range(3):
+        n = nt.shape[a]
         x = (np.asarray(dst.origin, np.float64)[a] + (np.arange(dst.shape[a]) + 0.5) * dst.h
              - src.origin[a]) / src.h - 0.5
-        x = np.clip(x, 0, nt.shape[a] - 1)
-        i0 = np.clip(np.floor(x).astype(np.int64), 0, max(nt.shape[a] - 2, 0))
-        lo.append((i0, np.minimum(i0 + 1, nt.shape[a] - 1), x - i0))
-        cells.append(np.clip(np.rint(x).astype(np.int64), 0, nt.shape[a] - 1))
+        if src.boundary == "periodic-xy" and a < 2:
+            i0 = np.floor(x).astype(np.int64)
+            lo.append((i0 % n, (i0 + 1) % n, x - i0))
+            cells.append(np.rint(x).astype(np.int64) % n)
+            continue
+        x = np.clip(x, 0, n - 1)
+        i0 = np.clip(np.floor(x).astype(np.int64), 0, max(n - 2, 0))
+        lo.append((i0, np.minimum(i0 + 1, n - 1), x - i0))
+        cells.append(np.clip(np.rint(x).astype(np.int64), 0, n - 1))
     extra = lam.shape[3:]
     num = np.zeros(tuple(dst.shape) + extra)
     den = np.zeros(tuple(dst.shape))
