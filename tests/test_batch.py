@@ -101,6 +101,36 @@ def test_cli_render_devices_gives_the_same_images(tmp_path):
     assert a.max() > 0 and np.max(np.abs(a - b)) <= 1e-5 * a.max()
 
 
+def test_fit_jacobian_on_two_devices_matches_one():
+    """A fit's Jacobian with the light solved on a mesh of 2 host devices (``model_settings=
+    {"devices": 2}``) equals the one-device Jacobian.  Its tangent solves run one after another
+    there: batched (vmapped) they hung (stop 61, the same scene)."""
+    code = """
+import numpy as np, jax.numpy as jnp, equinox as eqx, difffog as df
+from difffog.fit._driver import make_model
+from difffog.fit._residuals import FitProblem
+from difffog.fit._unknowns import Coordinate
+sc = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+coords = (Coordinate("fog.scattering", 0.0, np.inf), Coordinate("fog.absorption", 0.0, np.inf))
+J = []
+for d in (1, 2):
+    m = make_model(sc, "sweep", cameras=["top"], resolution=10, downsample=8,
+                   model_settings={"M": 2, "devices": d})
+    pb = FitProblem(m.scene, coords, ("top",), "linear")
+    u = jnp.asarray([c.to_u(v) for c, v in zip(coords, (2.0, 0.5))], jnp.float32)
+    y, j, code = eqx.filter_jit(pb.model_and_jacobian)(m, u, m.params(jnp.float32))
+    assert int(code) == df.RESULTS.successful
+    J.append(np.asarray(j))
+scale = np.abs(J[0]).max()
+assert scale > 0 and np.abs(J[0] - J[1]).max() <= 1e-3 * scale, np.abs(J[0] - J[1]).max() / scale
+print("ok")
+"""
+    env = host_devices_env(2)
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=300)  # ~30 s; the hang it guards against never returned
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
+
+
 @pytest.mark.slow
 def test_fit_batch_over_two_devices_matches_one():
     """fit_batch with the fits split over 2 host devices gives the one-device estimates."""
