@@ -133,9 +133,9 @@ class FitProblem:
         with forward_mode():  # the light's init tangent starts its tangent solves
             if _on_several_devices(model):
                 # one tangent solve after another, from zero: batched (vmapped) they hang on a
-                # mesh of host devices (fog-balls N = 12 on 2, stop 61: XLA's collectives in
-                # a batched while loop), and a start that moves with the tangent cannot be
-                # linearised
+                # mesh of host devices (fog-balls N = 12 on 2, stop 61; why is not known: the
+                # mesh's collectives inside a batched while loop, presumably), and a start
+                # that moves with the tangent cannot be linearised
                 light, lin = jax.linearize(lambda x: light_of(x, None), u)
                 dots = jax.lax.map(lin, eye)
             elif s0 is None:
