@@ -101,10 +101,12 @@ def test_cli_render_devices_gives_the_same_images(tmp_path):
     assert a.max() > 0 and np.max(np.abs(a - b)) <= 1e-5 * a.max()
 
 
-def test_fit_jacobian_on_two_devices_matches_one():
-    """A fit's Jacobian with the light solved on a mesh of 2 host devices (``model_settings=
-    {"devices": 2}``) equals the one-device Jacobian.  Its tangent solves run one after another
-    there: batched (vmapped) they hung (stop 61, the same scene)."""
+def test_batched_light_solves_on_a_two_device_mesh_match_one_device():
+    """Batched (vmapped) light solves on a mesh of 2 host devices (``model_settings=
+    {"devices": 2}``) give the one-device values: ``render_batch`` of two parameter sets (the
+    forward GMRES solves batched) and a fit's Jacobian (its tangent GMRES solves batched).
+    Batched they deadlocked there (stop 61, the same scene); they now run one after another
+    (``one_at_a_time``)."""
     code = """
 import numpy as np, jax.numpy as jnp, equinox as eqx, difffog as df
 from difffog.fit._driver import make_model
@@ -112,22 +114,30 @@ from difffog.fit._residuals import FitProblem
 from difffog.fit._unknowns import Coordinate
 sc = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
 coords = (Coordinate("fog.scattering", 0.0, np.inf), Coordinate("fog.absorption", 0.0, np.inf))
-J = []
+J, I = [], []
 for d in (1, 2):
     m = make_model(sc, "sweep", cameras=["top"], resolution=10, downsample=8,
                    model_settings={"M": 2, "devices": d})
+    assert m.solver.resolved_method(m.geometry) == "gmres"
+    p = m.params(jnp.float32)
+    I.append(np.asarray(df.render_batch(m, [df.set_param(p, sc, "fog.scattering", z)
+                                            for z in (1.0, 3.0)])["top"]))
     pb = FitProblem(m.scene, coords, ("top",), "linear")
     u = jnp.asarray([c.to_u(v) for c, v in zip(coords, (2.0, 0.5))], jnp.float32)
-    y, j, code = eqx.filter_jit(pb.model_and_jacobian)(m, u, m.params(jnp.float32))
+    y, j, code = eqx.filter_jit(pb.model_and_jacobian)(m, u, p)
     assert int(code) == df.RESULTS.successful
     J.append(np.asarray(j))
+img = np.abs(I[0]).max()
+# the two sets differ, and each equals its one-device image
+assert np.abs(I[0][0] - I[0][1]).max() > 0.02 * img
+assert np.abs(I[0] - I[1]).max() <= 1e-4 * img, np.abs(I[0] - I[1]).max() / img
 scale = np.abs(J[0]).max()
 assert scale > 0 and np.abs(J[0] - J[1]).max() <= 1e-3 * scale, np.abs(J[0] - J[1]).max() / scale
 print("ok")
 """
     env = host_devices_env(2)
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                       timeout=300)  # ~30 s; the hang it guards against never returned
+                       timeout=300)  # ~40 s; the hang it guards against never returned
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr[-2000:]
 
 

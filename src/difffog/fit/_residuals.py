@@ -131,14 +131,7 @@ class FitProblem:
             return _light(model, self.params(x, base), s)
 
         with forward_mode():  # the light's init tangent starts its tangent solves
-            if _on_several_devices(model):
-                # one tangent solve after another, from zero: batched (vmapped) they hang on a
-                # mesh of host devices (fog-balls N = 12 on 2, stop 61; why is not known: the
-                # mesh's collectives inside a batched while loop, presumably), and a start
-                # that moves with the tangent cannot be linearised
-                light, lin = jax.linearize(lambda x: light_of(x, None), u)
-                dots = jax.lax.map(lin, eye)
-            elif s0 is None:
+            if s0 is None:
                 light, dots = jax.vmap(lambda e: jax.jvp(lambda x: light_of(x, None), (u,), (e,)),
                                        out_axes=(None, 0))(eye)
             else:
@@ -156,12 +149,6 @@ class FitProblem:
                                out_axes=(None, 0))(d_floats, eye)
         state = None if s0 is None else jax.tree.map(jax.lax.stop_gradient, light.state)
         return y, cols.T, light.result, tangents, state
-
-
-def _on_several_devices(model) -> bool:
-    """Whether ``model``'s light solve runs on a mesh of several devices."""
-    layout = getattr(getattr(model, "solver", None), "layout", None)
-    return layout is not None and int(np.prod(layout())) > 1
 
 
 def tangent_start(model, n: int, dtype):
