@@ -105,8 +105,8 @@ def test_batched_light_solves_on_a_two_device_mesh_match_one_device():
     """Batched (vmapped) light solves on a mesh of 2 host devices (``model_settings=
     {"devices": 2}``) give the one-device values: ``render_batch`` of two parameter sets (the
     forward GMRES solves batched) and a fit's Jacobian (its tangent GMRES solves batched).
-    Batched they deadlocked there (stop 61, the same scene); they now run one after another
-    (``one_at_a_time``)."""
+    They deadlocked there (stops 61-62, the same scene): both devices' batched LAPACK SVD of
+    the GMRES step waited on XLA's 2-thread pool (``_krylov._unbatched``)."""
     code = """
 import numpy as np, jax.numpy as jnp, equinox as eqx, difffog as df
 from difffog.fit._driver import make_model

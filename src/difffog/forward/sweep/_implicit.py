@@ -219,31 +219,6 @@ def _zero_tangent(x):
     return np.zeros(x.shape, jax.dtypes.float0)
 
 
-def one_at_a_time(fn: Callable) -> Callable:
-    """``fn`` of one pytree whose batched (vmapped) calls run one entry after another
-    (``jax.lax.map``) instead of as one batched program; unbatched it is ``fn`` itself.
-
-    For the light's GMRES solves on a mesh of several devices: vmapped there they deadlock
-    (fog-balls N = 10, 2 host devices: ``render_batch`` of 2 sets and a fit's batched tangent
-    solves blocked with the CPUs idle, stop 61; the Jacobi loop batched did not, and neither did
-    a plain batched while loop around a ``shard_map``; the cause inside XLA is not found).  One
-    after another each entry is the unbatched solve, which runs, and spans the mesh as it does
-    alone.  The pytree's non-array leaves are held static; reverse mode does not pass through
-    this (the solves it wraps sit inside the implicit function's rule, or a lineax solve that
-    has its own transpose)."""
-
-    def call(tree):
-        dynamic, static = eqx.partition(tree, eqx.is_array)
-
-        @jax.custom_batching.sequential_vmap
-        def solve(d):
-            return fn(eqx.combine(d, static))
-
-        return solve(dynamic)
-
-    return call
-
-
 def _warn(bad, steps):
     if bool(bad):
         warnings.warn(AdjointWarning(
@@ -259,8 +234,6 @@ class KrylovSolver(lx.AbstractLinearSolver):
 
     rtol: stop when the estimated relative error of the solution is below it.
     restart: Krylov steps per cycle (memory: restart + 1 vectors).
-    sequential: batched (vmapped) solves run one after another (an operator whose products
-        span a mesh of several devices, where a batched GMRES deadlocks).
     max_matvecs: the products allowed; a solve that has not reached ``rtol`` by then returns
         ``RESULTS.max_steps_reached`` (and a non-finite one too).
 
@@ -273,9 +246,6 @@ class KrylovSolver(lx.AbstractLinearSolver):
     rtol: float = eqx.field(static=True)
     restart: int = eqx.field(static=True, default=40)
     max_matvecs: int = eqx.field(static=True, default=400)
-    #: batched solves run one after another (:func:`one_at_a_time`): an operator on a mesh of
-    #: several devices
-    sequential: bool = eqx.field(static=True, default=False)
 
     def init(self, operator, options):
         pre = options.get("preconditioner")
@@ -286,11 +256,6 @@ class KrylovSolver(lx.AbstractLinearSolver):
         return lx.linearise(operator)
 
     def compute(self, state, vector, options):
-        if self.sequential:
-            return one_at_a_time(lambda a: self._compute(*a))((state, vector, options))
-        return self._compute(state, vector, options)
-
-    def _compute(self, state, vector, options):
         operator = state
         b, unravel = jax.flatten_util.ravel_pytree(vector)
         pre = options.get("preconditioner")

@@ -36,6 +36,32 @@ from ..._numerics import safe_div
 _SAFETY = 4.0
 
 
+def _unbatched(fn: Callable) -> Callable:
+    """``fn`` that, batched (vmapped), runs as a loop of unbatched calls
+    (``jax.custom_batching.sequential_vmap``).
+
+    For the Hessenberg matrix's SVD and triangular solve (LAPACK through jaxlib on a CPU): a
+    batched LAPACK call in jaxlib 0.10 hands its batch to XLA's intra-op thread pool and blocks
+    its own pool thread until the pieces are done, so two such calls at once on a 2-thread pool
+    deadlock.  That is what hung batched light solves on a mesh of 2 host devices (both devices'
+    copies of a vmapped GMRES step in ``lapack_sgesdd_ffi`` → ``jax::ParallelBatchMap`` →
+    ``BlockingCounter::Wait``, every pool thread waiting, seen with gdb at stop 62:
+    ``render_batch`` of 2 sets and a fit's Jacobian, fog-balls N = 10).  Unbatched, a call runs
+    on its own thread.  The matrices are (restart + 1) × restart: the loop costs nothing beside
+    a sweep."""
+    return jax.custom_batching.sequential_vmap(fn)
+
+
+@_unbatched
+def _smallest_singular_value(a):
+    return jnp.linalg.svd(a, compute_uv=False)[-1]
+
+
+@_unbatched
+def _upper_triangular_solve(r, b):
+    return jax.scipy.linalg.solve_triangular(r, b, lower=False)
+
+
 def _err(rel, sig):
     """SAFETY·rel/sig, infinite (not 0) when sig = 0 < rel: a singular operator has not
     converged."""
@@ -79,7 +105,7 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
     def solve_y(R, g, j):  # y of the current cycle (entries > j zero)
         live = idx <= j
         Rp = jnp.where(live[None, :] & live[:, None], R, jnp.eye(m, dtype=dt))
-        return jax.scipy.linalg.solve_triangular(Rp, jnp.where(live, g[:m], 0.0), lower=False)
+        return _upper_triangular_solve(Rp, jnp.where(live, g[:m], 0.0))
 
     def cond(c):
         return ~c["stop"] & (c["k"] < max_matvecs)
@@ -131,7 +157,7 @@ def gmres(apply_k: Callable, b_shape, dtype, *, restart: int, max_matvecs: int, 
         pad = jnp.linalg.norm(H) + 1.0
         Hp = jnp.where(live_c[None, :], H, 0.0) + jnp.where(
             (idx1[:, None] == idx[None, :]) & ~live_c[None, :], pad, 0.0)
-        sig1 = jnp.minimum(c["sig"], jnp.linalg.svd(Hp, compute_uv=False)[-1] / pn)
+        sig1 = jnp.minimum(c["sig"], _smallest_singular_value(Hp) / pn)
         yv = solve_y(R1, g1, j)
         vnew = safe_div(w, hn)
         cx = c["cx"].at[j + 1].set(vnew @ x)  # V·x₀, for ‖x₀ + Vy‖ without another pass

@@ -32,7 +32,7 @@ from ..._errors import SceneError, SolverError
 from ..._numerics import FOUR_PI, safe_div
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
-from ._implicit import CheckedSolver, KrylovSolver, fixed_point, one_at_a_time
+from ._implicit import CheckedSolver, KrylovSolver, fixed_point
 from ._dsa import DiffusionPreconditioner, neighbour, on_fluence
 from ._harmonics import MAX_ORDER, basis, delta_m, moment_coefficients
 from ._krylov import gmres
@@ -753,15 +753,7 @@ def _single_pass(pb: _Problem):
 def _solve_fixed_point(pb: _Problem):
     if pb.geom.terms is not None and not pb.geom.terms.iterate:
         return _single_pass(pb)
-    if pb.method != "gmres":
-        return _iterate(pb)
-    # batched GMRES solves on a mesh of several devices deadlock: run them one after another
-    return one_at_a_time(_iterate_gmres)(pb) if _several(pb.mesh_shape) else _iterate_gmres(pb)
-
-
-def _several(mesh_shape) -> bool:
-    """Whether a (faces, u, v) device mesh has more than one device."""
-    return int(np.prod(mesh_shape)) > 1
+    return _iterate_gmres(pb) if pb.method == "gmres" else _iterate(pb)
 
 
 def _non_negative(root, channels: bool):
@@ -1298,10 +1290,9 @@ class SweepSolver(eqx.Module):
         # mesh; the forward and its JVP agree to 1e-16): give it 20 cycles there.  The
         # sweep's own GMRES stops at the product where it has converged (lineax's ran every
         # cycle to its end: 41 products for an adjoint that needs a handful).
-        several = _several(self.layout())
-        cycles = 20 if several else 4
+        cycles = 4 if int(np.prod(self.layout())) == 1 else 20
         linear_solver = CheckedSolver(KrylovSolver(
-            rtol=self.adjoint_rtol, restart=40, sequential=several,
+            rtol=self.adjoint_rtol, restart=40,
             max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2), throw=self.throw)
         matrix_free = self.tangents == "matrix-free"
         root, (hist, k, err) = fixed_point(
