@@ -363,8 +363,8 @@ def map_batch(fn, shared, batch, devices: int = 1):
     Each device gets a contiguous share (a batch that does not divide is padded with copies of
     its last entry, and the results cropped) and runs the same compiled program; JAX
     dispatches the calls asynchronously, so the devices work at once, with no communication.
-    (Plain data parallelism on purpose: under ``shard_map`` the vmapped GMRES light solve ran
-    more than 20× slower on 2 CPU devices.)  Returns arrays on the first device.
+    (Plain data parallelism: each device runs the batched program on its share, with no
+    communication.)  Returns arrays on the first device.
     """
     n = batch_size(batch)
     if devices == 1:
