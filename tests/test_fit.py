@@ -220,6 +220,33 @@ def test_jacobian_tangent_solves_start_from_the_given_tangents():
     assert 0 < second < 0.5 * first <= 0.05 * np.abs(J0).max()
 
 
+def test_an_unconverged_tangent_solve_is_a_result_code_and_the_step_has_no_callback():
+    """The fit's Jacobian reports a tangent solve that did not converge (asked for rtol
+    1e-30) by its result code, ``tangent_unconverged``, with a finite Jacobian (zeros where
+    the solve gave up), and compiles without a host callback, which XLA's persistent cache
+    would not store (the fit's step compiled again in every new process, stop 62)."""
+    scene = _small_scene()
+    small = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(8, 6))
+                                        for c in scene.cameras[:1]))
+    coords = (Coordinate("fog.scattering", 0.0, math.inf),)
+    for rtol, want in ((1e-30, df.RESULTS.tangent_unconverged), (1e-3, df.RESULTS.successful)):
+        fwd = SweepModel(small, resolution=10, supersample=1,
+                         solver=SweepSolver(M=2, max_iterations=30, tol=1e-5,
+                                            adjoint_rtol=rtol))
+        pb = FitProblem(fwd.scene, coords, ("top",), "linear")
+        base = fwd.params(jnp.float32)
+        u = jnp.asarray([coords[0].to_u(2.0)], jnp.float32)
+        jac = eqx.filter_jit(pb.model_and_jacobian)
+        _, J, code = jac(fwd, u, base)
+        assert int(code) == want, (rtol, df.RESULTS(int(code)).name)
+        assert np.all(np.isfinite(np.asarray(J)))
+        if want == df.RESULTS.successful:
+            assert np.abs(np.asarray(J)).max() > 0
+            text = jac.lower(fwd, u, base).as_text()
+            assert "callback" not in text.lower()
+    assert "adjoint_rtol" in df.RESULTS.tangent_unconverged.message
+
+
 # ------------------------------------------------------------------ sweep fits
 @pytest.mark.slow  # 75-88 s (the suite's 12-minute budget): the default suite recovers the
 # same unknowns from noisy images (test_noisy_fit_standard_errors_cover_the_truth)

@@ -23,6 +23,7 @@ class RESULTS(enum.IntEnum):
     max_iterations_reached = 1
     stagnated = 2
     nonfinite = 3
+    tangent_unconverged = 4
 
     @property
     def message(self) -> str:
@@ -42,6 +43,10 @@ _MESSAGES = {
     RESULTS.nonfinite: (
         "the light solve produced non-finite values; check the scene's numbers (very large "
         "coefficients or intensities) and use float64 (jax_enable_x64) if they are legitimate"),
+    RESULTS.tangent_unconverged: (
+        "a tangent light solve of the fit's Jacobian (the derivative of the light) did not "
+        "converge, so the Jacobian and the standard errors from it are not reliable; raise the "
+        "solver's max_iterations or adjoint_rtol"),
 }
 
 

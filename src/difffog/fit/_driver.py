@@ -323,12 +323,14 @@ class _Tracker:
         self.done = False
         self.stalled = False
         self.code = optx.RESULTS.successful
+        self.tangent_failures = 0  # steps whose Jacobian had an unconverged tangent solve
 
     def record(self, u, state, done, code, *, now: float, stall_steps: int, rtol: float):
         """After a step: append its history entry and decide whether the fit is over."""
         self.k += 1
         aux = getattr(state, "aux", None)
         loss, light = (aux[:2] if isinstance(aux, tuple) else (np.nan, RESULTS.successful))
+        self.tangent_failures += int(light) == RESULTS.tangent_unconverged
         entry = {"step": self.k, "values": self.setup.values(u), "loss": float(loss),
                  "accepted_steps": (int(state.num_accepted_steps)
                                     if hasattr(state, "num_accepted_steps") else None),
@@ -374,10 +376,16 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         name = "nonlinear_max_steps_reached"
         message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
                    f"atol = {atol}; raise max_steps or start closer")
+    if tr.tangent_failures:
+        extra_warnings = [*extra_warnings, f"{RESULTS.tangent_unconverged.message} (the "
+                          f"Jacobian of {tr.tangent_failures} of the {tr.k} steps)"]
     r, J, y, light, light_state = st.stepper.final(u, state, st.args)
     r, J, y, light = (np.asarray(a) for a in (r, J, y, light))
     r, J, y = (a.astype(np.float64) for a in (r, J, y))
-    if int(light) != RESULTS.successful:
+    if int(light) == RESULTS.tangent_unconverged:
+        name = "light_solve_failed"
+        message = f"at the estimate, {RESULTS.tangent_unconverged.message}"
+    elif int(light) != RESULTS.successful:
         failed = RESULTS(int(light))
         name = "light_solve_failed"
         message = (f"the light solve at the estimate did not converge ({failed.name}): "

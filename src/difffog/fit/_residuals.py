@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._results import RESULTS
 from ..forward.sweep._march import forward_mode
 from ..scene._description import Scene
 from ..scene._params import Params, set_param
@@ -148,7 +149,16 @@ class FitProblem:
             y, cols = jax.vmap(lambda t, e: jax.jvp(images, (floats, u), (t, e)),
                                out_axes=(None, 0))(d_floats, eye)
         state = None if s0 is None else jax.tree.map(jax.lax.stop_gradient, light.state)
-        return y, cols.T, light.result, tangents, state
+        # a tangent solve that did not converge returns NaN (``_implicit._fixed_point_jvp``):
+        # its code, and zeros where the Jacobian and the next start would hold NaN
+        J = cols.T
+        finite = jnp.all(jnp.isfinite(J))
+        code = jnp.where(finite | (light.result != RESULTS.successful), light.result,
+                         RESULTS.tangent_unconverged).astype(jnp.int32)
+        J = jnp.where(jnp.isfinite(J), J, 0.0)
+        if tangents is not None:
+            tangents = jax.tree.map(lambda a: jnp.where(jnp.isfinite(a), a, 0.0), tangents)
+        return y, J, code, tangents, state
 
 
 def tangent_start(model, n: int, dtype):

@@ -37,6 +37,7 @@ import numpy as np
 
 from ..._errors import AdjointWarning
 from ._krylov import gmres
+from ._march import in_forward_mode
 
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
@@ -119,7 +120,18 @@ def _fixed_point_jvp(primals, tangents):
     start = _start(t_guess, root)
     if start is not None:  # the solve is for −(the root's tangent)
         options["y0"] = start
-    x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
+    if in_forward_mode():
+        # a fit's Jacobian: its tangent solves report by their value, NaN where one did not
+        # converge (``FitProblem.jacobian_and_tangents`` turns that into a result code), and
+        # not by a check at run time: the check's host callback would keep XLA's persistent
+        # cache from storing the fit's step, which then compiled again in every new process
+        # (12.8 s of the README example's 46.5 s there, stop 62)
+        inner = linear_solver.inner if isinstance(linear_solver, CheckedSolver) else linear_solver
+        sol = lx.linear_solve(operator, g_dot, inner, options=options, throw=False)
+        failed = sol.result != lx.RESULTS.successful
+        x_dot = jax.tree.map(lambda a: jnp.where(failed, jnp.nan, a), sol.value)
+    else:
+        x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
     t_root = jax.tree.map(jnp.negative, x_dot)
     t_aux = jax.tree.map(_zero_tangent, aux)
     return (root, aux), (t_root, t_aux)
