@@ -223,8 +223,9 @@ def test_jacobian_tangent_solves_start_from_the_given_tangents():
 def test_an_unconverged_tangent_solve_is_a_result_code_and_the_step_has_no_callback():
     """The fit's Jacobian reports a tangent solve that did not converge (asked for rtol
     1e-30) by its result code, ``tangent_unconverged``, with a finite Jacobian (zeros where
-    the solve gave up), and compiles without a host callback, which XLA's persistent cache
-    would not store (the fit's step compiled again in every new process, stop 62)."""
+    the solve gave up), and a fit on it ends "light_solve_failed" with that message; the
+    Jacobian compiles without a host callback, which XLA's persistent cache would not store
+    (the fit's step compiled again in every new process, stop 62)."""
     scene = _small_scene()
     small = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(8, 6))
                                         for c in scene.cameras[:1]))
@@ -244,7 +245,16 @@ def test_an_unconverged_tangent_solve_is_a_result_code_and_the_step_has_no_callb
             assert np.abs(np.asarray(J)).max() > 0
             text = jac.lower(fwd, u, base).as_text()
             assert "callback" not in text.lower()
-    assert "adjoint_rtol" in df.RESULTS.tangent_unconverged.message
+        else:  # a fit on it says so: result, message, history and one warning
+            target = {"top": np.asarray(fwd(df.set_param(base, small, "fog.scattering",
+                                                         2.0))["top"])}
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", IdentifiabilityWarning)  # J says nothing here
+                res = df.fit(small, target, {"fog.scattering": 1.5}, forward=fwd,
+                             max_steps=2, model_error=None)
+            assert res.result == "light_solve_failed" and "adjoint_rtol" in res.message
+            assert {h["light_result"] for h in res.history} == {"tangent_unconverged"}
+            assert [w for w in res.warnings if "tangent light solve" in w], res.warnings
 
 
 # ------------------------------------------------------------------ sweep fits

@@ -392,6 +392,8 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
                    f"{failed.message}; the estimate and its errors are not reliable")
     mask = np.asarray(st.data[1]) > 0
     se, corr, cond, msgs, _ = statistics(r[mask], J[mask], st.m, st.coords, np.asarray(u))
+    if int(light) == RESULTS.tangent_unconverged:
+        msgs = []  # J's unconverged columns are zeros: its identifiability says nothing
     for msg in msgs:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
     msgs = list(msgs) + [str(w) for w in extra_warnings]
