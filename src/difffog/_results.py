@@ -45,8 +45,8 @@ _MESSAGES = {
         "coefficients or intensities) and use float64 (jax_enable_x64) if they are legitimate"),
     RESULTS.tangent_unconverged: (
         "a tangent light solve of the fit's Jacobian (the derivative of the light) did not "
-        "converge, so the Jacobian and the standard errors from it are not reliable; raise the "
-        "solver's max_iterations or adjoint_rtol"),
+        "converge, or the Jacobian was not finite, so the Jacobian and the standard errors "
+        "from it are not reliable; raise the solver's max_iterations or adjoint_rtol"),
 }
 
 

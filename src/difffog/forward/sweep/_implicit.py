@@ -21,6 +21,9 @@ handful, against 41 with ``restart=40``).
 :class:`CheckedSolver` wraps the linear solver of these tangent and adjoint solves and says
 when one did not converge: it raises at run time (``throw=True``) or warns with an
 :class:`AdjointWarning` (``throw=False``); it never passes an unconverged gradient silently.
+Inside ``forward_mode()`` (a fit's Jacobian) a tangent solve reports by its value instead, NaN
+where it did not converge, which the fit turns into a result code: its program then carries no
+host callback, which XLA's persistent cache would not store.
 """
 
 from __future__ import annotations
