@@ -213,6 +213,35 @@ def test_unconverged_adjoint_solve_raises_or_warns():
     assert np.all(np.isfinite(np.asarray(x)))
 
 
+def test_solves_by_value_transpose_right_and_give_nan_without_a_callback():
+    """``_implicit._solve_by_value`` (what the density fit's program takes): on a
+    non-symmetric system its value is A⁻¹b and its gradient Aᵀ⁻¹w (the solver's own transposed
+    solve, though JAX is told the operator is symmetric); a solve that cannot converge gives
+    NaN, and the compiled gradient has no host callback."""
+    import lineax as lx
+
+    from difffog.forward.sweep._implicit import CheckedSolver, KrylovSolver, _solve_by_value
+
+    a = np.diag(np.arange(1.0, 7.0)) + np.diag(np.ones(5), 1) + 0.3 * np.diag(np.ones(4), -2)
+    op = lx.MatrixLinearOperator(jnp.asarray(a))
+    b, w = jnp.linspace(1.0, 2.0, 6), jnp.linspace(-1.0, 1.0, 6)
+    good = CheckedSolver(KrylovSolver(rtol=1e-12, restart=10, max_matvecs=60))
+    bad = CheckedSolver(KrylovSolver(rtol=1e-30, restart=2, max_matvecs=2))
+
+    def f(b, solver):
+        return jnp.sum(w * _solve_by_value(op, b, solver, {}))
+
+    x = _solve_by_value(op, b, good, {})
+    np.testing.assert_allclose(np.asarray(x), np.linalg.solve(a, np.asarray(b)), rtol=1e-5)
+    g = jax.jit(jax.grad(f), static_argnums=1)
+    np.testing.assert_allclose(np.asarray(g(b, good)), np.linalg.solve(a.T, np.asarray(w)),
+                               rtol=1e-5)  # float32
+    assert not np.allclose(np.linalg.solve(a.T, np.asarray(w)), np.linalg.solve(a, np.asarray(w)),
+                           rtol=1e-2)  # the transpose matters here
+    assert np.all(np.isnan(np.asarray(g(b, bad))))
+    assert "callback" not in g.lower(b, good).as_text().lower()
+
+
 @pytest.mark.slow  # the extremes matrix (test_extremes.py) records the sweep's adjoint warnings
 def test_unconverged_adjoint_of_the_sweep_warns():
     """The sweep's gradient goes through that check: an adjoint asked for the impossible

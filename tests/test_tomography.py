@@ -311,6 +311,9 @@ def test_fit_density_recovers_a_tiny_cloud_and_its_gradient_is_exact(tiny_fit_ca
     loss, x = res.final_level
     (_, (_, _, code, _)), grad = _value_and_grad(x, loss)
     assert int(code) == 0
+    # no host callback in the fit's program (an unconverged adjoint is a NaN gradient), so
+    # XLA's persistent cache keeps it for the next process
+    assert "callback" not in _value_and_grad.lower(x, loss).as_text().lower()
     grad = np.asarray(grad)
     keep = np.flatnonzero(np.asarray(loss.keep) > 0)
     dens = np.exp(np.asarray(x))[keep]
@@ -431,13 +434,11 @@ def test_a_balanced_density_fit_moves_its_share_toward_the_aim_and_resumes(tiny_
 def test_a_density_fit_stops_at_its_best_point_when_an_adjoint_solve_fails(tiny_fit_case,
                                                                            tmp_path,
                                                                            monkeypatch):
-    """An evaluation whose gradient's adjoint light solve does not converge (the sweep raises
-    it from inside the compiled program, as a thick cloud's fit once did at its 29th final
-    evaluation) ends the level at its best point so far: an AdjointWarning of one line, the
-    result "adjoint_failed" (not "successful"), the failure in the history, no traceback, and
-    the checkpoint kept, from which a resume goes on at that best point."""
-    import equinox as eqx
-
+    """An evaluation whose gradient's adjoint light solve does not converge (a NaN gradient
+    from the compiled program, ``solves_by_value``; a thick cloud's fit once failed so at its
+    29th final evaluation) ends the level at its best point so far: an AdjointWarning of one
+    line, the result "adjoint_failed" (not "successful"), the failure in the history, no
+    traceback, and the checkpoint kept, from which a resume goes on at that best point."""
     from difffog.fit import _density as dens
 
     scene, targets, truth, box = tiny_fit_case
@@ -445,10 +446,8 @@ def test_a_density_fit_stops_at_its_best_point_when_an_adjoint_solve_fails(tiny_
 
     def flaky(x, loss):  # the carving's call, 3 evaluations, then the adjoint fails
         calls[0] += 1
-        if calls[0] == 5:
-            raise eqx.EquinoxRuntimeError("difffog: a tangent/adjoint light solve (the "
-                                          "derivative of the light field) did not converge")
-        return real(x, loss)
+        (val, aux), grad = real(x, loss)
+        return (val, aux), (grad * jnp.nan if calls[0] == 5 else grad)
 
     monkeypatch.setattr(dens, "_value_and_grad", flaky)
     ck = tmp_path / "ck.npz"

@@ -36,6 +36,7 @@ import scipy.optimize
 from .._errors import AdjointWarning, DifffogError, SceneError
 from .._progress import as_meter
 from ..scene._description import Scene
+from ..forward.sweep._implicit import solves_by_value
 from ..scene._params import with_density
 from ._targets import _block_mean, reduced_scene
 
@@ -175,6 +176,9 @@ class DensityFit:
             cells = g.reshape(-1)[np.asarray(loss.support)]
             x = jnp.asarray(np.log(np.maximum(cells, 1e-30)), x.dtype)
         (val, _), gx = _value_and_grad(x, loss)
+        if not np.all(np.isfinite(np.asarray(gx))):
+            raise DifffogError("DensityFit.gradient: the gradient's adjoint light solve did not "
+                               "converge; raise the solver's max_iterations or adjoint_rtol")
         dens = np.exp(np.asarray(x, np.float64)) * np.asarray(loss.keep, np.float64)
         out = np.zeros(math.prod(loss.shape))
         out[np.asarray(loss.support)] = np.where(dens > 0, np.asarray(gx, np.float64)
@@ -278,9 +282,11 @@ class _Loss(eqx.Module):
 @eqx.filter_jit
 def _value_and_grad(x, loss):
     """((loss, (data, prior, light result, images)), d loss / d x): the fit's one compiled
-    program (the carving's fog-free images come from it too)."""
-
-    return eqx.filter_value_and_grad(loss, has_aux=True)(x)
+    program (the carving's fog-free images come from it too).  An adjoint light solve that
+    did not converge makes the gradient NaN (``solves_by_value``: no host callback, so that
+    XLA's persistent cache keeps the program for the next process); callers check it."""
+    with solves_by_value():
+        return eqx.filter_value_and_grad(loss, has_aux=True)(x)
 
 
 def _carved(scene: Scene, cameras, targets, clear, shape, tol: float, *, fine=None,
@@ -735,12 +741,9 @@ def _lbfgs_pass(loss, x, x_cap, lev, pass_, n_steps, rtol, history, first_call, 
         if count[0] >= n_steps:  # SciPy's maxfun is checked per iteration only
             raise _Budget
         t_s = time.perf_counter()
-        try:
-            (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
-            val, grad = float(val), np.asarray(grad, np.float64)
-        except eqx.EquinoxRuntimeError as e:  # the adjoint's check (SweepSolver throw=True)
-            if "did not converge" not in str(e):
-                raise
+        (val, (data, prior, code, _)), grad = _value_and_grad(jnp.asarray(xn, dt), loss)
+        val, grad = float(val), np.asarray(grad, np.float64)
+        if int(code) == 0 and not np.all(np.isfinite(grad)):  # the adjoint did not converge
             history.append({"level": lev, "step": count[0], "what": "adjoint_failed",
                             "seconds": time.perf_counter() - t_s,
                             **({"pass": pass_} if pass_ else {})})

@@ -28,6 +28,8 @@ host callback, which XLA's persistent cache would not store.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import warnings
 from collections.abc import Callable
 
@@ -41,6 +43,50 @@ import numpy as np
 from ..._errors import AdjointWarning
 from ._krylov import gmres
 from ._march import in_forward_mode
+
+_BY_VALUE = contextvars.ContextVar("difffog_solves_by_value", default=False)
+
+
+@contextlib.contextmanager
+def solves_by_value():
+    """Within this context, the implicit function's tangent and adjoint solves that are traced
+    report one that did not converge by its value, NaN, instead of a check at run time: no
+    host callback enters the program, so XLA's persistent cache keeps it (the density fit's
+    value and gradient, which otherwise compiled again in every new process).  The caller
+    checks the result for NaN.  The adjoint solve then goes through
+    ``jax.lax.custom_linear_solve`` with the solver's own transposed solve (lineax's transpose
+    rule checks every adjoint solve with a callback, whatever ``throw`` says), which is told
+    the operator is symmetric so that JAX does not transpose the sweeps itself: first
+    derivatives only (a second derivative through it would be wrong).  Like
+    :func:`difffog.forward.sweep._march.forward_mode`, decided when the program is traced."""
+    token = _BY_VALUE.set(True)
+    try:
+        yield
+    finally:
+        _BY_VALUE.reset(token)
+
+
+def _solve_by_value(operator, vector, linear_solver, options):
+    """(∂G/∂x)⁻¹·vector by ``linear_solver``'s own solve (its ``CheckedSolver`` check left
+    out), NaN where it did not converge, transposed (reverse mode) by the solver's transposed
+    solve: see :func:`solves_by_value`."""
+    inner = linear_solver.inner if isinstance(linear_solver, CheckedSolver) else linear_solver
+    state = inner.init(operator, options)
+
+    def by_value(out):
+        sol, result, _ = out
+        return jax.tree.map(lambda a: jnp.where(result == lx.RESULTS.successful, a, jnp.nan),
+                            sol)
+
+    def solve(_, b):
+        return by_value(inner.compute(state, b, options))
+
+    def transpose_solve(_, b):
+        state_t, options_t = inner.transpose(state, options)
+        return by_value(inner.compute(state_t, b, options_t))
+
+    return jax.lax.custom_linear_solve(operator.mv, vector, solve, transpose_solve,
+                                       symmetric=True)
 
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
@@ -133,6 +179,8 @@ def _fixed_point_jvp(primals, tangents):
         sol = lx.linear_solve(operator, g_dot, inner, options=options, throw=False)
         failed = sol.result != lx.RESULTS.successful
         x_dot = jax.tree.map(lambda a: jnp.where(failed, jnp.nan, a), sol.value)
+    elif _BY_VALUE.get():
+        x_dot = _solve_by_value(operator, g_dot, linear_solver, options)
     else:
         x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
     t_root = jax.tree.map(jnp.negative, x_dot)
