@@ -35,8 +35,8 @@ import scipy.optimize
 
 from .._errors import AdjointWarning, DifffogError, SceneError
 from .._progress import as_meter
-from ..scene._description import Scene
 from ..forward.sweep._implicit import solves_by_value
+from ..scene._description import Scene
 from ..scene._params import with_density
 from ._targets import _block_mean, reduced_scene
 

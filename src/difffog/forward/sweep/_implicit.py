@@ -22,8 +22,9 @@ handful, against 41 with ``restart=40``).
 when one did not converge: it raises at run time (``throw=True``) or warns with an
 :class:`AdjointWarning` (``throw=False``); it never passes an unconverged gradient silently.
 Inside ``forward_mode()`` (a fit's Jacobian) a tangent solve reports by its value instead, NaN
-where it did not converge, which the fit turns into a result code: its program then carries no
-host callback, which XLA's persistent cache would not store.
+where it did not converge, which the fit turns into a result code, and inside
+:func:`solves_by_value` (the density fit's value and gradient) the adjoint solve does: those
+programs then carry no host callback, which XLA's persistent cache would not store.
 """
 
 from __future__ import annotations
