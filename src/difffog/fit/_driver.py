@@ -556,7 +556,8 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
     callback: called after every step with that step's history entry (of the last level).
 
     The result is "light_solve_failed" (not converged) when the light solve at the estimate
-    did not converge; an unconverged tangent solve (the Jacobian) is listed in its warnings.
+    did not converge, or a tangent solve of the estimate's Jacobian; an unconverged tangent
+    solve of a step's Jacobian is listed in its warnings.
     See :func:`fit_batch` for many target sets at once.
     """
     if isinstance(refine_steps, bool) or not isinstance(refine_steps, (int, np.integer)) \

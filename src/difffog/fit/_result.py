@@ -34,7 +34,8 @@ class FitResult:
     iterations: optimizer steps; time_s: wall time.
     result: optimistix' result name ("successful", "nonlinear_max_steps_reached", ...),
         "loss_stalled" (the loss stopped falling: converged to the forward model's precision)
-        or "light_solve_failed" (the light solve at the estimate did not converge).
+        or "light_solve_failed" (the light solve at the estimate, or a tangent solve of its
+        Jacobian, did not converge).
     message: what the result means, when it is not plain success.
     warnings: identifiability and accuracy warnings.
     history: one dict per step (step, values, loss, accepted_steps, light_result, time_s).
