@@ -48,8 +48,14 @@ def _unbatched(fn: Callable) -> Callable:
     ``BlockingCounter::Wait``, every pool thread waiting, seen with gdb at stop 62:
     ``render_batch`` of 2 sets and a fit's Jacobian, fog-balls N = 10).  Unbatched, a call runs
     on its own thread.  The matrices are (restart + 1) × restart: the loop costs nothing beside
-    a sweep."""
-    return jax.custom_batching.sequential_vmap(fn)
+    a sweep.  On a CPU only (decided when traced, by JAX's default backend): a GPU's batched
+    solvers do not share that pool, and stay batched."""
+    one_by_one = jax.custom_batching.sequential_vmap(fn)
+
+    def call(*args):
+        return one_by_one(*args) if jax.default_backend() == "cpu" else fn(*args)
+
+    return call
 
 
 @_unbatched
