@@ -50,8 +50,9 @@ _BY_VALUE = contextvars.ContextVar("difffog_solves_by_value", default=False)
 
 @contextlib.contextmanager
 def solves_by_value():
-    """Within this context, the implicit function's tangent and adjoint solves that are traced
-    report one that did not converge by its value, NaN, instead of a check at run time: no
+    """Within this context (as within ``forward_mode()``), the implicit function's tangent and
+    adjoint solves that are traced report one that did not converge by its value, NaN,
+    instead of a check at run time: no
     host callback enters the program, so XLA's persistent cache keeps it (the density fit's
     value and gradient, which otherwise compiled again in every new process).  The caller
     checks the result for NaN.  The adjoint solve then goes through
@@ -170,17 +171,12 @@ def _fixed_point_jvp(primals, tangents):
     start = _start(t_guess, root)
     if start is not None:  # the solve is for −(the root's tangent)
         options["y0"] = start
-    if in_forward_mode():
-        # a fit's Jacobian: its tangent solves report by their value, NaN where one did not
-        # converge (``FitProblem.jacobian_and_tangents`` turns that into a result code), and
-        # not by a check at run time: the check's host callback would keep XLA's persistent
-        # cache from storing the fit's step, which then compiled again in every new process
-        # (12.8 s of the README example's 46.5 s there, stop 62)
-        inner = linear_solver.inner if isinstance(linear_solver, CheckedSolver) else linear_solver
-        sol = lx.linear_solve(operator, g_dot, inner, options=options, throw=False)
-        failed = sol.result != lx.RESULTS.successful
-        x_dot = jax.tree.map(lambda a: jnp.where(failed, jnp.nan, a), sol.value)
-    elif _BY_VALUE.get():
+    if in_forward_mode() or _BY_VALUE.get():
+        # a fit's Jacobian (forward mode) and the density fit's gradient: a solve that did not
+        # converge gives NaN (their callers turn that into a result code or ``adjoint_failed``)
+        # instead of a check at run time, whose host callback would keep XLA's persistent cache
+        # from storing the program (the README example's fit step compiled again in every new
+        # process: 12.8 s of its 46.5 s there, stop 62)
         x_dot = _solve_by_value(operator, g_dot, linear_solver, options)
     else:
         x_dot = lx.linear_solve(operator, g_dot, linear_solver, options=options).value
