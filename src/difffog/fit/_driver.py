@@ -382,7 +382,8 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
     r, J, y, light, light_state = st.stepper.final(u, state, st.args)
     r, J, y, light = (np.asarray(a) for a in (r, J, y, light))
     r, J, y = (a.astype(np.float64) for a in (r, J, y))
-    if int(light) == RESULTS.tangent_unconverged:
+    tangent_failed = int(light) == RESULTS.tangent_unconverged  # J's failed columns are 0
+    if tangent_failed:
         name = "light_solve_failed"
         message = f"at the estimate, {RESULTS.tangent_unconverged.message}"
     elif int(light) != RESULTS.successful:
@@ -392,8 +393,8 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
                    f"{failed.message}; the estimate and its errors are not reliable")
     mask = np.asarray(st.data[1]) > 0
     se, corr, cond, msgs, _ = statistics(r[mask], J[mask], st.m, st.coords, np.asarray(u))
-    if int(light) == RESULTS.tangent_unconverged:
-        msgs = []  # J's unconverged columns are zeros: its identifiability says nothing
+    if tangent_failed:
+        msgs = []  # the zeroed J's identifiability says nothing
     for msg in msgs:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
     msgs = list(msgs) + [str(w) for w in extra_warnings]
