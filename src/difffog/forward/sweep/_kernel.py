@@ -58,6 +58,7 @@ import numpy as np
 from ..._errors import SolverError
 from ..._numerics import linear_source_terms, one_minus_exp_over
 from ...geometry._directions import FACE_AXES, DirectionSet, direction_set, face_plane_axes
+from . import _native
 
 # Rows of the plane processed per tile (see sweep_face): a tile's per-node data and expm1 table
 # (~(K + 12)·M·16·nv floats) then stay in L2 while the loop runs over all directions.
@@ -428,6 +429,14 @@ def _slabber(nw: int, M: int, periodic_w: bool, warmup: int):
     return slabs, ns
 
 
+def _native_applies(aniso: bool, linear: bool, halo, dt) -> bool:
+    """Whether ``_sweep_face_loop``'s values come from the native CPU kernel (``_native``):
+    the isotropic step scheme, on one device's whole plane, float32 or float64, on a CPU, where
+    the kernel is built (and ``DIFFFOG_NATIVE`` does not turn it off)."""
+    return (not aniso and not linear and halo is None and jax.default_backend() == "cpu"
+            and np.dtype(dt) in (np.float32, np.float64) and _native.available())
+
+
 def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                      M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
                      vol=(True, True, None), halo: Halo | None = None):
@@ -489,6 +498,17 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     tu = _tile_rows(nu)
 
     attenuate, fluence, vol_range = vol
+    if _native_applies(aniso, linear, halo, dt):  # the same sweep as one custom call
+        if vol_range is None or per_w or not attenuate:
+            segment = (0, ns, attenuate, fluence)
+        else:  # fog only in planes [lo, hi): the fog step (and Λ) only in the slabs holding them
+            segment = (vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True, fluence)
+        none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
+        return _native.sweep_face(
+            Q, B, tau_half_unit, geo.normal if surfaces else none[0],
+            geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
+            bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns, segment=segment,
+            surfaces=surfaces, periodic=periodic)
 
     def step(carry, slab, attenuate=attenuate, fluence=fluence):
         src, dst = carry  # (D, M, nu + 2M, nv + 2M): previous slab's radiance / next slab's

@@ -1,0 +1,180 @@
+"""The step scheme's face sweep as a native CPU kernel (an XLA FFI custom call).
+
+``_kernel._sweep_face_loop`` expresses the CPU sweep in XLA loops (slabs → row tiles →
+directions); XLA runs each direction's body as separate kernels, ~1.5 ns per node and
+direction on this 2-core CPU whatever the tile (issue 20: 12% of the copy roofline).
+``native/sweep_face.cc`` does the same arithmetic in one vectorised pass per direction and row
+tile, with the tiles of each slab shared among the CPU's cores.  It serves the values of the
+isotropic step scheme on a CPU (the default for fog whose lattice steps are optically thin);
+every other case (anisotropic moments, the linear and sub-stepped schemes, a device mesh's
+halo, another backend) and every derivative stay JAX programs.
+
+The library is compiled on first use with the machine's C++ compiler (``$CXX``, else ``c++``)
+against jaxlib's FFI headers, into ``$XDG_CACHE_HOME/difffog/native`` (``~/.cache``), named by
+a hash of the source, the flags, the compiler, jaxlib and the CPU (``-march=native``): a later
+process loads it (milliseconds).  Without a compiler, or if the build fails, the sweep keeps
+XLA's loop (same values; :func:`status` says why).  ``DIFFFOG_NATIVE=0`` turns it off.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+
+#: the environment variable that turns the native kernel off ("0", "off", "no", "false")
+NATIVE_ENV = "DIFFFOG_NATIVE"
+#: the custom call's name: this prefix and the source's hash, so that a compiled program kept by
+#: JAX's persistent cache never calls a kernel built from another source
+TARGET = "difffog_sweep_face"
+_SOURCE = Path(__file__).with_name("native") / "sweep_face.cc"
+_FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-simd",
+          "-fno-math-errno", "-fno-trapping-math", "-pthread"]
+#: the per-node data of a row tile, bytes (about half of one core's L2 on this project's CPU)
+TILE_BYTES = 448 * 1024
+_LOCK = threading.Lock()
+_STATE: dict = {}
+
+
+def _cpu_tag() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("flags", "Features", "model name")):
+                    return line
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() + platform.machine()
+
+
+def _build_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "difffog" / "native"
+
+
+def _build() -> Path:
+    """The compiled library's path (compiling it first if needed); raises OSError or
+    subprocess.CalledProcessError where it cannot be built."""
+    import jax
+    import jaxlib
+
+    cxx = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+    if not cxx:
+        raise OSError("no C++ compiler (c++ or $CXX) on PATH")
+    version = subprocess.run([cxx, "--version"], capture_output=True, text=True,
+                             timeout=30).stdout.splitlines()[:1]
+    src = _SOURCE.read_bytes()
+    libs = ["-lmvec"] if ctypes.util.find_library("mvec") else []  # glibc's vector math
+    key = hashlib.sha256(b"\0".join([src, " ".join(_FLAGS + libs).encode(), str(version).encode(),
+                                     jaxlib.__version__.encode(), _cpu_tag().encode()]))
+    folder = _build_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        folder = Path(tempfile.gettempdir()) / f"difffog-native-{os.getuid()}"
+        folder.mkdir(parents=True, exist_ok=True)
+    lib = folder / f"sweep_face-{key.hexdigest()[:16]}.so"
+    if lib.exists():
+        return lib
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
+    os.close(fd)
+    try:  # built under a temporary name, then renamed: nothing half-written is ever loaded
+        subprocess.run([cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o", tmp,
+                        *libs], check=True, capture_output=True, text=True, timeout=300)
+        os.replace(tmp, lib)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return lib
+
+
+def available() -> bool:
+    """True if the native kernel is built (on first call) and registered with XLA for the CPU;
+    False where it is turned off or cannot be built (:func:`status` says why)."""
+    with _LOCK:
+        if "ok" in _STATE:
+            return _STATE["ok"]
+        if os.environ.get(NATIVE_ENV, "").strip().lower() in ("0", "off", "no", "false"):
+            _STATE.update(ok=False, why=f"turned off ({NATIVE_ENV})")
+            return False
+        try:
+            import jax
+
+            lib = _build()
+            handle = ctypes.cdll.LoadLibrary(str(lib))
+            target = f"{TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
+            jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(handle.DifffogSweepFace),
+                                        platform="cpu")
+            _STATE.update(ok=True, why=str(lib), handle=handle, target=target)
+        except (OSError, subprocess.SubprocessError, AttributeError) as e:
+            lines = (getattr(e, "stderr", "") or str(e)).strip().splitlines() or [type(e).__name__]
+            first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
+            _STATE.update(ok=False, why=f"not built ({first.strip()})")
+        return _STATE["ok"]
+
+
+def status() -> str:
+    """One line: where the native kernel was loaded from, or why it is not used."""
+    ok = available()
+    return ("native (" + _STATE["why"] + ")") if ok else ("XLA loop: " + _STATE["why"])
+
+
+def _threads() -> int:
+    """Cores per host device: the kernel shares each slab's tiles among them."""
+    import jax
+
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(1, jax.local_device_count("cpu")))
+
+
+def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, unit, start, *,
+               M: int, ns: int, segment: tuple[int, int, bool, bool], surfaces: bool,
+               periodic: tuple[bool, bool, bool]):
+    """The custom call: ``_sweep_face_loop``'s arrays in the face frame (nw, nu, nv[, ...]),
+    unslabbed (the kernel visits the ns·M planes of its slabs itself: padding after an open
+    sweep axis, a periodic one's warm-up in wrap order), and its direction constants → Λ, E
+    (nw, nu, nv) and the radiance leaving the last M planes (M, D, nu, nv).  ``segment`` =
+    (s0, s1, attenuate, fluence): the slabs [s0, s1) do the fog step and the fluence as told,
+    the others neither."""
+    import jax
+    import jax.numpy as jnp
+
+    dt = Q.dtype
+    nw, nu, nv = Q.shape
+    D = (2 * M + 1) ** 2
+    K = int(length_k.shape[0])
+    nb = int(bits.shape[-1]) if surfaces else 1
+    item = np.dtype(dt).itemsize
+    # rows per tile: tall, so that each direction's rows stream from memory as one block, with
+    # the tile's per-node data (K factors and 2K sums, Q, B, τ, Λ, E, a normal, bytes: 3K + 12 values) in L2
+    tile = int(max(1, min(nu, TILE_BYTES // ((3 * K + 12) * nv * item))))
+    out = [jax.ShapeDtypeStruct((nw, nu, nv), dt)] * 2 + [
+        jax.ShapeDtypeStruct((M, D, nu, nv), dt),
+        jax.ShapeDtypeStruct((2, D, nu + 2 * M, nv + 2 * M), dt)]
+    s0, s1, att, fl = segment
+    per_w, per_u, per_v = periodic
+    call = jax.ffi.ffi_call(_STATE["target"], out, vmap_method="sequential")
+    f = lambda x: jnp.asarray(x, dt)  # noqa: E731  (the kernel reads every float as Q's type)
+    i64 = np.int64
+    lam, irr, exit_, _ = call(
+        Q, f(B), f(tau), f(normal), jnp.asarray(bits, jnp.uint8), jnp.asarray(free, jnp.bool_),
+        jnp.asarray(surf, jnp.bool_), f(bc), f(length_k), jnp.asarray(kidx, jnp.int32),
+        f(weight), f(unit), jnp.asarray(start, jnp.int32),
+        M=i64(M), nw=i64(nw), nu=i64(nu), nv=i64(nv), ns=i64(ns), D=i64(D), K=i64(K),
+        nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()), tile=i64(tile),
+        surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
+        att_in=i64(att), fl_in=i64(fl))
+    return lam, irr, exit_

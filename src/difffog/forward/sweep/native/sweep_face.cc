@@ -1,0 +1,457 @@
+// One face sweep of the step scheme (isotropic fog) as a CPU kernel: the values of
+// ``_kernel._sweep_face_loop`` (the same inputs and arithmetic; the fluence's sums over the
+// directions regrouped by distinct |L|, equal to rounding), written where XLA's loops cannot go:
+// the planes visited one residue chain at a time so that the carried radiance stays in the
+// last-level cache, and per row tile the (p, q) shift, the fog step and the sums of one
+// direction in one vectorised pass, the e^{-τ|L|} factors once per node and distinct |L|, the
+// surfaces' blocking and irradiance only where there are surfaces, the tiles of each plane
+// shared among threads.
+//
+// Built by ``_native.py`` with the machine's C++ compiler on first use, against jaxlib's XLA
+// FFI headers; registered as the custom call "difffog_sweep_face_<hash>" (CPU).  Derivatives
+// never come here: the sweep's JVP and transposes are JAX programs (``_kernel``).
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <thread>
+#include <vector>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+#if defined(__x86_64__) && defined(__GLIBC__) && \
+    (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35))
+// glibc's libmvec has vector expm1 (GLIBC_2.35): declared so that the table loops vectorise
+extern "C" {
+__attribute__((simd("notinbranch"))) float expm1f(float) noexcept;
+__attribute__((simd("notinbranch"))) double expm1(double) noexcept;
+}
+#endif
+
+namespace {
+
+inline float em1(float x) { return expm1f(x); }
+inline double em1(double x) { return expm1(x); }
+
+struct Dims {
+  int64_t M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile;
+  bool surfaces, per_w, per_u, per_v, att_in, fl_in;
+};
+
+template <typename T>
+struct Args {
+  const T *Q, *B, *tau, *normal, *bc, *length_k, *weight, *unit;
+  const uint8_t *bits, *free, *surf;
+  const int32_t *kidx, *start;
+  T *lam, *irr, *exit, *scratch;
+};
+
+// The sweep visits ns·M planes; plane i of the sweep is the face's plane ``source(i)``, or -1
+// for the zero padding after the last plane of an open sweep axis.  A periodic axis is swept
+// in wrap order, its first planes a warm-up ending with planes 0..nw-1.
+inline int64_t source(const Dims& g, int64_t i) {
+  const int64_t total = g.ns * g.M;
+  if (g.per_w) return ((i - (total - g.nw)) % g.nw + g.nw) % g.nw;
+  return i < g.nw ? i : -1;
+}
+
+// Whether plane i's Λ and E are returned (not a warm-up plane, not padding).
+inline bool kept(const Dims& g, int64_t i) {
+  const int64_t total = g.ns * g.M;
+  return g.per_w ? i >= total - g.nw : i < g.nw;
+}
+
+// The tile's factor em = e^{-τ} − 1 per node and distinct |L| (τ the half-segment's depth).
+template <typename T>
+void tables(const T* tau, const T* length_k, int64_t K, int64_t n, T* em) {
+  for (int64_t k = 0; k < K; ++k) {
+    const T len = length_k[k];
+    T* e = em + k * n;
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) e[i] = em1(-(tau[i] * len));
+  }
+}
+
+// (1 − e^{-t})/t from x = e^{-t} − 1, with ``one_minus_exp_over``'s series below 1e-3.
+template <typename T>
+inline T avg(T t, T x) {
+  const bool small = std::fabs(t) < T(1e-3);
+  const T series = T(1) - t / T(2) + t * t / T(6) - t * t * t / T(24);
+  return small ? series : -x / (small ? T(1) : t);
+}
+
+// One unit: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0), every direction:
+// src and dst are the chain's carries (D, PU, PV) before and after the plane.
+//
+// The direction loop runs over whole rows in the fog-only form (vectorised; per direction the
+// rows read and written are each one contiguous block).  Two things keep it short:
+// - Λ is Σ_d w_d R̄_d with R̄_d = Q + (R_d − Q)·a2_k, or Q + (B − Q)·a1_k after a blocked
+//   arrival (a2_k = (1 − e^{−2τ_k})/(2τ_k), a1_k = (1 − e^{−τ_k})/τ_k for the direction's
+//   distinct |L|), so the loop only sums S_k += w_d (R_d − Q) per |L| (and C_k += w_d over the
+//   blocked ones) and Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k] once per node afterwards:
+//   the same sum, regrouped;
+// - where surfaces matter (a SURFACE node, a set blocking bit or a normal: the shell around the
+//   shapes) a second pass over each run of such nodes along a row adds what the fog-only form
+//   left out: a blocked arrival (the surface's radiosity B instead of the ray), E by cos.  A
+//   fog node's blocking bits and normal are 0, where the fog-only form is the whole update (so
+//   runs may bridge short gaps of fog nodes).
+template <typename T, bool ATT, bool SURF, bool FL>
+void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int64_t p,
+          int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>& runs) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  const int64_t rows = u1 - u0, n = rows * nv;
+  const int64_t off = (p * nu + u0) * nv;
+  const T* Q = a.Q + off;
+  const T* B = a.B + off;
+  const T* tau = a.tau + off;
+  const int64_t K = ATT ? g.K : 0;
+  const int64_t KC = SURF ? K : 0;  // the blocked weights C_k
+  // scratch: factors em (K n), sums S (K n), C (K n with surfaces), Λ and E (2 n), normal (3 n
+  // with surfaces); bytes: pass (n), special (n), blocking bits (nb n)
+  const int64_t nbytes = 2 * n + (SURF ? g.nb * n : 0);
+  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0)) * n + (nbytes + sizeof(T) - 1) / sizeof(T)));
+  T* em = work.data();
+  T* S = em + K * n;
+  T* C = S + K * n;
+  T* accl = C + KC * n;
+  T* acci = accl + n;
+  T* nrm = acci + n;
+  uint8_t* pass = reinterpret_cast<uint8_t*>(nrm + (SURF ? 3 * n : 0));
+  uint8_t* special = pass + n;
+  uint8_t* bits = special + n;
+  if (ATT) tables<T>(tau, a.length_k, K, n, em);
+  std::fill(S, S + (K + KC) * n, T(0));
+  std::fill(accl, accl + 2 * n, T(0));
+  for (int64_t j = 0; j < n; ++j)  // a ray goes on from fog nodes (and, with surfaces, shells)
+    pass[j] = uint8_t((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
+  runs.clear();  // (row, v0, v1): the runs of special nodes along each row
+  if (SURF) {  // the face frame's normal (nw, nu, nv, 3) and bytes (nw, nu, nv, nb)
+    const T* nsrc = a.normal + off * 3;
+    const uint8_t* bsrc = a.bits + off * g.nb;
+    for (int64_t j = 0; j < n; ++j) {
+      bool sp = a.surf[off + j] != 0;
+      for (int c = 0; c < 3; ++c) sp |= (nrm[c * n + j] = nsrc[3 * j + c]) != T(0);
+      for (int64_t b = 0; b < g.nb; ++b) sp |= (bits[b * n + j] = bsrc[g.nb * j + b]) != 0;
+      special[j] = uint8_t(sp);
+    }
+    for (int64_t r = 0; r < rows; ++r) {  // runs along each row (gaps under 16 nodes bridged)
+      for (int64_t v = 0; v < nv;) {
+        if (!special[r * nv + v]) { ++v; continue; }
+        int64_t e = v + 1, last = v;
+        for (; e < nv && e - last <= 16; ++e)
+          if (special[r * nv + e]) last = e;
+        runs.insert(runs.end(), {int32_t(r), int32_t(v), int32_t(last + 1)});
+        v = last + 1;
+      }
+    }
+  }
+  const size_t nruns = runs.size() / 3;
+  T wsum = T(0);
+  for (int64_t d = 0; d < g.D; ++d) {
+    const int64_t k = ATT ? a.kidx[d] : 0;
+    const T w = a.weight[d];
+    wsum += w;
+    const int64_t su = a.start[2 * d], sv = a.start[2 * d + 1];
+    const T* sd = src + (d * PU + u0 + su) * PV + sv;  // the plane's rows, shifted by (p, q)
+    T* dd = dst + (d * PU + u0 + M) * PV + M;
+    for (int64_t r = 0; r < rows; ++r) {
+      const T* rs = sd + r * PV;
+      T* rd = dd + r * PV;
+      const int64_t o = r * nv;
+      const T* e = em + k * n + o;
+      const T* q = Q + o;
+      const uint8_t* ps = pass + o;
+      T* sk = S + k * n + o;
+      T* al = accl + o;
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        const T r_mid = rs[v], qt = q[v];
+        T r_out = r_mid;
+        if (ATT) {
+          const T x = e[v];
+          const T r_arr = r_mid + x * (r_mid - qt);
+          if (FL) sk[v] += w * (r_mid - qt);
+          r_out = r_arr + x * (r_arr - qt);
+        } else if (FL) {
+          al[v] += r_mid * w;
+        }
+        rd[v] = ps[v] ? r_out : T(0);
+      }
+    }
+    if (!SURF) continue;
+    // the surfaces' pass: a blocked arrival is the surface's radiosity B (only the departure
+    // half lies in the fog), E sums the arriving radiance by cos
+    const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+    const uint8_t* bd = bits + (d >> 3) * n;
+    const int bit = int(d & 7);
+    for (size_t t = 0; t < nruns; ++t) {
+      const int64_t r = runs[3 * t], v0 = runs[3 * t + 1], v1 = runs[3 * t + 2];
+      const int64_t o = r * nv;
+      const T* rs = sd + r * PV;
+      T* rd = dd + r * PV;
+      const T* e = em + k * n + o;
+      const T* q = Q + o;
+      const T* bb = B + o;
+      const uint8_t* ps = pass + o;
+      const uint8_t* bl = bd + o;
+      const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
+      T* sk = S + k * n + o;
+      T* ck = C + k * n + o;
+      T* al = accl + o;
+      T* ai = acci + o;
+#pragma omp simd
+      for (int64_t v = v0; v < v1; ++v) {
+        const T r_mid = rs[v], qt = q[v], bt = bb[v];
+        const bool blocked = ((bl[v] >> bit) & 1) != 0;
+        T r_arr = r_mid, x = T(0);
+        if (ATT) {
+          x = e[v];
+          r_arr = r_mid + x * (r_mid - qt);
+        }
+        r_arr = blocked ? bt : r_arr;
+        if (ATT && FL) {  // the blocked direction's R̄ goes through C_k, not S_k
+          sk[v] -= blocked ? w * (r_mid - qt) : T(0);
+          ck[v] += blocked ? w : T(0);
+        } else if (FL) {  // no fog step: R̄ is the arriving radiance
+          al[v] += blocked ? w * (bt - r_mid) : T(0);
+        }
+        const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+        ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
+        const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
+        rd[v] = blocked ? (ps[v] ? r_through : T(0)) : rd[v];
+      }
+    }
+  }
+  if (!kept(g, i)) return;
+  if (ATT && FL) {  // Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k]
+    for (int64_t j = 0; j < n; ++j) accl[j] = Q[j] * wsum;
+    for (int64_t k = 0; k < K; ++k) {
+      const T len = a.length_k[k];
+      const T* e = em + k * n;
+      const T* sk = S + k * n;
+#pragma omp simd
+      for (int64_t j = 0; j < n; ++j) {
+        const T x = e[j];
+        accl[j] += avg(T(2) * (tau[j] * len), x * (x + T(2))) * sk[j];
+      }
+      if (!SURF) continue;
+      const T* ck = C + k * n;
+#pragma omp simd
+      for (int64_t j = 0; j < n; ++j)
+        accl[j] += ck[j] != T(0) ? avg(tau[j] * len, e[j]) * (B[j] - Q[j]) * ck[j] : T(0);
+    }
+  }
+  std::memcpy(a.lam + off, accl, size_t(n) * sizeof(T));
+  std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
+}
+
+template <typename T>
+using UnitFn = void (*)(const Dims&, const Args<T>&, const T*, T*, int64_t, int64_t, int64_t,
+                        int64_t, std::vector<T>&, std::vector<int32_t>&);
+
+template <typename T>
+UnitFn<T> pick(bool att, bool surf, bool fl) {
+  const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
+  switch (key) {
+    case 0: return unit<T, false, false, false>;
+    case 1: return unit<T, false, false, true>;
+    case 2: return unit<T, false, true, false>;
+    case 3: return unit<T, false, true, true>;
+    case 4: return unit<T, true, false, false>;
+    case 5: return unit<T, true, false, true>;
+    case 6: return unit<T, true, true, false>;
+    default: return unit<T, true, true, true>;
+  }
+}
+
+// Rewrite the M border rows (axis 0 of a (PU, PV) plane) or columns by wrapping the interior
+// [M, M + n): padded index i takes interior index ((i − M) mod n) + M.
+template <typename T>
+void wrap(T* pl, int64_t PU, int64_t PV, int64_t M, int64_t n, bool rows) {
+  auto src_of = [&](int64_t i) { return ((i - M) % n + n) % n + M; };
+  if (rows) {
+    for (int64_t i = 0; i < M; ++i) std::memcpy(pl + i * PV, pl + src_of(i) * PV, PV * sizeof(T));
+    for (int64_t i = n + M; i < n + 2 * M; ++i)
+      std::memcpy(pl + i * PV, pl + src_of(i) * PV, PV * sizeof(T));
+  } else {
+    for (int64_t r = 0; r < PU; ++r) {
+      T* row = pl + r * PV;
+      for (int64_t i = 0; i < M; ++i) row[i] = row[src_of(i)];
+      for (int64_t i = n + M; i < n + 2 * M; ++i) row[i] = row[src_of(i)];
+    }
+  }
+}
+
+// A chain's carry before its first plane (D, PU, PV): on a periodic sweep axis the plane's own
+// source (the equilibrium guess for horizontal rays that never leave the domain), else the
+// boundary radiance bc[d]; bc[d] on the open sides' border, wrapped on periodic ones.
+template <typename T>
+void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
+  const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
+  const T* q0 = g.per_w ? a.Q + source(g, m) * g.nu * g.nv : nullptr;
+  for (int64_t d = 0; d < g.D; ++d) {
+    T* pl = buf + d * PU * PV;
+    std::fill(pl, pl + PU * PV, a.bc[d]);
+    if (q0) {
+      for (int64_t u = 0; u < g.nu; ++u)
+        std::memcpy(pl + (u + M) * PV + M, q0 + u * g.nv, size_t(g.nv) * sizeof(T));
+      if (g.per_u) wrap(pl, PU, PV, M, g.nu, true);
+      if (g.per_v) wrap(pl, PU, PV, M, g.nv, false);
+    }
+  }
+}
+
+// The sweep, one residue m of the planes at a time: a ray leaving plane sM + m arrives at
+// (s + 1)M + m, so the M residues are independent chains, and one chain's carry (D planes,
+// two buffers of 9 MB at N = 128, M = 5) stays in the last-level cache from plane to plane,
+// where the whole slab's (46 MB) went to memory and back at every step.
+template <typename T>
+void sweep(const Dims& g, const Args<T>& a) {
+  const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
+  const int64_t chain = g.D * PU * PV;
+  T* bufs[2] = {a.scratch, a.scratch + chain};
+  const int64_t tiles = (g.nu + g.tile - 1) / g.tile;
+  const int64_t nthreads = std::max<int64_t>(1, std::min<int64_t>(g.threads, tiles));
+  std::vector<std::vector<T>> work(static_cast<size_t>(nthreads));
+  std::vector<std::vector<int32_t>> runs(static_cast<size_t>(nthreads));
+  for (int64_t m = 0; m < M; ++m) {
+    initial(g, a, m, bufs[0]);
+    std::memcpy(bufs[1], bufs[0], size_t(chain) * sizeof(T));
+    for (int64_t s = 0; s < g.ns; ++s) {
+      const int64_t i = s * M + m, p = source(g, i);
+      const T* src = bufs[s % 2];
+      T* dst = bufs[1 - s % 2];
+      if (p < 0) {  // padding after an open axis's last plane: nothing goes on
+        for (int64_t d = 0; d < g.D; ++d)
+          for (int64_t u = 0; u < g.nu; ++u)
+            std::fill_n(dst + (d * PU + u + M) * PV + M, g.nv, T(0));
+        continue;
+      }
+      const bool in = s >= g.s0 && s < g.s1;
+      const bool att = in && g.att_in, fl = in && g.fl_in;
+      const UnitFn<T> fn = pick<T>(att, g.surfaces, fl);
+      std::atomic<int64_t> next{0};
+      auto worker = [&](int64_t t) {
+        for (int64_t j = next++; j < tiles; j = next++) {
+          const int64_t u0 = j * g.tile;
+          fn(g, a, src, dst, i, p, u0, std::min(u0 + g.tile, g.nu), work[size_t(t)],
+             runs[size_t(t)]);
+        }
+      };
+      std::vector<std::thread> pool;
+      for (int64_t t = 1; t < nthreads; ++t) pool.emplace_back(worker, t);
+      worker(0);
+      for (auto& th : pool) th.join();
+      for (int64_t d = 0; d < g.D; ++d) {
+        T* pl = dst + d * PU * PV;
+        if (g.per_u) wrap(pl, PU, PV, M, g.nu, true);
+        if (g.per_v) wrap(pl, PU, PV, M, g.nv, false);
+      }
+    }
+    // the radiance leaving the chain's last plane: exit[m, d] (M, D, nu, nv)
+    const T* last = bufs[g.ns % 2];
+    for (int64_t d = 0; d < g.D; ++d)
+      for (int64_t u = 0; u < g.nu; ++u)
+        std::memcpy(a.exit + ((m * g.D + d) * g.nu + u) * g.nv, last + (d * PU + u + M) * PV + M,
+                    size_t(g.nv) * sizeof(T));
+  }
+}
+
+template <typename T>
+Args<T> args(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau, ffi::AnyBuffer normal,
+             ffi::AnyBuffer bits, ffi::AnyBuffer free, ffi::AnyBuffer surf, ffi::AnyBuffer bc,
+             ffi::AnyBuffer length_k, ffi::AnyBuffer kidx, ffi::AnyBuffer weight,
+             ffi::AnyBuffer unit_, ffi::AnyBuffer start, ffi::Result<ffi::AnyBuffer>& lam,
+             ffi::Result<ffi::AnyBuffer>& irr, ffi::Result<ffi::AnyBuffer>& exit,
+             ffi::Result<ffi::AnyBuffer>& scratch) {
+  Args<T> a;
+  a.Q = static_cast<const T*>(Q.untyped_data());
+  a.B = static_cast<const T*>(B.untyped_data());
+  a.tau = static_cast<const T*>(tau.untyped_data());
+  a.normal = static_cast<const T*>(normal.untyped_data());
+  a.bc = static_cast<const T*>(bc.untyped_data());
+  a.length_k = static_cast<const T*>(length_k.untyped_data());
+  a.weight = static_cast<const T*>(weight.untyped_data());
+  a.unit = static_cast<const T*>(unit_.untyped_data());
+  a.bits = static_cast<const uint8_t*>(bits.untyped_data());
+  a.free = static_cast<const uint8_t*>(free.untyped_data());
+  a.surf = static_cast<const uint8_t*>(surf.untyped_data());
+  a.kidx = static_cast<const int32_t*>(kidx.untyped_data());
+  a.start = static_cast<const int32_t*>(start.untyped_data());
+  a.lam = static_cast<T*>(lam->untyped_data());
+  a.irr = static_cast<T*>(irr->untyped_data());
+  a.exit = static_cast<T*>(exit->untyped_data());
+  a.scratch = static_cast<T*>(scratch->untyped_data());
+  return a;
+}
+
+ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
+                         ffi::AnyBuffer normal, ffi::AnyBuffer bits, ffi::AnyBuffer free,
+                         ffi::AnyBuffer surf, ffi::AnyBuffer bc, ffi::AnyBuffer length_k,
+                         ffi::AnyBuffer kidx, ffi::AnyBuffer weight, ffi::AnyBuffer unit_,
+                         ffi::AnyBuffer start, ffi::Result<ffi::AnyBuffer> lam,
+                         ffi::Result<ffi::AnyBuffer> irr, ffi::Result<ffi::AnyBuffer> exit,
+                         ffi::Result<ffi::AnyBuffer> scratch, int64_t M, int64_t nw, int64_t nu,
+                         int64_t nv, int64_t ns, int64_t D, int64_t K, int64_t nb, int64_t s0,
+                         int64_t s1, int64_t threads, int64_t tile, int64_t surfaces,
+                         int64_t per_w, int64_t per_u, int64_t per_v, int64_t att_in,
+                         int64_t fl_in) {
+  Dims g{M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile,
+         surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, fl_in != 0};
+  if (M < 1 || nw < 1 || nu < 1 || nv < 1 || ns * M < nw || tile < 1 ||
+      D != (2 * M + 1) * (2 * M + 1))
+    return ffi::Error::InvalidArgument("difffog_sweep_face: inconsistent dimensions");
+  if (Q.element_type() == ffi::DataType::F32) {
+    sweep<float>(g, args<float>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight,
+                                unit_, start, lam, irr, exit, scratch));
+  } else if (Q.element_type() == ffi::DataType::F64) {
+    sweep<double>(g, args<double>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx,
+                                  weight, unit_, start, lam, irr, exit, scratch));
+  } else {
+    return ffi::Error::InvalidArgument("difffog_sweep_face: float32 or float64 only");
+  }
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // Q (nw, nu, nv)
+                                  .Arg<ffi::AnyBuffer>()  // B
+                                  .Arg<ffi::AnyBuffer>()  // τ_half_unit
+                                  .Arg<ffi::AnyBuffer>()  // normal (nw, nu, nv, 3)
+                                  .Arg<ffi::AnyBuffer>()  // blocked bytes (nw, nu, nv, nb)
+                                  .Arg<ffi::AnyBuffer>()  // free (nw, nu, nv) bool
+                                  .Arg<ffi::AnyBuffer>()  // surf (nw, nu, nv) bool
+                                  .Arg<ffi::AnyBuffer>()  // bc (D,)
+                                  .Arg<ffi::AnyBuffer>()  // distinct |L| (K,)
+                                  .Arg<ffi::AnyBuffer>()  // kidx (D,) int32
+                                  .Arg<ffi::AnyBuffer>()  // weight (D,)
+                                  .Arg<ffi::AnyBuffer>()  // unit (D, 3)
+                                  .Arg<ffi::AnyBuffer>()  // start (D, 2) int32
+                                  .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv)
+                                  .Ret<ffi::AnyBuffer>()  // E
+                                  .Ret<ffi::AnyBuffer>()  // exit (M, D, nu, nv)
+                                  .Ret<ffi::AnyBuffer>()  // scratch: two carries (2, D, PU, PV)
+                                  .Attr<int64_t>("M")
+                                  .Attr<int64_t>("nw")
+                                  .Attr<int64_t>("nu")
+                                  .Attr<int64_t>("nv")
+                                  .Attr<int64_t>("ns")
+                                  .Attr<int64_t>("D")
+                                  .Attr<int64_t>("K")
+                                  .Attr<int64_t>("nb")
+                                  .Attr<int64_t>("s0")
+                                  .Attr<int64_t>("s1")
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("tile")
+                                  .Attr<int64_t>("surfaces")
+                                  .Attr<int64_t>("per_w")
+                                  .Attr<int64_t>("per_u")
+                                  .Attr<int64_t>("per_v")
+                                  .Attr<int64_t>("att_in")
+                                  .Attr<int64_t>("fl_in"));

@@ -1,0 +1,126 @@
+"""The native CPU kernel of the step scheme's face sweep (``forward/sweep/_native.py``) against
+the XLA loop it replaces, and what happens where it cannot be built."""
+
+import os
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difffog.forward.sweep import _kernel as K
+from difffog.forward.sweep import _native
+from difffog.geometry._directions import direction_set
+
+needs_compiler = pytest.mark.skipif(
+    not (os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")),
+    reason="no C++ compiler: the native kernel is not built here (the XLA loop serves)")
+
+
+@pytest.fixture
+def native_off():
+    """Run with the native kernel turned off, then as the process had it."""
+    saved = dict(_native._STATE)
+    _native._STATE.clear()
+    _native._STATE.update(ok=False, why="off (test)")
+    yield
+    _native._STATE.clear()
+    _native._STATE.update(saved)
+
+
+def _face(M, shape, dt, seed=0):
+    """Random inputs of one face sweep: fog with some empty nodes, surfaces with random
+    normals and blocking bits, boundary radiance."""
+    rng = np.random.default_rng(seed)
+    D = (2 * M + 1) ** 2
+    free = rng.random(shape) > 0.2
+    surf = ~free & (rng.random(shape) > 0.5)
+    normal = rng.normal(size=shape + (3,))
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    geo = K.FaceGeometry(free=jnp.asarray(free), surf=jnp.asarray(surf),
+                         normal=jnp.asarray(normal, dt),
+                         blocked=jnp.asarray(rng.integers(0, 256, shape + ((D + 7) // 8,),
+                                                          dtype=np.uint8)))
+    tau = rng.random(shape) * 3.0 * (rng.random(shape) > 0.3)  # thin to thick, some 0
+    arrays = [jnp.asarray(a, dt) for a in (rng.random(shape), rng.random(shape), tau)]
+    return (*arrays, jnp.asarray(rng.random(D), dt), geo,
+            K.face_consts(direction_set(M), 2))
+
+
+def _sweep(args, **kw):
+    return jax.jit(lambda *a: K._sweep_face_loop(*a, **kw))(*args)
+
+
+CASES = [  # M, surfaces, periodic (w, u, v), vol = (attenuate, fluence, vol_range)
+    (2, True, (False, False, False), (True, True, None)),
+    (2, True, (True, True, True), (True, True, None)),
+    (3, False, (False, True, False), (True, True, (3, 9))),
+    (3, True, (False, False, True), (True, False, None)),
+    (2, True, (False, False, False), (False, True, None)),
+]
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+@pytest.mark.parametrize("M,surfaces,periodic,vol", CASES)
+def test_native_face_sweep_equals_the_xla_loop(M, surfaces, periodic, vol, dtype, x64,
+                                               native_off):
+    """Λ, E and the exit radiance of one face sweep, native against XLA's loop, to rounding:
+    open and periodic sides (the border wrap), surfaces (blocking bits, normals), fog only
+    in some slabs (``vol_range``), no fluence, no fog step; a plane whose rows are not a
+    multiple of the kernel's tile."""
+    dt = jnp.dtype(dtype)
+    args = _face(M, (11, 9, 7), dt)
+    kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=surfaces, vol=vol)
+    ref = _sweep(args, **kw)  # the XLA loop (native_off)
+    _native._STATE.clear()
+    assert _native.available(), _native.status()
+    got = _sweep(args, **kw)
+    rtol = 1e-13 if dtype == "float64" else 1e-6
+    for r, g in zip(ref, got):
+        assert g.shape == r.shape and g.dtype == r.dtype
+        np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=rtol,
+                                   atol=rtol * float(jnp.max(jnp.abs(r))))
+    assert float(jnp.max(got[0] if vol[1] else got[1])) > 0  # something was summed
+
+
+@needs_compiler
+def test_native_face_sweep_under_vmap_is_each_member(x64):
+    """A batched light solve (``render_batch``, a fit's tangents) vmaps the sweep: the custom
+    call then runs once per member, each equal to its own sweep."""
+    assert _native.available(), _native.status()
+    args = _face(2, (7, 6, 5), jnp.dtype("float64"))
+    kw = dict(M=2, periodic=(False, False, False), warmup=5, surfaces=True,
+              vol=(True, True, None))
+    Qb = jnp.stack([args[0], 2.0 * args[0] + 0.1])
+    out = jax.jit(jax.vmap(lambda q: K._sweep_face_loop(q, *args[1:], **kw)))(Qb)
+    for i in range(2):
+        one = _sweep((Qb[i], *args[1:]), **kw)
+        for b, o in zip(out, one):
+            np.testing.assert_allclose(np.asarray(b[i]), np.asarray(o), rtol=1e-13, atol=1e-15)
+
+
+def test_without_a_compiler_the_xla_loop_serves(tmp_path, monkeypatch, x64):
+    """No compiler (or a failed build): ``available()`` is False, ``status()`` says why in
+    one line, nothing is left in the build folder, and the sweep is the XLA loop's."""
+    saved = dict(_native._STATE)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    try:
+        _native._STATE.clear()
+        assert not _native.available()
+        line = _native.status()
+        assert line.startswith("XLA loop: not built (") and "\n" not in line
+        assert not list((tmp_path / "difffog" / "native").glob("*"))  # nothing half-written
+        args = _face(2, (5, 4, 4), jnp.dtype("float64"))
+        lam, irr, exit_ = _sweep(args, M=2, periodic=(False,) * 3, warmup=5, surfaces=True,
+                                 vol=(True, True, None))
+        assert lam.shape == (5, 4, 4) and exit_.shape == (2, 25, 4, 4)
+        assert float(jnp.max(lam)) > 0
+        monkeypatch.setenv("DIFFFOG_NATIVE", "0")
+        _native._STATE.clear()
+        assert not _native.available() and "turned off" in _native.status()
+    finally:
+        _native._STATE.clear()
+        _native._STATE.update(saved)
