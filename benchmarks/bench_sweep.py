@@ -157,8 +157,10 @@ def main(argv=None):
     emit(f"- command: `{' '.join([os.path.basename(sys.executable)] + sys.argv)}`")
     for ln in C.machine_lines(info):
         emit(ln)
+    from difffog.forward.sweep import _native
+
     emit(f"- sweep kernel `{df.SweepSolver(kernel=a.kernel).resolved_kernel()}` "
-         f"(`--kernel {a.kernel}`)")
+         f"(`--kernel {a.kernel}`); the step scheme's CPU sweep: {_native.status()}")
     emit(f"- scene `{a.scene}`, float32, lattice N³ (no vacuum margin), timings are medians of "
          f"{a.repeat} warm iterations")
     emit()

@@ -21,6 +21,11 @@ def test_info_summarizes_scene(capsys):
     for needle in ("free", "surface", "solid", "opt.depth", "sun", "camera     top",
                    "anisotropic phase: no", "sun: yes"):
         assert needle in out
+    if jax.default_backend() == "cpu":  # which program sweeps the step scheme, and why
+        from difffog.forward.sweep import _native
+
+        assert (("sweep kernel: loop (step scheme: native C++)" in out) == _native.available())
+        assert "step scheme: native C++" in out or "step scheme: XLA loop: " in out
 
 
 def test_info_names_the_phase_order_of_a_forward_scattering_fog(capsys):

@@ -131,16 +131,22 @@ def test_a_non_finite_result_names_the_inputs_that_led_there():
     assert text.startswith("sun.irradiance = 3e+37, fog.scattering = 2")
 
 
-def test_estimate_follows_the_scheme_the_solver_will_run():
+def test_estimate_follows_the_scheme_the_solver_will_run(monkeypatch):
     """scheme="auto" runs the linear-source scheme where a lattice step is optically thick: the
-    estimate charges its measured cost there (time ×LINEAR_COST, three slope channels) and
-    nothing in thin fog."""
+    estimate charges its measured cost there (time ×LINEAR_COST of XLA's step loop, three slope
+    channels) and nothing in thin fog; the step scheme's native CPU sweep is charged its own
+    rate where it will run."""
     from difffog._cost import LINEAR_COST
+    from difffog.forward.sweep import _native
     from difffog.study._semi_infinite import thick_cube
 
     thick = thick_cube(1000.0)
     auto = df.estimate(thick, "sweep", resolution=32, M=2)
+    native = df.estimate(thick, "sweep", resolution=32, M=2, scheme="step")
+    will_be_native = _native.expected() and native.backend == "cpu"
+    monkeypatch.setattr(_native, "expected", lambda: False)  # the XLA loop's figures below
     step = df.estimate(thick, "sweep", resolution=32, M=2, scheme="step")
+    assert (native.seconds_per_iteration < step.seconds_per_iteration) == will_be_native
     assert auto.seconds_per_iteration == pytest.approx(step.seconds_per_iteration * LINEAR_COST,
                                                        rel=1e-9)
     assert auto.peak_bytes > step.peak_bytes

@@ -77,6 +77,12 @@ def fit_edge_samples(downsample: int) -> int:
 #: cost (sources, face-frame copies, the Krylov step), fitted to bench_cost.py's 9 sweep rows
 #: (fog-balls N = 32-96, M = 2-5, this 2-core CPU: each within 0.75-1.2× of the measured)
 CPU_UPDATES_PER_S = 0.42e9
+#: the same for the isotropic step scheme's native sweep (``forward/sweep/_native.py``): rate and
+#: per-node cost fitted to bench_cost.py's 9 sweep rows at stop 63 (fog-balls N = 32-96,
+#: M = 2-5, this 2-core CPU, copy 26.8 GB/s: each within 0.53-1.24× of the measured, the
+#: small lattices' under; benchmarks/results/cost_native.md)
+CPU_NATIVE_UPDATES_PER_S = 1.1e9
+CPU_NATIVE_SECONDS_PER_NODE = 4.8e-7
 #: an anisotropic phase (``SweepSolver.phase_order`` L, K = (L+1)² − 1 moments): the light
 #: iteration's time grows by this fraction per moment (every direction's source built from K
 #: moments, K accumulations per update).  cloud-plane N = 64, M = 3, this 2-core CPU
@@ -397,7 +403,13 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         bodies = 6 * slabs * max(1, -(-nu // 16)) * D
         per_iter = bodies * GPU_SECONDS_PER_BODY
     else:
-        per_iter = 6 * D * n / CPU_UPDATES_PER_S + CPU_SECONDS_PER_NODE * n
+        rate, per_node = CPU_UPDATES_PER_S, CPU_SECONDS_PER_NODE
+        if kernel == "loop" and K == 0 and not linear and not substep:
+            from .forward.sweep import _native
+
+            if _native.expected():  # the step scheme's native sweep (XLA's loop without it)
+                rate, per_node = CPU_NATIVE_UPDATES_PER_S, CPU_NATIVE_SECONDS_PER_NODE
+        per_iter = 6 * D * n / rate + per_node * n
         if kernel == "batched":
             per_iter *= CPU_BATCHED_SLOWDOWN
     # (the GPU's programs are assumed to grow alike: not measured there)

@@ -62,13 +62,31 @@ def _build_dir() -> Path:
     return Path(base) / "difffog" / "native"
 
 
+def _compiler() -> str | None:
+    return os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+
+
+def _turned_off() -> bool:
+    return os.environ.get(NATIVE_ENV, "").strip().lower() in ("0", "off", "no", "false")
+
+
+def expected() -> bool:
+    """Whether the step scheme's CPU sweep will be native, without building it (the cost model
+    asks before anything is built): as :func:`available` once it has been asked, else turned
+    on and a compiler at hand."""
+    with _LOCK:
+        if "ok" in _STATE:
+            return _STATE["ok"]
+    return not _turned_off() and bool(_compiler())
+
+
 def _build() -> Path:
     """The compiled library's path (compiling it first if needed); raises OSError or
     subprocess.CalledProcessError where it cannot be built."""
     import jax
     import jaxlib
 
-    cxx = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+    cxx = _compiler()
     if not cxx:
         raise OSError("no C++ compiler (c++ or $CXX) on PATH")
     version = subprocess.run([cxx, "--version"], capture_output=True, text=True,
@@ -104,7 +122,7 @@ def available() -> bool:
     with _LOCK:
         if "ok" in _STATE:
             return _STATE["ok"]
-        if os.environ.get(NATIVE_ENV, "").strip().lower() in ("0", "off", "no", "false"):
+        if _turned_off():
             _STATE.update(ok=False, why=f"turned off ({NATIVE_ENV})")
             return False
         try:
