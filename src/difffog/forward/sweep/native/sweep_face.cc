@@ -22,9 +22,10 @@
 
 namespace ffi = xla::ffi;
 
-#if defined(__x86_64__) && defined(__GLIBC__) && \
+#if defined(__x86_64__) && defined(__GLIBC__) && defined(__GNUC__) && !defined(__clang__) && \
     (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35))
-// glibc's libmvec has vector expm1 (GLIBC_2.35): declared so that the table loops vectorise
+// glibc's libmvec has vector expm1 (GLIBC_2.35): declared (GCC's attribute) so that the table
+// loops vectorise
 extern "C" {
 __attribute__((simd("notinbranch"))) float expm1f(float) noexcept;
 __attribute__((simd("notinbranch"))) double expm1(double) noexcept;
