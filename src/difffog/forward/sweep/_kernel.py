@@ -442,6 +442,10 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                      vol=(True, True, None), halo: Halo | None = None):
     """``sweep_face`` (same arguments and results) as loops that keep the work in cache.
 
+    On a CPU the isotropic step scheme's values come from the native kernel instead
+    (``_native``: the same sweep in C++, equal to rounding), where it is built; the loops below
+    serve every other case (and a CPU without a compiler, or ``DIFFFOG_NATIVE=0``).
+
     Loop structure (what makes it fast on a CPU; the arithmetic is the module's step update):
     ``lax.scan`` over slabs → ``fori_loop`` over row tiles of the plane → ``fori_loop`` over
     the D directions.  The innermost body works on one direction's (M, rows, nv) block: a
@@ -498,17 +502,18 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     tu = _tile_rows(nu)
 
     attenuate, fluence, vol_range = vol
+    # the slabs [s0, s1) that hold fog: the fog step (and Λ) there only, neither elsewhere
+    if vol_range is None or per_w or not attenuate:
+        s0, s1, fog_on = 0, ns, attenuate
+    else:
+        s0, s1, fog_on = vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
     if _native_applies(aniso, linear, halo, dt):  # the same sweep as one custom call
-        if vol_range is None or per_w or not attenuate:
-            segment = (0, ns, attenuate, fluence)
-        else:  # fog only in planes [lo, hi): the fog step (and Λ) only in the slabs holding them
-            segment = (vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True, fluence)
         none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
         return _native.sweep_face(
             Q, B, tau_half_unit, geo.normal if surfaces else none[0],
             geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
-            bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns, segment=segment,
-            surfaces=surfaces, periodic=periodic)
+            bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns,
+            segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic)
 
     def step(carry, slab, attenuate=attenuate, fluence=fluence):
         src, dst = carry  # (D, M, nu + 2M, nv + 2M): previous slab's radiance / next slab's
@@ -621,12 +626,8 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     # unroll=2: the two carry buffers swap roles every slab; unrolled, they keep their buffers
     # (no copy of the carry per slab).
     xs = (Qs, Bs, ts, ns_, bits, passes)
-    if vol_range is None or per_w or not attenuate:
-        segments = [(0, ns, attenuate, fluence)]
-    else:  # fog only in planes [lo, hi): the fog step (and Λ) only in the slabs holding them
-        s0, s1 = vol_range[0] // M, min(ns, -(-vol_range[1] // M))
-        segments = [seg for seg in ((0, s0, False, False), (s0, s1, True, fluence),
-                                    (s1, ns, False, False)) if seg[1] > seg[0]]
+    segments = [seg for seg in ((0, s0, False, False), (s0, s1, fog_on, fluence),
+                                (s1, ns, False, False)) if seg[1] > seg[0]]
     carry, outs = (init, init), []
     for a, b, on, fl in segments:
         fn = functools.partial(step, attenuate=on, fluence=fl)
