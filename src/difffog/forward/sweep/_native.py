@@ -3,8 +3,10 @@
 ``_kernel._sweep_face_loop`` expresses the CPU sweep in XLA loops (slabs → row tiles →
 directions); XLA runs each direction's body as separate kernels, ~1.5 ns per node and
 direction on this 2-core CPU whatever the tile (issue 20: 12% of the copy roofline).
-``native/sweep_face.cc`` does the same arithmetic in one vectorised pass per direction and row
-tile, with the tiles of each slab shared among the CPU's cores.  It serves the values of the
+``native/sweep_face.cc`` does the same arithmetic with the planes visited one residue chain at
+a time (a ray from plane sM + m arrives at (s + 1)M + m: one chain's carry stays in the
+last-level cache), one vectorised pass per direction and row tile, and the tiles of each plane
+shared among the CPU's cores.  It serves the values of the
 isotropic step scheme on a CPU (the default for fog whose lattice steps are optically thin);
 every other case (anisotropic moments, the linear and sub-stepped schemes, a device mesh's
 halo, another backend) and every derivative stay JAX programs.
@@ -22,6 +24,7 @@ import ctypes
 import ctypes.util
 import hashlib
 import os
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -45,16 +48,20 @@ _STATE: dict = {}
 
 
 def _cpu_tag() -> str:
+    """The CPU's model and instruction-set flags (the build is ``-march=native``: a home folder
+    shared by machines whose CPUs differ must not share it)."""
+    import platform
+
+    seen = {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith(("flags", "Features", "model name")):
-                    return line
+                key = line.split(":", 1)[0].strip()
+                if key in ("model name", "flags", "Features", "CPU part") and key not in seen:
+                    seen[key] = line.strip()
     except OSError:
         pass
-    import platform
-
-    return platform.processor() + platform.machine()
+    return "\n".join(seen[k] for k in sorted(seen)) + platform.processor() + platform.machine()
 
 
 def _build_dir() -> Path:
@@ -63,7 +70,11 @@ def _build_dir() -> Path:
 
 
 def _compiler() -> str | None:
-    return os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+    """``$CXX`` (if it runs), else ``c++`` or ``g++`` on the PATH; None if none."""
+    cxx = os.environ.get("CXX")
+    if cxx:
+        return shutil.which(cxx.split()[0]) and cxx
+    return shutil.which("c++") or shutil.which("g++")
 
 
 def _turned_off() -> bool:
@@ -89,7 +100,8 @@ def _build() -> Path:
     cxx = _compiler()
     if not cxx:
         raise OSError("no C++ compiler (c++ or $CXX) on PATH")
-    version = subprocess.run([cxx, "--version"], capture_output=True, text=True,
+    cxx = shlex.split(cxx)  # $CXX may carry a wrapper or flags ("ccache g++")
+    version = subprocess.run([*cxx, "--version"], capture_output=True, text=True,
                              timeout=30).stdout.splitlines()[:1]
     src = _SOURCE.read_bytes()
     libs = ["-lmvec"] if ctypes.util.find_library("mvec") else []  # glibc's vector math
@@ -107,7 +119,7 @@ def _build() -> Path:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
     os.close(fd)
     try:  # built under a temporary name, then renamed: nothing half-written is ever loaded
-        subprocess.run([cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o", tmp,
+        subprocess.run([*cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o", tmp,
                         *libs], check=True, capture_output=True, text=True, timeout=300)
         os.replace(tmp, lib)
     finally:
