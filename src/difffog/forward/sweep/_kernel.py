@@ -1715,7 +1715,10 @@ def sweep_face_mesh(args, mesh, *, stacked: bool, M: int, periodic: tuple[bool, 
                                                          blocked=P(*f, None, "u", "v", None)),
                 jax.tree.map(lambda _: P(*f), consts))
     specs_out = (plane, plane, P(*f, None, None, "u", "v"))
-    halo = Halo(u_axis="u", v_axis="v", nu_dev=npu, nv_dev=npv)
+    # a plane split over devices exchanges its borders; a whole plane (only the ± faces split)
+    # needs no exchange (a Halo of one device per axis is the plain wrap), and without one a
+    # CPU's values come from the native kernel like one device's
+    halo = Halo(u_axis="u", v_axis="v", nu_dev=npu, nv_dev=npv) if npu * npv > 1 else None
 
     def local(Q, B, tau, bc, geo, consts):
         if stacked:
