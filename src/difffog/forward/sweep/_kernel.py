@@ -481,6 +481,22 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     weight = consts.weight.astype(dt)
     bc_d = bc.astype(dt)
     start = M - jnp.asarray(consts.pq, jnp.int32)  # window origin in the padded plane
+
+    attenuate, fluence, vol_range = vol
+    # the slabs [s0, s1) that hold fog: the fog step (and Λ) there only, neither elsewhere
+    if vol_range is None or per_w or not attenuate:
+        s0, s1, fog_on = 0, ns, attenuate
+    else:
+        s0, s1, fog_on = vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
+    if _native_applies(aniso, linear, halo, dt):  # the same sweep as one custom call
+        none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
+        return _native.sweep_face(
+            Q, B, tau_half_unit, geo.normal if surfaces else none[0],
+            geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
+            bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns,
+            segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic)
+
+    # (XLA's loops from here: the slabbed inputs, then the scans)
     byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)
     bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))
 
@@ -500,20 +516,6 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         ns_ = jnp.zeros((ns, 1), dt)
         bits = jnp.zeros((ns, 1), jnp.uint8)
     tu = _tile_rows(nu)
-
-    attenuate, fluence, vol_range = vol
-    # the slabs [s0, s1) that hold fog: the fog step (and Λ) there only, neither elsewhere
-    if vol_range is None or per_w or not attenuate:
-        s0, s1, fog_on = 0, ns, attenuate
-    else:
-        s0, s1, fog_on = vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
-    if _native_applies(aniso, linear, halo, dt):  # the same sweep as one custom call
-        none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
-        return _native.sweep_face(
-            Q, B, tau_half_unit, geo.normal if surfaces else none[0],
-            geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
-            bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns,
-            segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic)
 
     def step(carry, slab, attenuate=attenuate, fluence=fluence):
         src, dst = carry  # (D, M, nu + 2M, nv + 2M): previous slab's radiance / next slab's
