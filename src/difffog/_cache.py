@@ -17,14 +17,20 @@ from pathlib import Path
 CACHE_ENV = "DIFFFOG_CACHE_DIR"
 
 
+def user_cache_root() -> Path:
+    """difffog's folder in the user's cache: ``$XDG_CACHE_HOME/difffog`` (``~/.cache/difffog``);
+    XLA's programs go in ``xla/``, the native sweep kernel's build in ``native/``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "difffog"
+
+
 def default_cache_dir() -> Path | None:
     """``$DIFFFOG_CACHE_DIR``, else ``$XDG_CACHE_HOME/difffog/xla`` (``~/.cache/difffog/xla``);
     None when ``DIFFFOG_CACHE_DIR`` is ``off``, ``0`` or empty."""
     env = os.environ.get(CACHE_ENV)
     if env is not None:
         return None if env.strip().lower() in ("", "0", "off", "no", "false") else Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "difffog" / "xla"
+    return user_cache_root() / "xla"
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | None:

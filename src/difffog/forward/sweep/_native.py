@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..._cache import user_cache_root
+
 #: the environment variable that turns the native kernel off ("0", "off", "no", "false")
 NATIVE_ENV = "DIFFFOG_NATIVE"
 #: the custom call's name: this prefix and the source's hash, so that a compiled program kept by
@@ -62,11 +64,6 @@ def _cpu_tag() -> str:
     except OSError:
         pass
     return "\n".join(seen[k] for k in sorted(seen)) + platform.processor() + platform.machine()
-
-
-def _build_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "difffog" / "native"
 
 
 def _compiler() -> str | None:
@@ -107,7 +104,7 @@ def _build() -> Path:
     libs = ["-lmvec"] if ctypes.util.find_library("mvec") else []  # glibc's vector math
     key = hashlib.sha256(b"\0".join([src, " ".join(_FLAGS + libs).encode(), str(version).encode(),
                                      jaxlib.__version__.encode(), _cpu_tag().encode()]))
-    folder = _build_dir()
+    folder = user_cache_root() / "native"
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:
