@@ -19,14 +19,19 @@ needs_compiler = pytest.mark.skipif(
 
 
 @pytest.fixture
-def native_off():
-    """Run with the native kernel turned off, then as the process had it."""
+def native_state():
+    """The native kernel's state as the process had it, back after the test."""
     saved = dict(_native._STATE)
-    _native._STATE.clear()
-    _native._STATE.update(ok=False, why="off (test)")
     yield
     _native._STATE.clear()
     _native._STATE.update(saved)
+
+
+@pytest.fixture
+def native_off(native_state):
+    """Run with the native kernel turned off."""
+    _native._STATE.clear()
+    _native._STATE.update(ok=False, why="off (test)")
 
 
 def _face(M, shape, dt, seed=0):
@@ -101,26 +106,21 @@ def test_native_face_sweep_under_vmap_is_each_member(x64):
             np.testing.assert_allclose(np.asarray(b[i]), np.asarray(o), rtol=1e-13, atol=1e-15)
 
 
-def test_without_a_compiler_the_xla_loop_serves(tmp_path, monkeypatch, x64):
+def test_without_a_compiler_the_xla_loop_serves(tmp_path, monkeypatch, x64, native_state):
     """No compiler (or a failed build): ``available()`` is False, ``status()`` says why in
     one line, nothing is left in the build folder, and the sweep is the XLA loop's."""
-    saved = dict(_native._STATE)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
-    try:
-        _native._STATE.clear()
-        assert not _native.available()
-        line = _native.status()
-        assert line.startswith("XLA loop: not built (") and "\n" not in line
-        assert not list((tmp_path / "difffog" / "native").glob("*"))  # nothing half-written
-        args = _face(2, (5, 4, 4), jnp.dtype("float64"))
-        lam, irr, exit_ = _sweep(args, M=2, periodic=(False,) * 3, warmup=5, surfaces=True,
-                                 vol=(True, True, None))
-        assert lam.shape == (5, 4, 4) and exit_.shape == (2, 25, 4, 4)
-        assert float(jnp.max(lam)) > 0
-        monkeypatch.setenv("DIFFFOG_NATIVE", "0")
-        _native._STATE.clear()
-        assert not _native.available() and "turned off" in _native.status()
-    finally:
-        _native._STATE.clear()
-        _native._STATE.update(saved)
+    _native._STATE.clear()
+    assert not _native.available()
+    line = _native.status()
+    assert line.startswith("XLA loop: not built (") and "\n" not in line
+    assert not list((tmp_path / "difffog" / "native").glob("*"))  # nothing half-written
+    args = _face(2, (5, 4, 4), jnp.dtype("float64"))
+    lam, irr, exit_ = _sweep(args, M=2, periodic=(False,) * 3, warmup=5, surfaces=True,
+                             vol=(True, True, None))
+    assert lam.shape == (5, 4, 4) and exit_.shape == (2, 25, 4, 4)
+    assert float(jnp.max(lam)) > 0
+    monkeypatch.setenv("DIFFFOG_NATIVE", "0")
+    _native._STATE.clear()
+    assert not _native.available() and "turned off" in _native.status()

@@ -286,6 +286,15 @@ void wrap(T* pl, int64_t PU, int64_t PV, int64_t M, int64_t n, bool rows) {
   }
 }
 
+// A carried plane's border on the periodic sides, from its interior (rows, then columns:
+// corners included).
+template <typename T>
+void wrap_periodic(const Dims& g, T* pl) {
+  const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
+  if (g.per_u) wrap(pl, PU, PV, M, g.nu, true);
+  if (g.per_v) wrap(pl, PU, PV, M, g.nv, false);
+}
+
 // A chain's carry before its first plane (D, PU, PV): on a periodic sweep axis the plane's own
 // source (the equilibrium guess for horizontal rays that never leave the domain), else the
 // boundary radiance bc[d]; bc[d] on the open sides' border, wrapped on periodic ones.
@@ -299,8 +308,7 @@ void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
     if (q0) {
       for (int64_t u = 0; u < g.nu; ++u)
         std::memcpy(pl + (u + M) * PV + M, q0 + u * g.nv, size_t(g.nv) * sizeof(T));
-      if (g.per_u) wrap(pl, PU, PV, M, g.nu, true);
-      if (g.per_v) wrap(pl, PU, PV, M, g.nv, false);
+      wrap_periodic(g, pl);
     }
   }
 }
@@ -346,11 +354,7 @@ void sweep(const Dims& g, const Args<T>& a) {
       for (int64_t t = 1; t < nthreads; ++t) pool.emplace_back(worker, t);
       worker(0);
       for (auto& th : pool) th.join();
-      for (int64_t d = 0; d < g.D; ++d) {
-        T* pl = dst + d * PU * PV;
-        if (g.per_u) wrap(pl, PU, PV, M, g.nu, true);
-        if (g.per_v) wrap(pl, PU, PV, M, g.nv, false);
-      }
+      for (int64_t d = 0; d < g.D; ++d) wrap_periodic(g, dst + d * PU * PV);
     }
     // the radiance leaving the chain's last plane: exit[m, d] (M, D, nu, nv)
     const T* last = bufs[g.ns % 2];
