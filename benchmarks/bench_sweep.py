@@ -41,7 +41,7 @@ def _args(argv=None):
     ap.add_argument("--repeat", type=int, default=5, help="timed iterations per case (median)")
     ap.add_argument("--scene", default="fog-balls")
     ap.add_argument("--devices", type=int, default=1, help="SweepSolver(devices=...) if > 1")
-    ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched"],
+    ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched", "pallas"],
                     help="SweepSolver(kernel=...): the face sweep's program (auto: the backend's)")
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver(phase_order=...) values (anisotropic scattering; \"auto\": "

@@ -602,7 +602,7 @@ def test_kernel_auto_follows_the_backend():
 
     assert kernel_for("cpu") == "loop" and kernel_for("gpu") == "batched"
     assert SweepSolver().resolved_kernel() == kernel_for(jax.default_backend())
-    with pytest.raises(df.SceneError, match="kernel must be one of auto, loop, batched"):
+    with pytest.raises(df.SceneError, match="kernel must be one of auto, loop, batched, pallas"):
         SweepSolver(kernel="fast")
 
 

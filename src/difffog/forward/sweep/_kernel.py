@@ -294,11 +294,14 @@ def _linear_node(r_mid, q, s, em, omp_half, phi, psi):
     return r_node, r_out, r_avg
 
 
-#: The two programs of one face sweep (same arithmetic, same values and derivatives): "loop"
-#: (``_sweep_face_loop``, cache-tiled loops: 2-3x faster on a CPU) and "batched"
+#: The programs of one face sweep (same arithmetic, same values and derivatives): "loop"
+#: (``_sweep_face_loop``, cache-tiled loops: 2-3x faster on a CPU), "batched"
 #: (``_sweep_face_batched``, all directions of a slab in one array: on an H100 130x faster than
-#: "loop", whose ~150,000 small loop bodies per iteration take ~18 µs each there).
-KERNELS = ("auto", "loop", "batched")
+#: "loop", whose ~150,000 small loop bodies per iteration take ~18 µs each there) and "pallas"
+#: (the batched program with each slab step of the isotropic step scheme as one Pallas kernel,
+#: ``_pallas.py``: one pass over the carry instead of about four; Triton on a GPU, interpreted
+#: (slowly) elsewhere; its GPU speed not yet measured, so "auto" does not pick it).
+KERNELS = ("auto", "loop", "batched", "pallas")
 
 
 def _distinct_lengths(consts: SweepConsts, M: int, dt):
@@ -372,9 +375,10 @@ def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, 
         if kernel == "loop" and halo is None:
             return _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo, consts, **kw)
         return _sweep_face_substep(Q, B, tau_half_unit, bc, geo, consts, halo=halo, **kw)
-    if kernel == "batched":
+    if kernel in ("batched", "pallas"):
         return _sweep_face_batched(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
-                                   warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo)
+                                   warmup=warmup, surfaces=surfaces, fluence=vol[1], halo=halo,
+                                   pallas=kernel == "pallas")
     return _sweep_face_loop(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
                             warmup=warmup, surfaces=surfaces, vol=vol, halo=halo)
 
@@ -650,11 +654,16 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
 def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                         M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-                        fluence: bool = True, halo: Halo | None = None, recompute: bool = False):
+                        fluence: bool = True, halo: Halo | None = None, recompute: bool = False,
+                        pallas: bool = False):
     """``sweep_face`` with every direction of a slab in one batched array: the shift is one
     vmapped ``dynamic_slice`` over the padded carry (M, D, nu, nv).  Slower forward than
     ``_sweep_face_loop`` but its linearization transposes into an equally compact program, so
     ``sweep_face`` uses it for derivatives (the implicit adjoint transposes the Jacobi map).
+
+    pallas: each slab step of the isotropic step scheme (on one device's whole plane) is the
+    Pallas kernel ``_pallas.slab_step`` (values only; same arithmetic, one pass over the
+    carry); the other schemes ignore it.
     """
     nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
@@ -734,6 +743,12 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
             r_out = jnp.where(fs[:, None], r_through, 0.0)
         return r_out, (lam, irr)
 
+    if pallas and not aniso and not linear and halo is None:
+        from . import _pallas  # Pallas is imported only where it runs (0.3 s)
+
+        step = functools.partial(_pallas.slab_step, pq=pq, length=length, weight=weight,
+                                 bc=bc_d, unit=unit, M=M, periodic_uv=(per_u, per_v),
+                                 surfaces=surfaces, fluence=fluence)
     if per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
         init = jnp.broadcast_to(source(xs[0][0]), (M, D, nu, nv)).astype(dt)
     else:
