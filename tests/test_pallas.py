@@ -42,6 +42,43 @@ def test_pallas_face_sweep_equals_the_batched_program(M, surfaces, periodic, vol
         assert float(jnp.max(jnp.abs(lam))) == 0.0
 
 
+@pytest.mark.parametrize("linear,order,sun", [(True, 0, False), (False, 1, True),
+                                               (True, 1, True)])
+def test_pallas_face_sweep_with_moments_and_slopes(linear, order, sun, x64):
+    """The anisotropic and linear-source forms: a source per direction from the moments'
+    channels (``order``: the δ-M order's basis) and the sun's phase channel, the slope
+    channels of the linear scheme (its three-part node update), the moments of Λ; open and
+    periodic sides, with surfaces, float64."""
+    import dataclasses
+
+    from difffog.forward.sweep._harmonics import basis
+    from difffog.geometry._directions import direction_set
+    from helpers import random_face_geometry
+
+    M, shape = 2, (9, 8, 10)
+    D = (2 * M + 1) ** 2
+    rng = np.random.default_rng(3)
+    harm = basis(order, M).faces if order else None
+    consts = K.face_consts(direction_set(M), 0, harm=harm, linear=linear)
+    if sun:
+        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random(D)))
+    channels = 1 + (harm.shape[2] if order else 0) + int(sun) + (3 if linear else 0)
+    Q = jnp.asarray(np.concatenate([rng.random(shape + (1,)),
+                                    0.2 * rng.standard_normal(shape + (channels - 1,))], -1))
+    args = (Q, jnp.asarray(rng.random(shape)), jnp.asarray(1.5 * rng.random(shape)),
+            jnp.asarray(rng.random(D)), random_face_geometry(rng, shape, D), consts)
+    for periodic in [(False, False, False), (True, True, False)]:
+        kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=True)
+        ref, got = _sweep(args, "batched", **kw), _sweep(args, "pallas", **kw)
+        for r, g in zip(ref, got):
+            assert g.shape == r.shape
+            np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=1e-13,
+                                       atol=1e-13 * float(jnp.max(jnp.abs(r))))
+        if order:
+            assert ref[0].shape == shape + (1 + harm.shape[2],)
+            assert float(jnp.max(jnp.abs(got[0][..., 1:]))) > 0  # the moments were summed
+
+
 def test_pallas_sweep_derivatives_are_the_batched_programs(x64):
     """``sweep_face``'s JVP with kernel="pallas" is the batched program's (values from the
     kernel, tangents from XLA): equal to the batched kernel's JVP."""
@@ -88,9 +125,11 @@ def _triton_plugin() -> bool:
 
 @pytest.mark.skipif(not _triton_plugin(), reason="JAX's CUDA plugin (Pallas's Triton lowering) "
                     "is not installed here")
-@pytest.mark.parametrize("M,nu,nv,surfaces,periodic", [(5, 140, 140, True, (False, False)),
-                                                       (3, 72, 80, False, (True, False))])
-def test_pallas_kernel_lowers_to_triton_for_cuda(M, nu, nv, surfaces, periodic):
+@pytest.mark.parametrize("M,nu,nv,surfaces,periodic,nj,nk,linear", [
+    (5, 140, 140, True, (False, False), 0, 0, False),
+    (3, 72, 80, False, (True, False), 0, 0, False),
+    (3, 40, 40, True, (True, True), 16, 15, True)])  # δ-M order 3, the sun's phase, slopes
+def test_pallas_kernel_lowers_to_triton_for_cuda(M, nu, nv, surfaces, periodic, nj, nk, linear):
     """The compiled (not interpreted) kernel lowers for CUDA to one Triton kernel call (checks
     what Pallas's Triton lowering checks: block shapes, the ops it supports); compiling that
     to PTX needs a GPU."""
@@ -103,9 +142,10 @@ def test_pallas_kernel_lowers_to_triton_for_cuda(M, nu, nv, surfaces, periodic):
     f32 = jnp.float32
     plane = S((M, nu, nv), f32)
     args = (S((D, 2), jnp.int32), S((D,), f32), S((D,), f32), S((D,), f32), S((D, 3), f32),
-            S((M, D, nu, nv), f32), plane, plane, plane, S((M, nu, nv), jnp.uint8),
+            S((D, max(nj, 1)), f32), S((D, 3), f32), S((M, D, nu, nv), f32),
+            S((1 + nj + 3 * linear, M, nu, nv), f32), plane, plane, S((M, nu, nv), jnp.uint8),
             S((3, M, nu, nv), f32), S((M, (D + 7) // 8, nu, nv), jnp.uint8))
-    call = _pallas._call(M, nu, nv, "float32", *periodic, surfaces, True, False)
+    call = _pallas._call(M, nu, nv, "float32", *periodic, surfaces, True, False, nj, nk, linear)
     target = "__gpu$xla.gpu.triton"
     exp = export.export(jax.jit(call), platforms=["cuda"],
                         disabled_checks=[export.DisabledSafetyCheck.custom_call(target)])(*args)

@@ -298,8 +298,8 @@ def _linear_node(r_mid, q, s, em, omp_half, phi, psi):
 #: (``_sweep_face_loop``, cache-tiled loops: 2-3x faster on a CPU), "batched"
 #: (``_sweep_face_batched``, all directions of a slab in one array: on an H100 130x faster than
 #: "loop", whose ~150,000 small loop bodies per iteration take ~18 µs each there) and "pallas"
-#: (the batched program with each slab step of the isotropic step scheme as one Pallas kernel,
-#: ``_pallas.py``: one pass over the carry instead of about four; Triton on a GPU, interpreted
+#: (the batched program with each slab step as one Pallas kernel, ``_pallas.py``: one pass
+#: over the carry instead of about four; Triton on a GPU, interpreted
 #: (slowly) elsewhere; its GPU speed not yet measured, so "auto" does not pick it).
 KERNELS = ("auto", "loop", "batched", "pallas")
 
@@ -661,9 +661,8 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
     ``_sweep_face_loop`` but its linearization transposes into an equally compact program, so
     ``sweep_face`` uses it for derivatives (the implicit adjoint transposes the Jacobi map).
 
-    pallas: each slab step of the isotropic step scheme (on one device's whole plane) is the
-    Pallas kernel ``_pallas.slab_step`` (values only; same arithmetic, one pass over the
-    carry); the other schemes ignore it.
+    pallas: each slab step (on one device's whole plane) is the Pallas kernel
+    ``_pallas.slab_step`` (values only; same arithmetic, one pass over the carry).
     """
     nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
@@ -743,12 +742,14 @@ def _sweep_face_batched(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swee
             r_out = jnp.where(fs[:, None], r_through, 0.0)
         return r_out, (lam, irr)
 
-    if pallas and not aniso and not linear and halo is None:
+    if pallas and halo is None:
         from . import _pallas  # Pallas is imported only where it runs (0.3 s)
 
         step = functools.partial(_pallas.slab_step, pq=pq, length=length, weight=weight,
                                  bc=bc_d, unit=unit, M=M, periodic_uv=(per_u, per_v),
-                                 surfaces=surfaces, fluence=fluence)
+                                 surfaces=surfaces, fluence=fluence,
+                                 table=table if aniso else None, nk=nk if aniso else 0,
+                                 slope=slope_in if linear else None)
     if per_w:  # equilibrium guess for horizontal rays that never leave a periodic domain
         init = jnp.broadcast_to(source(xs[0][0]), (M, D, nu, nv)).astype(dt)
     else:

@@ -1,4 +1,4 @@
-"""The isotropic step scheme's slab step as one Pallas kernel (the GPU's face sweep, issue 20).
+"""A face sweep's slab step as one Pallas kernel (the GPU's face sweep, issue 20).
 
 ``_sweep_face_batched`` does a slab step as about four passes over the carried radiance
 (M, D, nu, nv): the shift (a vmapped ``dynamic_slice`` of a padded copy), the fog step, the
@@ -7,8 +7,9 @@ one pass: each program takes one plane m of the slab, a tile of (TU, TV) nodes a
 ``2M + 1`` directions; for each direction it reads the carry shifted by (p, q) (open sides:
 ``bc``; periodic: wrapped), applies the same arithmetic as the batched program (the module
 doc of ``_kernel.py``: the step update in two half-segments, Λ from the segment's mean
-radiance, a blocked arrival carrying B), writes the radiance leaving, and sums Λ and E over
-its directions.  Each direction block writes its own partial Λ and E; XLA adds the blocks in
+radiance, a blocked arrival carrying B; the linear scheme's three-part node update; a
+direction's source from the moments' and the sun's channels), writes the radiance leaving,
+and sums Λ (and its moments) and E over its directions.  Each direction block writes its own partial Λ and E; XLA adds the blocks in
 a fixed order, so the result does not depend on scheduling (deterministic, like the rest).
 
 On a GPU (CUDA or ROCm) the kernel goes through Pallas's Triton backend; on a CPU, which
@@ -16,8 +17,9 @@ Pallas cannot compile for, it runs in Pallas's interpret mode, slowly, so that t
 check it against the batched program (the reference) on any machine.  Values only: the
 derivatives of ``sweep_face`` come from the batched program, as for the other kernels.
 
-Scope: the isotropic step scheme (no moments, no linear source, no sub-steps),
-on one device's whole plane (no halo).  Elsewhere ``sweep_face`` runs the batched program.
+Scope: the step and linear schemes, isotropic fog or with moments (δ-M) and the sun's phase
+channel, on one device's whole plane.  The sub-stepped scheme and a device mesh's halo run
+the batched program.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
+
+from ..._numerics import linear_source_terms
 
 #: nodes per program: TILE_U rows × TILE_V columns of the plane (powers of two, as Triton's
 #: tensors must be); a program loops over one block of 2M + 1 directions.
@@ -49,9 +53,14 @@ def _ome(tau):
     return jnp.where(small, series, -jnp.expm1(-ts) / ts)
 
 
-def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, carry_ref, q_ref, b_ref, t_ref,
-            keep_ref, n_ref, bits_ref, out_ref, lam_ref, irr_ref, *, M: int, nu: int, nv: int,
-            per_u: bool, per_v: bool, surfaces: bool, fluence: bool):
+def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carry_ref, q_ref,
+            b_ref, t_ref, keep_ref, n_ref, bits_ref, out_ref, lam_ref, irr_ref, *, M: int,
+            nu: int, nv: int, per_u: bool, per_v: bool, surfaces: bool, fluence: bool, nj: int,
+            nk: int, linear: bool):
+    """One program: plane m of the slab, a (TILE_U, TILE_V) tile, directions
+    [blk·(2M+1), (blk+1)·(2M+1)).  q_ref: (1 + nj [+ 3], M, nu, nv) the source channels (the
+    isotropic source; those direction d weights by ``table_ref[d]``, the moments' nk first;
+    with the linear scheme the slope h∇Q); lam_ref: (2M+1, 1 + nk, M, nu, nv) per block."""
     P = 2 * M + 1
     m = pl.program_id(0)
     u = pl.program_id(1) * TILE_U + jax.lax.broadcasted_iota(jnp.int32, (TILE_U, 1), 0)
@@ -60,10 +69,10 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, carry_ref, q_ref, b_ref, t
     inside = (u < nu) & (v < nv)
     uc = jnp.minimum(u, nu - 1)
     vc = jnp.minimum(v, nv - 1)
-    q = q_ref[m, uc, vc]
+    qch = [q_ref[c, m, uc, vc] for c in range(1 + nj + (3 if linear else 0))]
     ts = t_ref[m, uc, vc]
     keep = keep_ref[m, uc, vc] != 0
-    dt = q.dtype
+    dt = ts.dtype
     if surfaces:
         bsurf = b_ref[m, uc, vc]
         nrm = [n_ref[c, m, uc, vc] for c in range(3)]
@@ -85,68 +94,98 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, carry_ref, q_ref, b_ref, t
         ok = oku if okv is None else (okv if oku is None else oku & okv)
         if ok is not None:  # open sides: the radiance entering from outside the domain
             r_mid = jnp.where(ok, r_mid, bc_ref[d])
+        q = qch[0]
+        for j in range(nj):  # this direction's source: the moments', the sun's phase
+            q = q + qch[1 + j] * table_ref[d, j]
         tau = ts * len_ref[d]
         em = jnp.expm1(-tau)
-        r_arr = r_mid + em * (r_mid - q)
-        r_avg = q + (r_mid - q) * _ome(2.0 * tau)
+        if linear:  # the source linear along the segment (``_kernel._linear_node``)
+            sl = sum(qch[1 + nj + c] * slope_ref[d, c] for c in range(3))
+            phi, psi = linear_source_terms(tau)[:2]
+            omp_half = 0.5 * tau * psi
+            a = r_mid - q + 0.5 * sl
+            r_arr = r_mid + em * a + omp_half * sl
+            b = r_arr - q
+            r_through = r_arr + em * b + omp_half * sl
+            r_avg = q + 0.5 * phi * (a + b) - 0.5 * psi * sl
+        else:
+            r_arr = r_mid + em * (r_mid - q)
+            r_avg = q + (r_mid - q) * _ome(2.0 * tau)
         if surfaces:
             blocked = ((bits_ref[m, d // 8, uc, vc].astype(jnp.int32) >> (d % 8)) & 1) > 0
             r_arr = jnp.where(blocked, bsurf, r_arr)
             r_avg = jnp.where(blocked, q + (bsurf - q) * _ome(tau), r_avg)
+            if linear:  # blocked: a constant source in the departure half
+                r_through = jnp.where(blocked, bsurf + em * (bsurf - q), r_through)
+        if not linear:
+            r_through = r_arr + em * (r_arr - q)
         w = w_ref[d]
         if fluence:
-            lam = lam + r_avg * w
-        r_through = r_arr + em * (r_arr - q)
+            wa = r_avg * w
+            lam = (lam[0] + wa,) + tuple(lam[1 + c] + wa * table_ref[d, c] for c in range(nk))
         if surfaces:
             ldotn = nrm[0] * unit_ref[d, 0] + nrm[1] * unit_ref[d, 1] + nrm[2] * unit_ref[d, 2]
             irr = irr + r_arr * jnp.maximum(-ldotn, 0.0) * w
-        plt.store(out_ref.at[m, d, u, v], jnp.where(keep, r_through, 0.0).astype(dt), mask=inside)
+        plt.store(out_ref.at[m, d, u, v], jnp.where(keep, r_through, 0.0).astype(dt),
+                  mask=inside)
         return lam, irr
 
     zero = jnp.zeros((TILE_U, TILE_V), dt)
-    lam, irr = jax.lax.fori_loop(0, P, body, (zero, zero))
-    plt.store(lam_ref.at[blk, m, u, v], lam, mask=inside)
+    lam, irr = jax.lax.fori_loop(0, P, body, ((zero,) * (1 + nk), zero))
+    for c in range(1 + nk):
+        plt.store(lam_ref.at[blk, c, m, u, v], lam[c], mask=inside)
     plt.store(irr_ref.at[blk, m, u, v], irr, mask=inside)
 
 
 @functools.lru_cache(maxsize=None)
 def _call(M: int, nu: int, nv: int, dtype: str, per_u: bool, per_v: bool, surfaces: bool,
-          fluence: bool, interpret: bool):
+          fluence: bool, interpret: bool, nj: int = 0, nk: int = 0, linear: bool = False):
     P = 2 * M + 1
     D = P * P
     dt = np.dtype(dtype)
     grid = (M, -(-nu // TILE_U), -(-nv // TILE_V), P)
     kern = functools.partial(_kernel, M=M, nu=nu, nv=nv, per_u=per_u, per_v=per_v,
-                             surfaces=surfaces, fluence=fluence)
+                             surfaces=surfaces, fluence=fluence, nj=nj, nk=nk, linear=linear)
     out_shape = (jax.ShapeDtypeStruct((M, D, nu, nv), dt),
-                 jax.ShapeDtypeStruct((P, M, nu, nv), dt),
+                 jax.ShapeDtypeStruct((P, 1 + nk, M, nu, nv), dt),
                  jax.ShapeDtypeStruct((P, M, nu, nv), dt))
     params = {}
     if not interpret:
         params["compiler_params"] = plt.CompilerParams(num_warps=4, num_stages=1)
     return pl.pallas_call(kern, out_shape=out_shape, grid=grid, interpret=interpret,
-                           name="difffog_slab_step", **params)
+                          name="difffog_slab_step", **params)
 
 
 def slab_step(carry, slab, *, pq, length, weight, bc, unit, M: int, periodic_uv, surfaces: bool,
-              fluence: bool, interpret: bool | None = None):
+              fluence: bool, table=None, nk: int = 0, slope=None, interpret: bool | None = None):
     """One slab step of the batched program (``_sweep_face_batched``'s ``step``), one kernel.
 
     carry: (M, D, nu, nv) the radiance leaving the previous slab's planes; slab: the step's
     (Q, B, τ/2 per |L|, free, surf, normal (3, M, nu, nv), blocking bytes (M, ⌈D/8⌉, nu, nv)),
-    as the batched program slices them.  Returns (carry', (Λ, E)), Λ and E (M, nu, nv).
+    as the batched program slices them: Q (M, nu, nv) for an isotropic fog with the step
+    scheme, else (M, nu, nv, 1 + J [+ 3]) with ``table`` (D, J) the per-direction weights of
+    its J channels (the nk moments first; ``_kernel._source_table``) and ``slope`` (D, 3) the
+    linear scheme's lattice vectors.  Returns (carry', (Λ, E)): Λ (M, nu, nv), or
+    (M, nu, nv, 1 + nk) with moments, E (M, nu, nv).
     """
     Qs, Bs, ts, fs, ss, ns, bits = slab
     _, D, nu, nv = carry.shape
     dt = carry.dtype
     if interpret is None:
         interpret = interpret_mode()
+    nj = 0 if table is None else int(table.shape[1])
+    linear = slope is not None
+    qch = Qs[None] if Qs.ndim == 3 else jnp.moveaxis(Qs, -1, 0)
     keep = (fs | ss) if surfaces else fs
     call = _call(M, nu, nv, dt.name, bool(periodic_uv[0]), bool(periodic_uv[1]),
-                 bool(surfaces), bool(fluence), bool(interpret))
+                 bool(surfaces), bool(fluence), bool(interpret), nj, int(nk), linear)
+    table = jnp.zeros((D, 1), dt) if table is None or nj == 0 else table.astype(dt)
+    slope = jnp.zeros((D, 3), dt) if slope is None else slope.astype(dt)
     out, lam, irr = call(pq.astype(jnp.int32), length.astype(dt), weight.astype(dt),
-                         bc.astype(dt), unit.astype(dt), carry, Qs.astype(dt), Bs.astype(dt),
-                         ts.astype(dt), keep.astype(jnp.uint8), ns.astype(dt),
+                         bc.astype(dt), unit.astype(dt), table, slope, carry, qch.astype(dt),
+                         Bs.astype(dt), ts.astype(dt), keep.astype(jnp.uint8), ns.astype(dt),
                          bits.astype(jnp.uint8))
     # the direction blocks' partial sums, added in a fixed order
-    return out, (lam.sum(0), irr.sum(0))
+    lam = lam.sum(0)
+    lam = lam[0] if Qs.ndim == 3 or nk == 0 else jnp.moveaxis(lam, 0, -1)
+    return out, (lam, irr.sum(0))

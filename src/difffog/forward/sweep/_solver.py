@@ -916,9 +916,10 @@ class SweepSolver(eqx.Module):
     kernel: the program of a face sweep (``_kernel.KERNELS``): "loop" (cache-tiled loops over
         row tiles and directions: 2-3x faster on a CPU), "batched" (all directions of a slab
         in one array: 130x faster than "loop" on an H100, measured), "pallas" (the batched
-        program with each slab step of the isotropic step scheme as one Pallas kernel, one
-        pass over the carried radiance instead of about four: Triton on a GPU, where its speed
-        is not yet measured; interpreted, slowly, on a CPU; other schemes run "batched"), or
+        program with each slab step as one Pallas kernel, one pass over the carried radiance
+        instead of about four: Triton on a GPU, where its speed is not yet measured;
+        interpreted, slowly, on a CPU; the sub-stepped scheme and a device mesh run
+        "batched"), or
         "auto" (default): the one for JAX's default backend (``kernel_for``: "loop" on a CPU,
         "batched" elsewhere).  Same values and derivatives.
     phase_order: the order L of the Henyey–Greenstein phase in the light solve (δ-M scaling,
