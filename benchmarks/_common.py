@@ -9,7 +9,6 @@ scripts import it as ``import _common`` (``python benchmarks/<script>.py`` puts 
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import json
 import os
 import platform
@@ -120,24 +119,11 @@ def xla_mib(compiled, what: str = "temp") -> float:
 
 # ----------------------------------------------------------------------------- the machine
 def copy_bandwidth(nbytes: int = 256 * MIB, repeat: int = 5, threads: int = 1) -> float:
-    """The machine's copy bandwidth in GB/s (bytes read + bytes written per second, median of
-    ``repeat``): NumPy ``copyto`` of a float32 array of ``nbytes`` into a preallocated one,
-    split over ``threads`` threads (``copyto`` releases the GIL)."""
-    n = nbytes // 4
-    src = np.random.default_rng(0).random(n, dtype=np.float32)
-    dst = np.empty_like(src)
-    parts = [slice(i * n // threads, (i + 1) * n // threads) for i in range(threads)]
-    with cf.ThreadPoolExecutor(threads) as pool:
-        def copy():
-            list(pool.map(lambda s: np.copyto(dst[s], src[s]), parts))
+    """The machine's copy bandwidth in GB/s (``difffog._cost.copy_bandwidth``; imported here,
+    not at the top, so that a script can set XLA_FLAGS before JAX loads)."""
+    from difffog._cost import copy_bandwidth as measure
 
-        copy()  # page in
-        times = []
-        for _ in range(repeat):
-            t = time.perf_counter()
-            copy()
-            times.append(time.perf_counter() - t)
-    return 2 * nbytes / statistics.median(times) / GB
+    return measure(nbytes, repeat, threads)
 
 
 def device_copy_bandwidth(nbytes: int = 256 * MIB, repeat: int = 5) -> float:

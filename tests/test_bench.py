@@ -142,7 +142,15 @@ def test_summary_has_presets_and_equal_error_tables(tmp_path):
                  bias=0.0) for lv, t, e in (("draft", 1.0, 0.2), ("default", 4.0, 0.1))]
     rows += [dict(solver="mitsuba3 (references' run)", scene="s", setting="4 spp", spp=4,
                   time_s=t, error=e) for t, e in ((2.0, 0.2), (8.0, 0.1))]
-    md = _bench.summary_markdown(rows)
+    machine = {"start": _bench.run_machine()}
+    start = machine["start"]
+    assert start["copy_all"] > 0 and start["copy_1"] > 0 and start["cores"] >= 1
+    machine["end"] = dict(start, copy_1=1.5, copy_all=2.5, load="9.00 / 9.00 / 9.00")
+    md = _bench.summary_markdown(rows, machine)
+    assert md.startswith("# difffog bench\n")
+    assert (f"{start['copy_1']:.1f} GB/s on one thread, {start['copy_all']:.1f} GB/s on "
+            f"{start['cores']} at the start; 1.5 / 2.5 GB/s at the end") in md
+    assert "9.00 / 9.00 / 9.00 at the end" in md
     assert "| sweep | draft | N32 M2 tol0.001 | 1.00 | 2.0 | 20.0 | 1 |" in md
     assert "| sweep | s | N64 M3 tol0.0001 | 10.0 | 4.00 | 7.0 | 8.00 | 2.0× |" in md
     p = tmp_path / "bench.csv"

@@ -500,6 +500,34 @@ def machine_line(info: dict | None = None) -> str:
     return f"{m['backend']}, {n} device{'s' if n != 1 else ''} ({m['device_kind']}), JAX {m['jax']}"
 
 
+def copy_bandwidth(nbytes: int = 256 * 2**20, repeat: int = 5, threads: int = 1) -> float:
+    """The machine's copy bandwidth in GB/s (bytes read + bytes written per second, median of
+    ``repeat``): NumPy ``copyto`` of a float32 array of ``nbytes`` into a preallocated one,
+    split over ``threads`` threads (``copyto`` releases the GIL).  The roofline that speed
+    figures are stated against, measured in the same run as they are."""
+    import concurrent.futures as cf
+    import statistics
+    import time
+
+    import numpy as np
+
+    n = nbytes // 4
+    src = np.random.default_rng(0).random(n, dtype=np.float32)
+    dst = np.empty_like(src)
+    parts = [slice(i * n // threads, (i + 1) * n // threads) for i in range(threads)]
+    with cf.ThreadPoolExecutor(threads) as pool:
+        def copy():
+            list(pool.map(lambda s: np.copyto(dst[s], src[s]), parts))
+
+        copy()  # page in
+        times = []
+        for _ in range(repeat):
+            t = time.perf_counter()
+            copy()
+            times.append(time.perf_counter() - t)
+    return 2 * nbytes / statistics.median(times) / 1e9
+
+
 def available_bytes(backend: str | None = None) -> tuple[int, str]:
     """(bytes, what) the run can use: the GPU's memory, else the host's available RAM."""
     backend = backend or _backend()

@@ -12,6 +12,10 @@ renders every camera of the scene and records:
 * ``error``: relative RMSE against the reference with the reference's own noise removed in
   quadrature, averaged over the scene's cameras; ``bias``: mean(image)/mean(ref) − 1.
 
+``bench.md`` opens with the machine: JAX's backend and devices, the CPU, and its copy bandwidth
+(one thread and all cores) measured at the start and at the end of the run, the roofline the
+times are to be read against (a busy machine shows as a drop between the two).
+
 Mitsuba 3 (the peer a user would pick instead) enters with the time-versus-error curve the
 references' authors measured on this project's 2-core machine (``convergence.csv``: samples per
 pixel as its knob; wall time summed over the scene's cameras).  It is not re-run here.
@@ -173,6 +177,7 @@ def run_bench(*, scenes: list[str], solvers: list[str], out: Path,
             for st in (entry.quick if quick else entry.study):
                 jobs.append((s, n, dict(st)))
     rows = []
+    machine = {"start": run_machine()}
     meter = as_meter(progress, "bench")
     for i, (s, n, st) in enumerate(jobs):
         try:
@@ -181,6 +186,7 @@ def run_bench(*, scenes: list[str], solvers: list[str], out: Path,
             pass  # outside this solver's light model (it says so when asked directly)
         meter.update(i + 1, len(jobs), run=f"{s} {n} {setting_label(st)}")
     meter.close()
+    machine["end"] = run_machine()
     rows += mitsuba_rows(refdir, scenes)
     with atomic_folder(out) as tmp:
         with (tmp / "bench.csv").open("w", newline="") as f:
@@ -190,7 +196,7 @@ def run_bench(*, scenes: list[str], solvers: list[str], out: Path,
                 w.writerow({k: _fmt(r.get(k, "")) for k in FIELDS})
         fig = pareto_figure(rows)
         fig.savefig(tmp / "pareto.png", dpi=120)
-        (tmp / "bench.md").write_text(summary_markdown(rows))
+        (tmp / "bench.md").write_text(summary_markdown(rows, machine))
     out = Path(out)
     return BenchResult(rows, out / "bench.csv", out / "pareto.png", out / "bench.md")
 
@@ -239,9 +245,49 @@ def pareto_figure(rows: list[dict]):
     return fig
 
 
-def summary_markdown(rows: list[dict]) -> str:
-    lines = ["| solver | scene | setting | warm s | compile s | setup s | XLA MiB | iterations "
-             "| error % | bias % |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+def run_machine() -> dict:
+    """Where a study runs, measured now: ``_cost.machine`` (backend, devices, JAX), the CPU's
+    name and cores, the load average, and the copy bandwidth in GB/s on one thread and on all
+    cores."""
+    import os
+    import platform
+
+    from .._cost import copy_bandwidth, machine
+
+    info = machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            info["cpu"] = next(ln.split(":", 1)[1].strip() for ln in f
+                               if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        info["cpu"] = platform.processor() or platform.machine()
+    info["cores"] = os.cpu_count() or 1
+    try:
+        info["load"] = " / ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        info["load"] = "n/a"
+    info["copy_1"] = copy_bandwidth(threads=1)
+    info["copy_all"] = copy_bandwidth(threads=info["cores"])
+    return info
+
+
+def machine_markdown(machine: dict) -> list[str]:
+    """The run's machine as markdown lines (``run_machine`` at the start and the end)."""
+    from .._cost import machine_line
+
+    s, e = machine["start"], machine.get("end", machine["start"])
+    return [f"- {machine_line(s)}; {s['cpu']}, {s['cores']} cores",
+            f"- copy bandwidth (NumPy copy of 256 MiB float32, bytes read + written): "
+            f"{s['copy_1']:.1f} GB/s on one thread, {s['copy_all']:.1f} GB/s on {s['cores']} "
+            f"at the start; {e['copy_1']:.1f} / {e['copy_all']:.1f} GB/s at the end",
+            f"- load average (1/5/15 min) {s['load']} at the start, {e['load']} at the end"]
+
+
+def summary_markdown(rows: list[dict], machine: dict | None = None) -> str:
+    head = (["# difffog bench", "", *machine_markdown(machine), ""] if machine else [])
+    lines = head + ["| solver | scene | setting | warm s | compile s | setup s | XLA MiB "
+                    "| iterations | error % | bias % |",
+                    "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         if r["solver"].startswith("mitsuba"):
             continue
