@@ -124,3 +124,21 @@ def test_without_a_compiler_the_xla_loop_serves(tmp_path, monkeypatch, x64, nati
     monkeypatch.setenv("DIFFFOG_NATIVE", "0")
     _native._STATE.clear()
     assert not _native.available() and "turned off" in _native.status()
+
+
+def test_old_builds_are_pruned(tmp_path):
+    """Builds of other sources, compilers or CPUs are deleted once not loaded for
+    ``PRUNE_DAYS``; recent ones, the one being kept and other files stay."""
+    import time
+
+    now = time.time()
+    ages = {"sweep_face-old.so": 40, "sweep_face-recent.so": 5, "sweep_face-keep.so": 90,
+            "notes.txt": 90}
+    for name, days in ages.items():
+        p = tmp_path / name
+        p.write_bytes(b"x")
+        os.utime(p, (now - days * 86400, now - days * 86400))
+    gone = _native._prune(tmp_path, keep=tmp_path / "sweep_face-keep.so")
+    assert gone == [tmp_path / "sweep_face-old.so"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "sweep_face-keep.so",
+                                                          "sweep_face-recent.so"]

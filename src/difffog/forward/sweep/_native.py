@@ -43,6 +43,9 @@ TARGET = "difffog_sweep_face"
 _SOURCE = Path(__file__).with_name("native") / "sweep_face.cc"
 _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-simd",
           "-fno-math-errno", "-fno-trapping-math", "-pthread"]
+#: builds not loaded for this many days are deleted when another is built (one per source,
+#: compiler, jaxlib or CPU change, ~100 KB each; a machine that still uses one rebuilds it)
+PRUNE_DAYS = 30
 #: the per-node data of a row tile, bytes (about half of one core's L2 on this project's CPU)
 TILE_BYTES = 448 * 1024
 _LOCK = threading.Lock()
@@ -112,6 +115,10 @@ def _build() -> Path:
         folder.mkdir(parents=True, exist_ok=True)
     lib = folder / f"sweep_face-{key.hexdigest()[:16]}.so"
     if lib.exists():
+        try:
+            os.utime(lib)  # in use: kept by the pruning below
+        except OSError:
+            pass
         return lib
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
     os.close(fd)
@@ -122,7 +129,25 @@ def _build() -> Path:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+    _prune(folder, keep=lib)
     return lib
+
+
+def _prune(folder: Path, keep: Path, days: float = PRUNE_DAYS) -> list[Path]:
+    """Delete the kernel's builds in ``folder`` (other than ``keep``) not loaded for ``days``
+    (their modification time, which a load refreshes); returns what was deleted."""
+    import time
+
+    old = time.time() - days * 86400.0
+    gone = []
+    for p in folder.glob("sweep_face-*.so"):
+        try:
+            if p != keep and p.stat().st_mtime < old:
+                p.unlink()
+                gone.append(p)
+        except OSError:  # another process's, or already gone
+            pass
+    return gone
 
 
 def available() -> bool:
