@@ -4,13 +4,14 @@
 (M, D, nu, nv): the shift (a vmapped ``dynamic_slice`` of a padded copy), the fog step, the
 blocking, and the reductions over directions for Λ and E.  Here one kernel does all of it in
 one pass: each program takes one plane m of the slab, a tile of (TU, TV) nodes and a block of
-``2M + 1`` directions; for each direction it reads the carry shifted by (p, q) (open sides:
-``bc``; periodic: wrapped), applies the same arithmetic as the batched program (the module
-doc of ``_kernel.py``: the step update in two half-segments, Λ from the segment's mean
-radiance, a blocked arrival carrying B; the linear scheme's three-part node update; a
-direction's source from the moments' and the sun's channels), writes the radiance leaving,
-and sums Λ (and its moments) and E over its directions.  Each direction block writes its own partial Λ and E; XLA adds the blocks in
-a fixed order, so the result does not depend on scheduling (deterministic, like the rest).
+about 32 directions (``direction_block``); for each direction it reads the carry shifted by
+(p, q) (open sides: ``bc``; periodic: wrapped), applies the same arithmetic as the batched
+program (the module doc of ``_kernel.py``: the step update in two half-segments, Λ from the
+segment's mean radiance, a blocked arrival carrying B; the linear scheme's three-part node
+update; a direction's source from the moments' and the sun's channels), writes the radiance
+leaving, and sums Λ (and its moments) and E over its directions.  Each direction block writes
+its own partial Λ and E; XLA adds the blocks in a fixed order, so the result does not depend
+on scheduling (deterministic, like the rest).
 
 On a GPU (CUDA or ROCm) the kernel goes through Pallas's Triton backend; on a CPU, which
 Pallas cannot compile for, it runs in Pallas's interpret mode, slowly, so that the tests
@@ -35,9 +36,21 @@ from jax.experimental.pallas import triton as plt
 from ..._numerics import linear_source_terms
 
 #: nodes per program: TILE_U rows × TILE_V columns of the plane (powers of two, as Triton's
-#: tensors must be); a program loops over one block of 2M + 1 directions.
+#: tensors must be)
 TILE_U = 16
 TILE_V = 32
+#: directions per program, about: whole rows of 2M + 1 directions (p fixed).  Each block
+#: re-reads the tile's node data (source channels, τ, B, normal) and writes its partial Λ
+#: (1 + K channels) and E, so fewer, larger blocks cost less traffic; more blocks give the GPU
+#: more programs (N = 128, M = 5: 5 planes × 45 tiles × 4 blocks of 33 = 900)
+DIRECTIONS_PER_PROGRAM = 32
+
+
+def direction_block(M: int) -> int:
+    """Directions per program at half-width M: whole rows of 2M + 1, about
+    ``DIRECTIONS_PER_PROGRAM`` (M = 2: all 25; M = 3: 35; M = 5: 33)."""
+    P = 2 * M + 1
+    return P * min(P, max(1, -(-DIRECTIONS_PER_PROGRAM // P)))
 
 
 def interpret_mode(backend: str | None = None) -> bool:
@@ -58,10 +71,11 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carr
             nu: int, nv: int, per_u: bool, per_v: bool, surfaces: bool, fluence: bool, nj: int,
             nk: int, linear: bool):
     """One program: plane m of the slab, a (TILE_U, TILE_V) tile, directions
-    [blk·(2M+1), (blk+1)·(2M+1)).  q_ref: (1 + nj [+ 3], M, nu, nv) the source channels (the
+    [blk·BD, min((blk+1)·BD, D)) (BD = ``direction_block(M)``).  q_ref: (1 + nj [+ 3], M, nu, nv) the source channels (the
     isotropic source; those direction d weights by ``table_ref[d]``, the moments' nk first;
-    with the linear scheme the slope h∇Q); lam_ref: (2M+1, 1 + nk, M, nu, nv) per block."""
-    P = 2 * M + 1
+    with the linear scheme the slope h∇Q); lam_ref: (blocks, 1 + nk, M, nu, nv)."""
+    D = (2 * M + 1) ** 2
+    BD = direction_block(M)
     m = pl.program_id(0)
     u = pl.program_id(1) * TILE_U + jax.lax.broadcasted_iota(jnp.int32, (TILE_U, 1), 0)
     v = pl.program_id(2) * TILE_V + jax.lax.broadcasted_iota(jnp.int32, (1, TILE_V), 1)
@@ -87,7 +101,7 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carr
 
     def body(k, acc):
         lam, irr = acc
-        d = blk * P + k
+        d = blk * BD + k
         su, oku = shifted(uc, pq_ref[d, 0], nu, per_u)
         sv, okv = shifted(vc, pq_ref[d, 1], nv, per_v)
         r_mid = carry_ref[m, d, su, sv]
@@ -131,7 +145,8 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carr
         return lam, irr
 
     zero = jnp.zeros((TILE_U, TILE_V), dt)
-    lam, irr = jax.lax.fori_loop(0, P, body, ((zero,) * (1 + nk), zero))
+    count = jnp.minimum(BD, D - blk * BD)  # the last block may be shorter
+    lam, irr = jax.lax.fori_loop(0, count, body, ((zero,) * (1 + nk), zero))
     for c in range(1 + nk):
         plt.store(lam_ref.at[blk, c, m, u, v], lam[c], mask=inside)
     plt.store(irr_ref.at[blk, m, u, v], irr, mask=inside)
@@ -140,15 +155,15 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carr
 @functools.lru_cache(maxsize=None)
 def _call(M: int, nu: int, nv: int, dtype: str, per_u: bool, per_v: bool, surfaces: bool,
           fluence: bool, interpret: bool, nj: int = 0, nk: int = 0, linear: bool = False):
-    P = 2 * M + 1
-    D = P * P
+    D = (2 * M + 1) ** 2
+    nblk = -(-D // direction_block(M))
     dt = np.dtype(dtype)
-    grid = (M, -(-nu // TILE_U), -(-nv // TILE_V), P)
+    grid = (M, -(-nu // TILE_U), -(-nv // TILE_V), nblk)
     kern = functools.partial(_kernel, M=M, nu=nu, nv=nv, per_u=per_u, per_v=per_v,
                              surfaces=surfaces, fluence=fluence, nj=nj, nk=nk, linear=linear)
     out_shape = (jax.ShapeDtypeStruct((M, D, nu, nv), dt),
-                 jax.ShapeDtypeStruct((P, 1 + nk, M, nu, nv), dt),
-                 jax.ShapeDtypeStruct((P, M, nu, nv), dt))
+                 jax.ShapeDtypeStruct((nblk, 1 + nk, M, nu, nv), dt),
+                 jax.ShapeDtypeStruct((nblk, M, nu, nv), dt))
     params = {}
     if not interpret:
         params["compiler_params"] = plt.CompilerParams(num_warps=4, num_stages=1)
