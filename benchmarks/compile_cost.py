@@ -26,11 +26,15 @@ import _common as C  # noqa: E402
 
 
 def _program(fn, *args):
-    """(lines, while loops, functions, lowering s, compile s) of ``jax.jit(fn)`` at ``args``."""
-    import jax
+    """(lines, while loops, functions, lowering s, compile s) of ``eqx.filter_jit(fn)`` at
+    ``args``.  The model is passed as an argument, as ``light_jit`` and ``images_jit`` do: a
+    closed-over model would bake its lattice into the program as constants (at N = 64, 120 MB
+    of StableHLO, and XLA's time spent copying and folding them, not compiling)."""
+    import equinox as eqx
+
 
     t0 = time.perf_counter()
-    low = jax.jit(fn).lower(*args)
+    low = eqx.filter_jit(fn).lower(*args)
     t1 = time.perf_counter()
     low.compile()
     t2 = time.perf_counter()
@@ -44,7 +48,7 @@ def main(argv=None):
     ap.add_argument("--scene", default="fog-balls")
     ap.add_argument("--N", type=int, default=12)
     ap.add_argument("--M", type=int, default=2)
-    ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched"])
+    ap.add_argument("--kernel", default="auto", choices=["auto", "loop", "batched", "pallas"])
     ap.add_argument("--parts", action="store_true",
                     help="also the light solve's parts: its problem (first-collision sun and "
                          "sky), one Jacobi step, one sweep of all faces, GMRES alone")
@@ -63,13 +67,14 @@ def main(argv=None):
     model = df.forward_model(scene, "sweep", accuracy=None, resolution=a.N, M=a.M, tol=1e-6,
                              supersample=1, kernel=a.kernel)
     p = model.params()
-    light = jax.eval_shape(lambda q: model.light(q), p)  # the cameras' program needs its shapes only
-    rows = [("light solve", _program(lambda q: model.light(q), p)),
-            ("cameras (images from a light)", _program(lambda l, q: model.images_from(l, q),
+    light = model.light(p)  # the cameras' program's input (eqx.filter_jit traces arrays only)
+    rows = [("light solve", _program(lambda m, q: m.light(q), model, p)),
+            ("cameras (images from a light)", _program(lambda m, l, q: m.images_from(l, q), model,
                                                         light, p)),
-            ("images (both)", _program(lambda q: model.images(q, throw=False), p)),
-            ("gradient of Σ images", _program(jax.grad(
-                lambda q: sum(jnp.sum(v) for v in model.images(q, throw=False).values())), p))]
+            ("images (both)", _program(lambda m, q: m.images(q, throw=False), model, p)),
+            ("gradient of Σ images", _program(lambda m, q: jax.grad(
+                lambda r: sum(jnp.sum(v) for v in m.images(r, throw=False).values()))(q),
+                model, p))]
     if a.parts:
         rows += _parts(model, p)
     out = [f"# Compile cost of a sweep model ({a.scene}{' reduced' if a.scene == 'fog-balls' else ''}, "
@@ -95,14 +100,12 @@ def _parts(model, p):
     from difffog.forward.sweep import _krylov
     from difffog.forward.sweep import _solver as S
 
-    solver = model.solver
+    def problem(m, q):
+        geom, cg, _, _ = m._with_density(q, cameras=False)
+        geom, *_ = m._with_sun(q, geom, cg, None)
+        return m.solver.problem(geom, q)
 
-    def problem(q):
-        geom, cg, _, _ = model._with_density(q, cameras=False)
-        geom, *_ = model._with_sun(q, geom, cg, None)
-        return solver.problem(geom, q)
-
-    pb = problem(p)
+    pb = problem(model, p)
     state = S._zero_state(pb)
 
     def gmres_alone(b):  # its loop, Arnoldi, rotations and error estimate; K = b/2
@@ -110,11 +113,12 @@ def _parts(model, p):
                              b.dtype, restart=pb.restart, max_matvecs=pb.max_iterations,
                              tol=pb.tol)
 
-    return [("part: the problem (first-collision sun and sky)", _program(problem, p)),
+    return [("part: the problem (first-collision sun and sky)", _program(problem, model, p)),
             ("part: the problem + one sweep of all faces (traced Q, B)",
-             _program(lambda q, s: S._sweep_all(s[1], s[1], problem(q)), p, state)),
+             _program(lambda m, q, s: S._sweep_all(s[1], s[1], problem(m, q)), model, p,
+                      state)),
             ("part: the problem + one Jacobi step (traced state)",
-             _program(lambda q, s: S._jacobi(s, problem(q)), p, state)),
+             _program(lambda m, q, s: S._jacobi(s, problem(m, q)), model, p, state)),
             ("part: GMRES alone (a trivial operator)",
              _program(gmres_alone, jnp.ones(state[0].size, state[0].dtype)))]
 
