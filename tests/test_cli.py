@@ -24,8 +24,8 @@ def test_info_summarizes_scene(capsys):
     if jax.default_backend() == "cpu":  # which program sweeps the step scheme, and why
         from difffog.forward.sweep import _native
 
-        assert (("sweep kernel: loop (step scheme: native C++)" in out) == _native.available())
-        assert "step scheme: native C++" in out or "step scheme: XLA loop: " in out
+        assert (("sweep kernel: loop (native C++)" in out) == _native.available())
+        assert "loop (native C++)" in out or "loop (XLA loop: " in out
 
 
 def test_info_names_the_phase_order_of_a_forward_scattering_fog(capsys):

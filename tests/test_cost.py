@@ -134,17 +134,22 @@ def test_a_non_finite_result_names_the_inputs_that_led_there():
 def test_estimate_follows_the_scheme_the_solver_will_run(monkeypatch):
     """scheme="auto" runs the linear-source scheme where a lattice step is optically thick: the
     estimate charges its measured cost there (time ×LINEAR_COST of XLA's step loop, three slope
-    channels) and nothing in thin fog; the step scheme's native CPU sweep is charged its own
-    rate where it will run."""
-    from difffog._cost import LINEAR_COST
+    channels) and nothing in thin fog; the native CPU sweep is charged its own rates where it
+    will run (the step scheme's, and its general form's per update for the linear scheme)."""
+    from difffog._cost import CPU_NATIVE_GENERAL_S_PER_UPDATE, LINEAR_COST
     from difffog.forward.sweep import _native
     from difffog.study._semi_infinite import thick_cube
 
     thick = thick_cube(1000.0)
-    auto = df.estimate(thick, "sweep", resolution=32, M=2)
+    native_auto = df.estimate(thick, "sweep", resolution=32, M=2)
     native = df.estimate(thick, "sweep", resolution=32, M=2, scheme="step")
     will_be_native = _native.expected() and native.backend == "cpu"
+    if will_be_native:  # 6 faces × 25 directions per node, the general form's rate
+        n = math.prod(native_auto.shape)
+        assert native_auto.seconds_per_iteration == pytest.approx(
+            6 * 25 * n * CPU_NATIVE_GENERAL_S_PER_UPDATE, rel=1e-9)
     monkeypatch.setattr(_native, "expected", lambda: False)  # the XLA loop's figures below
+    auto = df.estimate(thick, "sweep", resolution=32, M=2)
     step = df.estimate(thick, "sweep", resolution=32, M=2, scheme="step")
     assert (native.seconds_per_iteration < step.seconds_per_iteration) == will_be_native
     assert auto.seconds_per_iteration == pytest.approx(step.seconds_per_iteration * LINEAR_COST,

@@ -91,6 +91,53 @@ def test_native_face_sweep_equals_the_xla_loop(M, surfaces, periodic, vol, dtype
 
 
 @needs_compiler
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+@pytest.mark.parametrize("linear,order,sun", [(True, 0, False), (False, 1, True),
+                                               (True, 1, True)])
+def test_native_general_form_equals_the_xla_loop(linear, order, sun, dtype, x64, native_off):
+    """The kernel's general form (anisotropic fog, the linear scheme): each direction's source
+    from the moments' and the sun's channels, the linear node update (its φ, ψ series near
+    τ = 0: a fifth of the nodes have no fog), Λ's moments; open sides with surfaces and fog in
+    some slabs only, and periodic sides (the initial carry from each direction's source)
+    without surfaces or fluence: Λ (and its moments), E and the exit radiance to rounding."""
+    import dataclasses
+
+    from difffog.forward.sweep._harmonics import basis
+
+    M, shape = 2, (11, 9, 7)
+    D = (2 * M + 1) ** 2
+    dt = jnp.dtype(dtype)
+    rng = np.random.default_rng(5)
+    _, B, tau, bc, geo, _ = _face(M, shape, dt, seed=5)
+    harm = basis(order, M).faces if order else None
+    consts = K.face_consts(direction_set(M), 2, harm=harm, linear=linear)
+    if sun:
+        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random(D)))
+    channels = 1 + (harm.shape[2] if order else 0) + int(sun) + (3 if linear else 0)
+    Q = jnp.asarray(np.concatenate([rng.random(shape + (1,)),
+                                    0.2 * rng.standard_normal(shape + (channels - 1,))], -1), dt)
+    args = (Q, B, tau, bc, geo, consts)
+    rtol = 1e-12 if dtype == "float64" else 2e-6
+    for periodic, surfaces, vol in [((False, False, False), True, (True, True, (3, 9))),
+                                    ((True, True, False), False, (True, False, None))]:
+        kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=surfaces, vol=vol)
+        _native._STATE.clear()
+        _native._STATE.update(ok=False, why="off (test)")
+        ref = _sweep(args, **kw)  # the XLA loop
+        _native._STATE.clear()
+        assert _native.available(), _native.status()
+        got = _sweep(args, **kw)
+        for r, g in zip(ref, got):
+            assert g.shape == r.shape and g.dtype == r.dtype
+            np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=rtol,
+                                       atol=rtol * float(jnp.max(jnp.abs(r))))
+        assert float(jnp.max(jnp.abs(got[2]))) > 0
+        if vol[1] and order:
+            assert got[0].shape == shape + (1 + harm.shape[2],)
+            assert float(jnp.max(jnp.abs(got[0][..., 1:]))) > 0  # the moments were summed
+
+
+@needs_compiler
 def test_native_face_sweep_under_vmap_is_each_member(x64):
     """A batched light solve (``render_batch``, a fit's tangents) vmaps the sweep: the custom
     call then runs once per member, each equal to its own sweep."""

@@ -83,6 +83,14 @@ CPU_UPDATES_PER_S = 0.42e9
 #: small lattices' under; benchmarks/results/cost_native.md)
 CPU_NATIVE_UPDATES_PER_S = 1.1e9
 CPU_NATIVE_SECONDS_PER_NODE = 4.8e-7
+#: the native kernel's general form (stop 64: the linear scheme, anisotropic moments), seconds
+#: per node-and-direction update, plus this per moment: cloud-plane N = 64, M = 3 (linear
+#: scheme), this 2-core CPU, copy 26.3 GB/s (bench_sweep.py --phase-order 0 1 2 3): 0.064 /
+#: 0.119 / 0.225 / 0.327 s per iteration at K = 0 / 3 / 8 / 15 moments, 0.83 / 1.54 / 2.92 /
+#: 4.24 ns per update (the XLA loop: 0.148 / 0.227 / 1.064 / 1.744 s); fog-balls M = 3 with
+#: the linear scheme 1.50 / 1.25 ns at N = 64 / 128 (0.116 / 0.770 s)
+CPU_NATIVE_GENERAL_S_PER_UPDATE = 1.2e-9
+CPU_NATIVE_S_PER_UPDATE_MOMENT = 0.23e-9
 #: an anisotropic phase (``SweepSolver.phase_order`` L, K = (L+1)² − 1 moments): the light
 #: iteration's time grows by this fraction per moment (every direction's source built from K
 #: moments, K accumulations per update).  cloud-plane N = 64, M = 3, this 2-core CPU
@@ -402,20 +410,29 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         slabs = -(-max(shape) // M)
         bodies = 6 * slabs * max(1, -(-nu // 16)) * D
         per_iter = bodies * GPU_SECONDS_PER_BODY
-    else:
+    general = False  # the native kernel's general form: its own figure (no factors below)
+    if backend != "gpu":
         rate, per_node = CPU_UPDATES_PER_S, CPU_SECONDS_PER_NODE
-        if kernel == "loop" and K == 0 and not linear and not substep:
+        native = False
+        if kernel == "loop" and not substep:
             from .forward.sweep import _native
 
-            if _native.expected():  # the step scheme's native sweep (XLA's loop without it)
+            native = _native.expected()  # the native sweep (XLA's loop without it)
+        general = native and (K > 0 or linear)
+        if general:
+            per_iter = 6 * D * n * (CPU_NATIVE_GENERAL_S_PER_UPDATE
+                                    + CPU_NATIVE_S_PER_UPDATE_MOMENT * K)
+        else:
+            if native:
                 rate, per_node = CPU_NATIVE_UPDATES_PER_S, CPU_NATIVE_SECONDS_PER_NODE
-        per_iter = 6 * D * n / rate + per_node * n
+            per_iter = 6 * D * n / rate + per_node * n
         if kernel == "batched":
             per_iter *= CPU_BATCHED_SLOWDOWN
-    # (the GPU's programs are assumed to grow alike: not measured there)
-    per_iter *= 1.0 + CPU_COST_PER_MOMENT * K
+    if not general:  # (the GPU's programs are assumed to grow alike: not measured there)
+        per_iter *= 1.0 + CPU_COST_PER_MOMENT * K
+        if linear:
+            per_iter *= LINEAR_COST
     if linear:
-        per_iter *= LINEAR_COST
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
     if substep:  # (measured on a CPU; the GPU's batched program assumed to grow alike)
         per_iter *= SUBSTEP_COST_LOOP if kernel == "loop" else SUBSTEP_COST_BATCHED

@@ -54,11 +54,10 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
         f"per face; {M + 1} vacuum nodes around open sides), {done}"
     )
     kernel = kernel_for(est.backend)
-    if kernel == "loop":  # on a CPU: the step scheme's sweep native or XLA's (and why)
+    if kernel == "loop":  # on a CPU: the sweep native or XLA's (and why)
         from ..forward.sweep import _native
 
-        kernel += " (step scheme: " + ("native C++)" if _native.available()
-                                       else _native.status() + ")")
+        kernel += " (" + ("native C++)" if _native.available() else _native.status() + ")")
     lines.append(f"backend    {machine_line()}; sweep kernel: {kernel}")
     lines += ["cost       (sweep, estimated from the settings: difffog.estimate)"]
     lines += ["  " + ln for ln in est.lines()]

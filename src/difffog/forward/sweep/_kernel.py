@@ -435,9 +435,11 @@ def _slabber(nw: int, M: int, periodic_w: bool, warmup: int):
 
 def _native_applies(aniso: bool, linear: bool, halo, dt) -> bool:
     """Whether ``_sweep_face_loop``'s values come from the native CPU kernel (``_native``):
-    the isotropic step scheme, on one device's whole plane, float32 or float64, on a CPU, where
-    the kernel is built (and ``DIFFFOG_NATIVE`` does not turn it off)."""
-    return (not aniso and not linear and halo is None and jax.default_backend() == "cpu"
+    the step and linear schemes, isotropic or with moments (its general form where Q has
+    channels), on one device's whole plane, float32 or float64, on a CPU, where the kernel is
+    built (and ``DIFFFOG_NATIVE`` does not turn it off)."""
+    del aniso, linear  # (both forms are native)
+    return (halo is None and jax.default_backend() == "cpu"
             and np.dtype(dt) in (np.float32, np.float64) and _native.available())
 
 
@@ -494,11 +496,14 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         s0, s1, fog_on = vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
     if _native_applies(aniso, linear, halo, dt):  # the same sweep as one custom call
         none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
+        table, nk = _source_table(consts, dt) if aniso else (None, 0)
         return _native.sweep_face(
             Q, B, tau_half_unit, geo.normal if surfaces else none[0],
             geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
             bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns,
-            segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic)
+            segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic,
+            table=table if aniso and table.shape[1] else None, nk=nk,
+            slope=consts.slope.astype(dt) if linear else None)
 
     # (XLA's loops from here: the slabbed inputs, then the scans)
     byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)

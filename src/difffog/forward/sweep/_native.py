@@ -1,4 +1,4 @@
-"""The step scheme's face sweep as a native CPU kernel (an XLA FFI custom call).
+"""The face sweep as a native CPU kernel (an XLA FFI custom call).
 
 ``_kernel._sweep_face_loop`` expresses the CPU sweep in XLA loops (slabs → row tiles →
 directions); XLA runs each direction's body as separate kernels, ~1.5 ns per node and
@@ -6,10 +6,12 @@ direction on this 2-core CPU whatever the tile (issue 20: 12% of the copy roofli
 ``native/sweep_face.cc`` does the same arithmetic with the planes visited one residue chain at
 a time (a ray from plane sM + m arrives at (s + 1)M + m: one chain's carry stays in the
 last-level cache), one vectorised pass per direction and row tile, and the tiles of each plane
-shared among the CPU's cores.  It serves the values of the
-isotropic step scheme on a CPU (the default for fog whose lattice steps are optically thin);
-every other case (anisotropic moments, the linear and sub-stepped schemes, a device mesh's
-halo, another backend) and every derivative stay JAX programs.
+shared among the CPU's cores.  It serves the values of the step scheme (the default for fog
+whose lattice steps are optically thin) and of the linear scheme (thick steps), isotropic or
+with a Henyey–Greenstein fog's angular moments and the sun's phase channel (the general
+form: each direction's source built from the node's channels, Λ's moments summed), on a CPU;
+the sub-stepped scheme, a device mesh's halo, another backend and every derivative stay JAX
+programs.
 
 The library is compiled on first use with the machine's C++ compiler (``$CXX``, else ``c++``)
 against jaxlib's FFI headers, into ``$XDG_CACHE_HOME/difffog/native`` (``~/.cache``), named by
@@ -194,26 +196,36 @@ def _threads() -> int:
 
 def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, unit, start, *,
                M: int, ns: int, segment: tuple[int, int, bool, bool], surfaces: bool,
-               periodic: tuple[bool, bool, bool]):
+               periodic: tuple[bool, bool, bool], table=None, nk: int = 0, slope=None):
     """The custom call: ``_sweep_face_loop``'s arrays in the face frame (nw, nu, nv[, ...]),
     unslabbed (the kernel visits the ns·M planes of its slabs itself: padding after an open
     sweep axis, a periodic one's warm-up in wrap order), and its direction constants → Λ, E
     (nw, nu, nv) and the radiance leaving the last M planes (M, D, nu, nv).  ``segment`` =
     (s0, s1, attenuate, fluence): the slabs [s0, s1) do the fog step and the fluence as told,
-    the others neither."""
+    the others neither.
+
+    The general form: Q (nw, nu, nv, 1 + J [+ 3]) with ``table`` (D, J), its first ``nk``
+    columns the moments' (Λ then (nw, nu, nv, 1 + nk) when nk > 0), and with ``slope`` (D, 3)
+    the linear scheme (Q's last three channels the slope h∇Q)."""
     import jax
     import jax.numpy as jnp
 
     dt = Q.dtype
-    nw, nu, nv = Q.shape
+    nw, nu, nv = Q.shape[:3]
+    C = 1 if Q.ndim == 3 else int(Q.shape[3])
+    J = 0 if table is None else int(table.shape[1])
+    linear = slope is not None
     D = (2 * M + 1) ** 2
     K = int(length_k.shape[0])
     nb = int(bits.shape[-1]) if surfaces else 1
     item = np.dtype(dt).itemsize
     # rows per tile: tall, so that each direction's rows stream from memory as one block, with
-    # the tile's per-node data (K factors and 2K sums, Q, B, τ, Λ, E, a normal, bytes: 3K + 12 values) in L2
-    tile = int(max(1, min(nu, TILE_BYTES // ((3 * K + 12) * nv * item))))
-    out = [jax.ShapeDtypeStruct((nw, nu, nv), dt)] * 2 + [
+    # the tile's per-node data in L2 (K factors and 2K sums, Q, B, τ, Λ, E, a normal, bytes:
+    # 3K + 12 values; the general form: C channels, 4K factors, 1 + nk sums, 8 more)
+    per_node = (3 * K + 12) if C == 1 and not linear else (C + 4 * K + 1 + nk + 8)
+    tile = int(max(1, min(nu, TILE_BYTES // (per_node * nv * item))))
+    lam_shape = (nw, nu, nv) + ((1 + nk,) if nk else ())
+    out = [jax.ShapeDtypeStruct(lam_shape, dt), jax.ShapeDtypeStruct((nw, nu, nv), dt)] + [
         jax.ShapeDtypeStruct((M, D, nu, nv), dt),
         jax.ShapeDtypeStruct((2, D, nu + 2 * M, nv + 2 * M), dt)]
     s0, s1, att, fl = segment
@@ -225,8 +237,9 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
         Q, f(B), f(tau), f(normal), jnp.asarray(bits, jnp.uint8), jnp.asarray(free, jnp.bool_),
         jnp.asarray(surf, jnp.bool_), f(bc), f(length_k), jnp.asarray(kidx, jnp.int32),
         f(weight), f(unit), jnp.asarray(start, jnp.int32),
+        f(jnp.zeros((1,)) if table is None else table), f(jnp.zeros((1,)) if slope is None else slope),
         M=i64(M), nw=i64(nw), nu=i64(nu), nv=i64(nv), ns=i64(ns), D=i64(D), K=i64(K),
         nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()), tile=i64(tile),
         surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
-        att_in=i64(att), fl_in=i64(fl))
+        att_in=i64(att), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk), linear=i64(linear))
     return lam, irr, exit_

@@ -1,11 +1,12 @@
-// One face sweep of the step scheme (isotropic fog) as a CPU kernel: the values of
-// ``_kernel._sweep_face_loop`` (the same inputs and arithmetic; the fluence's sums over the
-// directions regrouped by distinct |L|, equal to rounding), written where XLA's loops cannot go:
-// the planes visited one residue chain at a time so that the carried radiance stays in the
-// last-level cache, and per row tile the (p, q) shift, the fog step and the sums of one
-// direction in one vectorised pass, the e^{-τ|L|} factors once per node and distinct |L|, the
-// surfaces' blocking and irradiance only where there are surfaces, the tiles of each plane
-// shared among threads.
+// One face sweep as a CPU kernel: the values of ``_kernel._sweep_face_loop`` (the same inputs
+// and arithmetic; the isotropic step scheme's fluence sums regrouped by distinct |L|, equal to
+// rounding), written where XLA's loops cannot go: the planes visited one residue chain at a
+// time so that the carried radiance stays in the last-level cache, and per row tile the (p, q)
+// shift, the fog step and the sums of one direction in one vectorised pass, the e^{-τ|L|}
+// factors once per node and distinct |L|, the surfaces' blocking and irradiance only where
+// there are surfaces, the tiles of each plane shared among threads.  ``unit`` serves the
+// isotropic step scheme; ``unit_general`` the linear scheme and anisotropic fog (a source per
+// direction from the node's channels, Λ's angular moments).
 //
 // Built by ``_native.py`` with the machine's C++ compiler on first use, against jaxlib's XLA
 // FFI headers; registered as the custom call "difffog_sweep_face_<hash>" (CPU).  Derivatives
@@ -40,11 +41,17 @@ inline double em1(double x) { return expm1(x); }
 struct Dims {
   int64_t M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile;
   bool surfaces, per_w, per_u, per_v, att_in, fl_in;
+  // the general form (anisotropic fog, the linear scheme): Q has C = 1 + J (+ 3) channels per
+  // node, the isotropic source, J that direction d weights by table[d] (the NK moments first),
+  // and with the linear scheme the slope h∇Q; Λ has 1 + NK channels.  C = 1, !lin: the
+  // isotropic step scheme (``unit``).
+  int64_t C, J, NK;
+  bool lin;
 };
 
 template <typename T>
 struct Args {
-  const T *Q, *B, *tau, *normal, *bc, *length_k, *weight, *unit;
+  const T *Q, *B, *tau, *normal, *bc, *length_k, *weight, *unit, *table, *slope;
   const uint8_t *bits, *free, *surf;
   const int32_t *kidx, *start;
   T *lam, *irr, *exit, *scratch;
@@ -249,6 +256,179 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
 }
 
+
+// φ = (1 − e^{-t})/t and ψ = (1 − φ)/t (``_numerics.linear_source_terms``: their Taylor series
+// below t = 0.5, where the closed forms cancel; x = e^{-t} − 1).
+template <typename T>
+inline void phi_psi(T t, T x, T& phi, T& psi) {
+  if (std::fabs(t) < T(0.5)) {
+    T ps = T(0), ss = T(0), pw = T(1), prev = T(0), fact = T(1);  // pw = τ^n, prev = τ^(n−1)
+    for (int n = 0; n < 11; ++n) {
+      if (n) fact *= T(n);
+      const T a = ((n & 1) ? T(-1) : T(1)) / fact;
+      ps += a / T(n + 1) * pw;                // a τ^n/(n+1)
+      if (n >= 1) ss -= a / T(n + 1) * prev;  // −a τ^(n−1)/(n+1)
+      prev = pw;
+      pw *= t;
+    }
+    phi = ps;
+    psi = ss;
+  } else {
+    phi = -x / t;
+    psi = (t + x) / (t * t);
+  }
+}
+
+// The general form of ``unit`` (same rows and carries): a direction's source from the
+// node's channels, Q_0 + Σ_j table[d, j] Q_j; with the linear scheme (LIN) the source linear
+// along the segment (slope s = L·h∇Q: R at the node r_mid + em·a + ω s, leaving it R + em·b +
+// ω s, mean q + φ(a + b)/2 − ψ s/2, a = r_mid − q + s/2, b = R − q, ω = τψ/2:
+// ``_kernel._linear_node``); Λ and its NK moments Σ_d w_d Ỹ_k(d) R̄_d summed directly, per row
+// in passes over small row buffers (so that each loop vectorises); the surfaces' blocking and
+// irradiance in the same pass.
+template <typename T, bool ATT, bool SURF, bool FL, bool LIN>
+void unit_general(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int64_t p,
+                  int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>&) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  const int64_t rows = u1 - u0, n = rows * nv, C = g.C, J = g.J, NK = g.NK;
+  const int64_t off = (p * nu + u0) * nv;
+  const T* B = a.B + off;
+  const T* tau = a.tau + off;
+  const int64_t K = ATT ? g.K : 0;
+  const int64_t L1 = 1 + NK;
+  // scratch: channels (C n), per |L| factors em, A, Bf, W (4 K n), Λ and moments (L1 n), E (n),
+  // normal (3 n), row buffers q, s, R̄ (3 nv); bytes: pass (n), blocking bits (nb n)
+  const int64_t nbytes = n + (SURF ? g.nb * n : 0);
+  work.resize(size_t((C + 4 * K + L1 + 1 + (SURF ? 3 : 0)) * n + 3 * nv +
+                     (nbytes + sizeof(T) - 1) / sizeof(T)));
+  T* Qc = work.data();
+  T* em = Qc + C * n;
+  T* fa = em + K * n;   // step: (1 − e^{-2τ})/2τ; linear: φ(τ)
+  T* fb = fa + K * n;   // step: (1 − e^{-τ})/τ;   linear: ψ(τ)
+  T* fw = fb + K * n;   // linear: τψ/2
+  T* acc = fw + K * n;  // Λ, then the moments (L1 n)
+  T* acci = acc + L1 * n;
+  T* nrm = acci + n;
+  T* qrow = nrm + (SURF ? 3 * n : 0);
+  T* srow = qrow + nv;
+  T* arow = srow + nv;
+  uint8_t* pass = reinterpret_cast<uint8_t*>(arow + nv);
+  uint8_t* bits = pass + n;
+  for (int64_t j = 0; j < n; ++j)  // channels first
+    for (int64_t c = 0; c < C; ++c) Qc[c * n + j] = a.Q[(off + j) * C + c];
+  for (int64_t k = 0; k < K; ++k) {
+    const T len = a.length_k[k];
+    T *e = em + k * n, *x1 = fa + k * n, *x2 = fb + k * n, *x3 = fw + k * n;
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) e[j] = em1(-(tau[j] * len));
+    for (int64_t j = 0; j < n; ++j) {
+      const T t = tau[j] * len, x = e[j];
+      if (LIN) {
+        phi_psi(t, x, x1[j], x2[j]);
+        x3[j] = T(0.5) * t * x2[j];
+      } else {
+        x1[j] = avg(T(2) * t, x * (x + T(2)));
+        x2[j] = avg(t, x);
+      }
+    }
+  }
+  std::fill(acc, acc + (L1 + 1) * n, T(0));
+  for (int64_t j = 0; j < n; ++j)
+    pass[j] = uint8_t((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
+  if (SURF) {
+    const T* nsrc = a.normal + off * 3;
+    const uint8_t* bsrc = a.bits + off * g.nb;
+    for (int64_t j = 0; j < n; ++j) {
+      for (int c = 0; c < 3; ++c) nrm[c * n + j] = nsrc[3 * j + c];
+      for (int64_t b = 0; b < g.nb; ++b) bits[b * n + j] = bsrc[g.nb * j + b];
+    }
+  }
+  for (int64_t d = 0; d < g.D; ++d) {
+    const int64_t k = ATT ? a.kidx[d] : 0;
+    const T w = a.weight[d];
+    const T* tab = a.table + d * J;
+    const T* sd = src + (d * PU + u0 + a.start[2 * d]) * PV + a.start[2 * d + 1];
+    T* dd = dst + (d * PU + u0 + M) * PV + M;
+    const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+    const int bit = int(d & 7);
+    for (int64_t r = 0; r < rows; ++r) {
+      const int64_t o = r * nv;
+      const T* rs = sd + r * PV;
+      T* rd = dd + r * PV;
+      // this direction's source along the row, and its slope
+      std::memcpy(qrow, Qc + o, size_t(nv) * sizeof(T));
+      for (int64_t c = 0; c < J; ++c) {
+        const T tc = tab[c];
+        const T* qc = Qc + (1 + c) * n + o;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) qrow[v] += tc * qc[v];
+      }
+      if (LIN) {
+        const T s0 = a.slope[3 * d], s1 = a.slope[3 * d + 1], s2 = a.slope[3 * d + 2];
+        const T *g0 = Qc + (1 + J) * n + o, *g1 = g0 + n, *g2 = g1 + n;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) srow[v] = s0 * g0[v] + s1 * g1[v] + s2 * g2[v];
+      }
+      const T *e = em + k * n + o, *x1 = fa + k * n + o, *x2 = fb + k * n + o,
+              *x3 = fw + k * n + o;
+      const T* bb = B + o;
+      const uint8_t* ps = pass + o;
+      const uint8_t* bl = bits + (d >> 3) * n + o;
+      const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
+      T* ai = acci + o;
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        const T r_mid = rs[v], q = qrow[v];
+        T r_arr = r_mid, r_avg = r_mid, r_thr = r_mid, x = T(0);
+        if (ATT) {
+          x = e[v];
+          if (LIN) {
+            const T sl = srow[v], om = x3[v];
+            const T aa = r_mid - q + T(0.5) * sl;
+            r_arr = r_mid + x * aa + om * sl;
+            const T bq = r_arr - q;
+            r_thr = r_arr + x * bq + om * sl;
+            r_avg = q + T(0.5) * x1[v] * (aa + bq) - T(0.5) * x2[v] * sl;
+          } else {
+            r_arr = r_mid + x * (r_mid - q);
+            r_avg = q + (r_mid - q) * x1[v];
+          }
+        }
+        if (SURF) {
+          const bool blocked = ((bl[v] >> bit) & 1) != 0;
+          const T bt = bb[v];
+          r_arr = blocked ? bt : r_arr;
+          if (ATT && FL)  // blocked: only the departure half lies in the fog
+            r_avg = blocked ? q + (bt - q) * (LIN ? x1[v] : x2[v]) : r_avg;
+          else
+            r_avg = r_arr;
+          if (ATT && LIN) r_thr = blocked ? bt + x * (bt - q) : r_thr;
+          const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+          ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
+        }
+        if (!(ATT && LIN)) r_thr = ATT ? r_arr + x * (r_arr - q) : r_arr;
+        arow[v] = r_avg;
+        rd[v] = ps[v] ? r_thr : T(0);
+      }
+      if (!FL) continue;
+      T* al = acc + o;
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) al[v] += w * arow[v];
+      for (int64_t c = 0; c < NK; ++c) {  // the moments: w_d Ỹ_c(d) R̄_d
+        const T wc = w * tab[c];
+        T* mc = acc + (1 + c) * n + o;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) mc[v] += wc * arow[v];
+      }
+    }
+  }
+  if (!kept(g, i)) return;
+  T* lam = a.lam + off * L1;
+  for (int64_t j = 0; j < n; ++j)
+    for (int64_t c = 0; c < L1; ++c) lam[j * L1 + c] = acc[c * n + j];
+  std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
+}
+
 template <typename T>
 using UnitFn = void (*)(const Dims&, const Args<T>&, const T*, T*, int64_t, int64_t, int64_t,
                         int64_t, std::vector<T>&, std::vector<int32_t>&);
@@ -266,6 +446,26 @@ UnitFn<T> pick(bool att, bool surf, bool fl) {
     case 6: return unit<T, true, true, false>;
     default: return unit<T, true, true, true>;
   }
+}
+
+template <typename T, bool LIN>
+UnitFn<T> pick_general_(bool att, bool surf, bool fl) {
+  const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
+  switch (key) {
+    case 0: return unit_general<T, false, false, false, LIN>;
+    case 1: return unit_general<T, false, false, true, LIN>;
+    case 2: return unit_general<T, false, true, false, LIN>;
+    case 3: return unit_general<T, false, true, true, LIN>;
+    case 4: return unit_general<T, true, false, false, LIN>;
+    case 5: return unit_general<T, true, false, true, LIN>;
+    case 6: return unit_general<T, true, true, false, LIN>;
+    default: return unit_general<T, true, true, true, LIN>;
+  }
+}
+
+template <typename T>
+UnitFn<T> pick_general(bool att, bool surf, bool fl, bool lin) {
+  return lin ? pick_general_<T, true>(att, surf, fl) : pick_general_<T, false>(att, surf, fl);
 }
 
 // Rewrite the M border rows (axis 0 of a (PU, PV) plane) or columns by wrapping the interior
@@ -301,13 +501,20 @@ void wrap_periodic(const Dims& g, T* pl) {
 template <typename T>
 void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
   const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
-  const T* q0 = g.per_w ? a.Q + source(g, m) * g.nu * g.nv : nullptr;
+  const int64_t C = g.C;
+  const T* q0 = g.per_w ? a.Q + source(g, m) * g.nu * g.nv * C : nullptr;
   for (int64_t d = 0; d < g.D; ++d) {
     T* pl = buf + d * PU * PV;
     std::fill(pl, pl + PU * PV, a.bc[d]);
-    if (q0) {
+    if (q0) {  // direction d's source: Q_0 + Σ_j table[d, j] Q_j
+      const T* tab = a.table + d * g.J;
       for (int64_t u = 0; u < g.nu; ++u)
-        std::memcpy(pl + (u + M) * PV + M, q0 + u * g.nv, size_t(g.nv) * sizeof(T));
+        for (int64_t v = 0; v < g.nv; ++v) {
+          const T* qn = q0 + (u * g.nv + v) * C;
+          T q = qn[0];
+          for (int64_t c = 0; c < g.J; ++c) q += tab[c] * qn[1 + c];
+          pl[(u + M) * PV + M + v] = q;
+        }
       wrap_periodic(g, pl);
     }
   }
@@ -341,7 +548,8 @@ void sweep(const Dims& g, const Args<T>& a) {
       }
       const bool in = s >= g.s0 && s < g.s1;
       const bool att = in && g.att_in, fl = in && g.fl_in;
-      const UnitFn<T> fn = pick<T>(att, g.surfaces, fl);
+      const UnitFn<T> fn = (g.C > 1 || g.lin) ? pick_general<T>(att, g.surfaces, fl, g.lin)
+                                              : pick<T>(att, g.surfaces, fl);
       std::atomic<int64_t> next{0};
       auto worker = [&](int64_t t) {
         for (int64_t j = next++; j < tiles; j = next++) {
@@ -369,7 +577,8 @@ template <typename T>
 Args<T> args(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau, ffi::AnyBuffer normal,
              ffi::AnyBuffer bits, ffi::AnyBuffer free, ffi::AnyBuffer surf, ffi::AnyBuffer bc,
              ffi::AnyBuffer length_k, ffi::AnyBuffer kidx, ffi::AnyBuffer weight,
-             ffi::AnyBuffer unit_, ffi::AnyBuffer start, ffi::Result<ffi::AnyBuffer>& lam,
+             ffi::AnyBuffer unit_, ffi::AnyBuffer start, ffi::AnyBuffer table,
+             ffi::AnyBuffer slope, ffi::Result<ffi::AnyBuffer>& lam,
              ffi::Result<ffi::AnyBuffer>& irr, ffi::Result<ffi::AnyBuffer>& exit,
              ffi::Result<ffi::AnyBuffer>& scratch) {
   Args<T> a;
@@ -381,6 +590,8 @@ Args<T> args(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau, ffi::AnyBuf
   a.length_k = static_cast<const T*>(length_k.untyped_data());
   a.weight = static_cast<const T*>(weight.untyped_data());
   a.unit = static_cast<const T*>(unit_.untyped_data());
+  a.table = static_cast<const T*>(table.untyped_data());
+  a.slope = static_cast<const T*>(slope.untyped_data());
   a.bits = static_cast<const uint8_t*>(bits.untyped_data());
   a.free = static_cast<const uint8_t*>(free.untyped_data());
   a.surf = static_cast<const uint8_t*>(surf.untyped_data());
@@ -397,24 +608,27 @@ ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
                          ffi::AnyBuffer normal, ffi::AnyBuffer bits, ffi::AnyBuffer free,
                          ffi::AnyBuffer surf, ffi::AnyBuffer bc, ffi::AnyBuffer length_k,
                          ffi::AnyBuffer kidx, ffi::AnyBuffer weight, ffi::AnyBuffer unit_,
-                         ffi::AnyBuffer start, ffi::Result<ffi::AnyBuffer> lam,
+                         ffi::AnyBuffer start, ffi::AnyBuffer table, ffi::AnyBuffer slope,
+                         ffi::Result<ffi::AnyBuffer> lam,
                          ffi::Result<ffi::AnyBuffer> irr, ffi::Result<ffi::AnyBuffer> exit,
                          ffi::Result<ffi::AnyBuffer> scratch, int64_t M, int64_t nw, int64_t nu,
                          int64_t nv, int64_t ns, int64_t D, int64_t K, int64_t nb, int64_t s0,
                          int64_t s1, int64_t threads, int64_t tile, int64_t surfaces,
                          int64_t per_w, int64_t per_u, int64_t per_v, int64_t att_in,
-                         int64_t fl_in) {
+                         int64_t fl_in, int64_t C, int64_t J, int64_t NK, int64_t linear) {
   Dims g{M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile,
-         surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, fl_in != 0};
+         surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, fl_in != 0,
+         C, J, NK, linear != 0};
   if (M < 1 || nw < 1 || nu < 1 || nv < 1 || ns * M < nw || tile < 1 ||
-      D != (2 * M + 1) * (2 * M + 1))
+      D != (2 * M + 1) * (2 * M + 1) || C != 1 + J + (linear ? 3 : 0) || NK > J || NK < 0)
     return ffi::Error::InvalidArgument("difffog_sweep_face: inconsistent dimensions");
   if (Q.element_type() == ffi::DataType::F32) {
     sweep<float>(g, args<float>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight,
-                                unit_, start, lam, irr, exit, scratch));
+                                unit_, start, table, slope, lam, irr, exit, scratch));
   } else if (Q.element_type() == ffi::DataType::F64) {
     sweep<double>(g, args<double>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx,
-                                  weight, unit_, start, lam, irr, exit, scratch));
+                                  weight, unit_, start, table, slope, lam, irr, exit,
+                                  scratch));
   } else {
     return ffi::Error::InvalidArgument("difffog_sweep_face: float32 or float64 only");
   }
@@ -438,7 +652,9 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Arg<ffi::AnyBuffer>()  // weight (D,)
                                   .Arg<ffi::AnyBuffer>()  // unit (D, 3)
                                   .Arg<ffi::AnyBuffer>()  // start (D, 2) int32
-                                  .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv)
+                                  .Arg<ffi::AnyBuffer>()  // table (D, J) (or a dummy)
+                                  .Arg<ffi::AnyBuffer>()  // slope (D, 3) (or a dummy)
+                                  .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv[, 1 + NK])
                                   .Ret<ffi::AnyBuffer>()  // E
                                   .Ret<ffi::AnyBuffer>()  // exit (M, D, nu, nv)
                                   .Ret<ffi::AnyBuffer>()  // scratch: two carries (2, D, PU, PV)
@@ -459,4 +675,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Attr<int64_t>("per_u")
                                   .Attr<int64_t>("per_v")
                                   .Attr<int64_t>("att_in")
-                                  .Attr<int64_t>("fl_in"));
+                                  .Attr<int64_t>("fl_in")
+                                  .Attr<int64_t>("C")
+                                  .Attr<int64_t>("J")
+                                  .Attr<int64_t>("NK")
+                                  .Attr<int64_t>("linear"));
