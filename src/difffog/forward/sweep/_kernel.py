@@ -299,8 +299,8 @@ def _linear_node(r_mid, q, s, em, omp_half, phi, psi):
 #: (``_sweep_face_batched``, all directions of a slab in one array: on an H100 130x faster than
 #: "loop", whose ~150,000 small loop bodies per iteration take ~18 µs each there) and "pallas"
 #: (the batched program with each slab step as one Pallas kernel, ``_pallas.py``: one pass
-#: over the carry instead of about four; Triton on a GPU, interpreted
-#: (slowly) elsewhere; its GPU speed not yet measured, so "auto" does not pick it).
+#: over the carry instead of about four; Triton on a GPU, interpreted (slowly) elsewhere; its
+#: GPU speed not yet measured, so "auto" does not pick it).
 KERNELS = ("auto", "loop", "batched", "pallas")
 
 
@@ -433,12 +433,11 @@ def _slabber(nw: int, M: int, periodic_w: bool, warmup: int):
     return slabs, ns
 
 
-def _native_applies(aniso: bool, linear: bool, halo, dt) -> bool:
+def _native_applies(halo, dt) -> bool:
     """Whether ``_sweep_face_loop``'s values come from the native CPU kernel (``_native``):
     the step and linear schemes, isotropic or with moments (its general form where Q has
     channels), on one device's whole plane, float32 or float64, on a CPU, where the kernel is
     built (and ``DIFFFOG_NATIVE`` does not turn it off)."""
-    del aniso, linear  # (both forms are native)
     return (halo is None and jax.default_backend() == "cpu"
             and np.dtype(dt) in (np.float32, np.float64) and _native.available())
 
@@ -448,9 +447,9 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                      vol=(True, True, None), halo: Halo | None = None):
     """``sweep_face`` (same arguments and results) as loops that keep the work in cache.
 
-    On a CPU the isotropic step scheme's values come from the native kernel instead
-    (``_native``: the same sweep in C++, equal to rounding), where it is built; the loops below
-    serve every other case (and a CPU without a compiler, or ``DIFFFOG_NATIVE=0``).
+    On a CPU the values come from the native kernel instead (``_native``: the same sweep in
+    C++, equal to rounding), where it is built; the loops below serve a device mesh's halo (and
+    a CPU without a compiler, or ``DIFFFOG_NATIVE=0``).
 
     Loop structure (what makes it fast on a CPU; the arithmetic is the module's step update):
     ``lax.scan`` over slabs → ``fori_loop`` over row tiles of the plane → ``fori_loop`` over
@@ -494,7 +493,7 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
         s0, s1, fog_on = 0, ns, attenuate
     else:
         s0, s1, fog_on = vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
-    if _native_applies(aniso, linear, halo, dt):  # the same sweep as one custom call
+    if _native_applies(halo, dt):  # the same sweep as one custom call
         none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
         table, nk = _source_table(consts, dt) if aniso else (None, 0)
         return _native.sweep_face(

@@ -84,7 +84,7 @@ def _turned_off() -> bool:
 
 
 def expected() -> bool:
-    """Whether the step scheme's CPU sweep will be native, without building it (the cost model
+    """Whether the CPU sweep will be native, without building it (the cost model
     asks before anything is built): as :func:`available` once it has been asked, else turned
     on and a compiler at hand."""
     with _LOCK:
