@@ -53,6 +53,23 @@ def _face(M, shape, dt, seed=0):
             K.face_consts(direction_set(M), 2))
 
 
+def _general_form(M, shape, dt, rng, linear: bool, order: int, sun: bool, face: int = 2):
+    """(Q, consts) of the general form: Q with the moments' channels of the δ-M ``order``'s
+    basis, the sun's phase channel, the linear scheme's three slope channels (random)."""
+    import dataclasses
+
+    from difffog.forward.sweep._harmonics import basis
+
+    harm = basis(order, M).faces if order else None
+    consts = K.face_consts(direction_set(M), face, harm=harm, linear=linear)
+    if sun:
+        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random((2 * M + 1) ** 2)))
+    channels = 1 + (harm.shape[2] if order else 0) + int(sun) + (3 if linear else 0)
+    Q = jnp.asarray(np.concatenate([rng.random(shape + (1,)),
+                                    0.2 * rng.standard_normal(shape + (channels - 1,))], -1), dt)
+    return Q, consts
+
+
 def _sweep(args, **kw):
     return jax.jit(lambda *a: K._sweep_face_loop(*a, **kw))(*args)
 
@@ -100,22 +117,10 @@ def test_native_general_form_equals_the_xla_loop(linear, order, sun, dtype, x64,
     τ = 0: a fifth of the nodes have no fog), Λ's moments; open sides with surfaces and fog in
     some slabs only, and periodic sides (the initial carry from each direction's source)
     without surfaces or fluence: Λ (and its moments), E and the exit radiance to rounding."""
-    import dataclasses
-
-    from difffog.forward.sweep._harmonics import basis
-
     M, shape = 2, (11, 9, 7)
-    D = (2 * M + 1) ** 2
     dt = jnp.dtype(dtype)
-    rng = np.random.default_rng(5)
     _, B, tau, bc, geo, _ = _face(M, shape, dt, seed=5)
-    harm = basis(order, M).faces if order else None
-    consts = K.face_consts(direction_set(M), 2, harm=harm, linear=linear)
-    if sun:
-        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random(D)))
-    channels = 1 + (harm.shape[2] if order else 0) + int(sun) + (3 if linear else 0)
-    Q = jnp.asarray(np.concatenate([rng.random(shape + (1,)),
-                                    0.2 * rng.standard_normal(shape + (channels - 1,))], -1), dt)
+    Q, consts = _general_form(M, shape, dt, np.random.default_rng(5), linear, order, sun)
     args = (Q, B, tau, bc, geo, consts)
     rtol = 1e-12 if dtype == "float64" else 2e-6
     for periodic, surfaces, vol in [((False, False, False), True, (True, True, (3, 9))),
@@ -133,7 +138,7 @@ def test_native_general_form_equals_the_xla_loop(linear, order, sun, dtype, x64,
                                        atol=rtol * float(jnp.max(jnp.abs(r))))
         assert float(jnp.max(jnp.abs(got[2]))) > 0
         if vol[1] and order:
-            assert got[0].shape == shape + (1 + harm.shape[2],)
+            assert got[0].shape == shape + ((order + 1) ** 2,)
             assert float(jnp.max(jnp.abs(got[0][..., 1:]))) > 0  # the moments were summed
 
 
