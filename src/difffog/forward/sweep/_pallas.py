@@ -33,7 +33,8 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from ..._numerics import linear_source_terms
+from ..._numerics import linear_source_terms, one_minus_exp_over
+from ._kernel import _linear_node
 
 #: nodes per program: TILE_U rows × TILE_V columns of the plane (powers of two, as Triton's
 #: tensors must be)
@@ -56,14 +57,6 @@ def direction_block(M: int) -> int:
 def interpret_mode(backend: str | None = None) -> bool:
     """Pallas compiles for GPUs (Triton); anywhere else the kernel runs interpreted."""
     return (backend or jax.default_backend()) not in ("gpu", "cuda", "rocm")
-
-
-def _ome(tau):
-    """(1 − e^{−τ})/τ as ``_numerics.one_minus_exp_over`` (same series below 1e-3)."""
-    small = jnp.abs(tau) < 1e-3
-    ts = jnp.where(small, 1.0, tau)
-    series = 1.0 - tau / 2.0 + tau * tau / 6.0 - tau * tau * tau / 24.0
-    return jnp.where(small, series, -jnp.expm1(-ts) / ts)
 
 
 def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carry_ref, q_ref,
@@ -113,22 +106,17 @@ def _kernel(pq_ref, len_ref, w_ref, bc_ref, unit_ref, table_ref, slope_ref, carr
             q = q + qch[1 + j] * table_ref[d, j]
         tau = ts * len_ref[d]
         em = jnp.expm1(-tau)
-        if linear:  # the source linear along the segment (``_kernel._linear_node``)
+        if linear:  # the source linear along the segment
             sl = sum(qch[1 + nj + c] * slope_ref[d, c] for c in range(3))
             phi, psi = linear_source_terms(tau)[:2]
-            omp_half = 0.5 * tau * psi
-            a = r_mid - q + 0.5 * sl
-            r_arr = r_mid + em * a + omp_half * sl
-            b = r_arr - q
-            r_through = r_arr + em * b + omp_half * sl
-            r_avg = q + 0.5 * phi * (a + b) - 0.5 * psi * sl
+            r_arr, r_through, r_avg = _linear_node(r_mid, q, sl, em, 0.5 * tau * psi, phi, psi)
         else:
             r_arr = r_mid + em * (r_mid - q)
-            r_avg = q + (r_mid - q) * _ome(2.0 * tau)
+            r_avg = q + (r_mid - q) * one_minus_exp_over(2.0 * tau)
         if surfaces:
             blocked = ((bits_ref[m, d // 8, uc, vc].astype(jnp.int32) >> (d % 8)) & 1) > 0
             r_arr = jnp.where(blocked, bsurf, r_arr)
-            r_avg = jnp.where(blocked, q + (bsurf - q) * _ome(tau), r_avg)
+            r_avg = jnp.where(blocked, q + (bsurf - q) * one_minus_exp_over(tau), r_avg)
             if linear:  # blocked: a constant source in the departure half
                 r_through = jnp.where(blocked, bsurf + em * (bsurf - q), r_through)
         if not linear:
