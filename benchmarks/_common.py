@@ -146,18 +146,10 @@ def device_copy_bandwidth(nbytes: int = 256 * MIB, repeat: int = 5) -> float:
 
 
 def loadavg() -> str:
-    try:
-        return " / ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
+    """``difffog._cost.load_average`` (imported here, not at the top: see copy_bandwidth)."""
+    from difffog._cost import load_average
 
-
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine()
+    return load_average()
 
 
 def machine(bandwidth: bool = True, nbytes: int = 256 * MIB) -> dict:
@@ -165,13 +157,15 @@ def machine(bandwidth: bool = True, nbytes: int = 256 * MIB) -> dict:
     cores, load average, and (``bandwidth``) the NumPy copy bandwidth in GB/s."""
     import jax
 
+    from difffog._cost import cpu_name
+
     devs = jax.devices()
     kinds = sorted({d.device_kind for d in devs})
     info = {
         "jax": jax.__version__,
         "backend": jax.default_backend(),
         "devices": f"{len(devs)} × {', '.join(kinds)}",
-        "cpu": _cpu_name(),
+        "cpu": cpu_name(),
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),

@@ -517,6 +517,25 @@ def machine_line(info: dict | None = None) -> str:
     return f"{m['backend']}, {n} device{'s' if n != 1 else ''} ({m['device_kind']}), JAX {m['jax']}"
 
 
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``, else what ``platform`` says)."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
+def load_average() -> str:
+    """The 1 / 5 / 15-minute load average as text ("n/a" where the OS has none)."""
+    try:
+        return " / ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
 def copy_bandwidth(nbytes: int = 256 * 2**20, repeat: int = 5, threads: int = 1) -> float:
     """The machine's copy bandwidth in GB/s (bytes read + bytes written per second, median of
     ``repeat``): NumPy ``copyto`` of a float32 array of ``nbytes`` into a preallocated one,

@@ -250,22 +250,13 @@ def run_machine() -> dict:
     name and cores, the load average, and the copy bandwidth in GB/s on one thread and on all
     cores."""
     import os
-    import platform
 
-    from .._cost import copy_bandwidth, machine
+    from .._cost import copy_bandwidth, cpu_name, load_average, machine
 
     info = machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            info["cpu"] = next(ln.split(":", 1)[1].strip() for ln in f
-                               if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        info["cpu"] = platform.processor() or platform.machine()
+    info["cpu"] = cpu_name()
     info["cores"] = os.cpu_count() or 1
-    try:
-        info["load"] = " / ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        info["load"] = "n/a"
+    info["load"] = load_average()
     info["copy_1"] = copy_bandwidth(threads=1)
     info["copy_all"] = copy_bandwidth(threads=info["cores"])
     return info
