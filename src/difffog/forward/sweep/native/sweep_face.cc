@@ -83,6 +83,26 @@ void tables(const T* tau, const T* length_k, int64_t K, int64_t n, T* em) {
   }
 }
 
+// A tile's per-node data in the layouts its passes read: pass[j] (a ray goes on from fog nodes
+// and, with surfaces, shells), and with surfaces the face frame's normal (nw, nu, nv, 3) and
+// blocking bytes (nw, nu, nv, nb) made planar (3 n, nb n), and where ``special`` is given the
+// nodes where surfaces matter (a SURFACE node, a normal or a set bit).
+template <typename T, bool SURF>
+void node_data(const Dims& g, const Args<T>& a, int64_t off, int64_t n, uint8_t* pass, T* nrm,
+               uint8_t* bits, uint8_t* special) {
+  for (int64_t j = 0; j < n; ++j)
+    pass[j] = uint8_t((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
+  if (!SURF) return;
+  const T* nsrc = a.normal + off * 3;
+  const uint8_t* bsrc = a.bits + off * g.nb;
+  for (int64_t j = 0; j < n; ++j) {
+    bool sp = a.surf[off + j] != 0;
+    for (int c = 0; c < 3; ++c) sp |= (nrm[c * n + j] = nsrc[3 * j + c]) != T(0);
+    for (int64_t b = 0; b < g.nb; ++b) sp |= (bits[b * n + j] = bsrc[g.nb * j + b]) != 0;
+    if (special) special[j] = uint8_t(sp);
+  }
+}
+
 // (1 − e^{-t})/t from x = e^{-t} − 1, with ``one_minus_exp_over``'s series below 1e-3.
 template <typename T>
 inline T avg(T t, T x) {
@@ -133,18 +153,9 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   if (ATT) tables<T>(tau, a.length_k, K, n, em);
   std::fill(S, S + (K + KC) * n, T(0));
   std::fill(accl, accl + 2 * n, T(0));
-  for (int64_t j = 0; j < n; ++j)  // a ray goes on from fog nodes (and, with surfaces, shells)
-    pass[j] = uint8_t((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
+  node_data<T, SURF>(g, a, off, n, pass, nrm, bits, special);
   runs.clear();  // (row, v0, v1): the runs of special nodes along each row
-  if (SURF) {  // the face frame's normal (nw, nu, nv, 3) and bytes (nw, nu, nv, nb)
-    const T* nsrc = a.normal + off * 3;
-    const uint8_t* bsrc = a.bits + off * g.nb;
-    for (int64_t j = 0; j < n; ++j) {
-      bool sp = a.surf[off + j] != 0;
-      for (int c = 0; c < 3; ++c) sp |= (nrm[c * n + j] = nsrc[3 * j + c]) != T(0);
-      for (int64_t b = 0; b < g.nb; ++b) sp |= (bits[b * n + j] = bsrc[g.nb * j + b]) != 0;
-      special[j] = uint8_t(sp);
-    }
+  if (SURF) {
     for (int64_t r = 0; r < rows; ++r) {  // runs along each row (gaps under 16 nodes bridged)
       for (int64_t v = 0; v < nv;) {
         if (!special[r * nv + v]) { ++v; continue; }
@@ -333,16 +344,7 @@ void unit_general(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t
     }
   }
   std::fill(acc, acc + (L1 + 1) * n, T(0));
-  for (int64_t j = 0; j < n; ++j)
-    pass[j] = uint8_t((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
-  if (SURF) {
-    const T* nsrc = a.normal + off * 3;
-    const uint8_t* bsrc = a.bits + off * g.nb;
-    for (int64_t j = 0; j < n; ++j) {
-      for (int c = 0; c < 3; ++c) nrm[c * n + j] = nsrc[3 * j + c];
-      for (int64_t b = 0; b < g.nb; ++b) bits[b * n + j] = bsrc[g.nb * j + b];
-    }
-  }
+  node_data<T, SURF>(g, a, off, n, pass, nrm, bits, nullptr);
   for (int64_t d = 0; d < g.D; ++d) {
     const int64_t k = ATT ? a.kidx[d] : 0;
     const T w = a.weight[d];
