@@ -17,6 +17,7 @@
 #include <cstdint>
 #include <cstring>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include "xla/ffi/api/ffi.h"
@@ -138,36 +139,49 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   const int64_t K = ATT ? g.K : 0;
   const int64_t KC = SURF ? K : 0;  // the blocked weights C_k
   // scratch: factors em (K n), sums S (K n), C (K n with surfaces), Λ and E (2 n), normal (3 n
-  // with surfaces); bytes: pass (n), special (n), blocking bits (nb n)
+  // with surfaces); words as wide as T (so that every array a loop reads has T's lanes, and
+  // the loops vectorise one vector at a time, not four): pass (n), blocking bits (NW n, bit d
+  // of node j in word (d / WB) n + j, with surfaces); bytes: pass, special (2 n), blocking
+  // bits (nb n)
+  using W = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;
+  constexpr int64_t WB = 8 * int64_t(sizeof(W));
+  const int64_t NW = SURF ? (g.D + WB - 1) / WB : 0;
   const int64_t nbytes = 2 * n + (SURF ? g.nb * n : 0);
-  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0)) * n + (nbytes + sizeof(T) - 1) / sizeof(T)));
+  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0) + 1 + NW) * n +
+                     (nbytes + sizeof(T) - 1) / sizeof(T)));
   T* em = work.data();
   T* S = em + K * n;
   T* C = S + K * n;
   T* accl = C + KC * n;
   T* acci = accl + n;
   T* nrm = acci + n;
-  uint8_t* pass = reinterpret_cast<uint8_t*>(nrm + (SURF ? 3 * n : 0));
+  W* passw = reinterpret_cast<W*>(nrm + (SURF ? 3 * n : 0));
+  W* bitw = passw + n;
+  uint8_t* pass = reinterpret_cast<uint8_t*>(bitw + NW * n);
   uint8_t* special = pass + n;
   uint8_t* bits = special + n;
   if (ATT) tables<T>(tau, a.length_k, K, n, em);
   std::fill(S, S + (K + KC) * n, T(0));
   std::fill(accl, accl + 2 * n, T(0));
   node_data<T, SURF>(g, a, off, n, pass, nrm, bits, special);
-  runs.clear();  // (row, v0, v1): the runs of special nodes along each row
-  if (SURF) {
-    for (int64_t r = 0; r < rows; ++r) {  // runs along each row (gaps under 16 nodes bridged)
-      for (int64_t v = 0; v < nv;) {
-        if (!special[r * nv + v]) { ++v; continue; }
-        int64_t e = v + 1, last = v;
-        for (; e < nv && e - last <= 16; ++e)
-          if (special[r * nv + e]) last = e;
-        runs.insert(runs.end(), {int32_t(r), int32_t(v), int32_t(last + 1)});
-        v = last + 1;
-      }
-    }
+  for (int64_t j = 0; j < n; ++j) passw[j] = W(pass[j]);
+  std::fill(bitw, bitw + NW * n, W(0));
+  for (int64_t b = 0; b < (SURF ? g.nb : 0); ++b) {
+    const uint8_t* src_b = bits + b * n;
+    W* dst_w = bitw + (8 * b / WB) * n;
+    const int sh = int((8 * b) % WB);
+    for (int64_t j = 0; j < n; ++j) dst_w[j] |= W(src_b[j]) << sh;
   }
-  const size_t nruns = runs.size() / 3;
+  // each row as whole vectors (64 bytes) and a remainder; a vector that holds a node where
+  // surfaces matter (a SURFACE node, a set blocking bit or a normal: the shell around the
+  // shapes) takes the form with surfaces, the others the fog-only form (the same for a fog
+  // node, whose blocking bits and normal are 0).  ``runs``: per row, one flag per vector.
+  constexpr int64_t VW = 64 / int64_t(sizeof(T));
+  const int64_t nvec = nv / VW, nch = nvec + 1;  // + the remainder's flag
+  runs.assign(size_t(rows * nch), 0);
+  if (SURF)
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t v = 0; v < nv; ++v) runs[size_t(r * nch + v / VW)] |= special[r * nv + v];
   T wsum = T(0);
   for (int64_t d = 0; d < g.D; ++d) {
     const int64_t k = ATT ? a.kidx[d] : 0;
@@ -176,17 +190,25 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
     const int64_t su = a.start[2 * d], sv = a.start[2 * d + 1];
     const T* sd = src + (d * PU + u0 + su) * PV + sv;  // the plane's rows, shifted by (p, q)
     T* dd = dst + (d * PU + u0 + M) * PV + M;
+    const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+    const W* bd = bitw + (d / WB) * n;
+    const int bit = int(d % WB);
     for (int64_t r = 0; r < rows; ++r) {
       const T* rs = sd + r * PV;
       T* rd = dd + r * PV;
       const int64_t o = r * nv;
       const T* e = em + k * n + o;
       const T* q = Q + o;
-      const uint8_t* ps = pass + o;
+      const W* ps = passw + o;
       T* sk = S + k * n + o;
       T* al = accl + o;
-#pragma omp simd
-      for (int64_t v = 0; v < nv; ++v) {
+      const T* bb = B + o;
+      const W* bl = bd + o;
+      const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
+      T* ck = C + k * n + o;
+      T* ai = acci + o;
+      const int32_t* flag = runs.data() + r * nch;
+      auto fog = [&](int64_t v) __attribute__((always_inline)) {
         const T r_mid = rs[v], qt = q[v];
         T r_out = r_mid;
         if (ATT) {
@@ -198,31 +220,10 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
           al[v] += r_mid * w;
         }
         rd[v] = ps[v] ? r_out : T(0);
-      }
-    }
-    if (!SURF) continue;
-    // the surfaces' pass: a blocked arrival is the surface's radiosity B (only the departure
-    // half lies in the fog), E sums the arriving radiance by cos
-    const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
-    const uint8_t* bd = bits + (d >> 3) * n;
-    const int bit = int(d & 7);
-    for (size_t t = 0; t < nruns; ++t) {
-      const int64_t r = runs[3 * t], v0 = runs[3 * t + 1], v1 = runs[3 * t + 2];
-      const int64_t o = r * nv;
-      const T* rs = sd + r * PV;
-      T* rd = dd + r * PV;
-      const T* e = em + k * n + o;
-      const T* q = Q + o;
-      const T* bb = B + o;
-      const uint8_t* ps = pass + o;
-      const uint8_t* bl = bd + o;
-      const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
-      T* sk = S + k * n + o;
-      T* ck = C + k * n + o;
-      T* al = accl + o;
-      T* ai = acci + o;
-#pragma omp simd
-      for (int64_t v = v0; v < v1; ++v) {
+      };
+      // with surfaces: a blocked arrival is the surface's radiosity B (only the departure half
+      // lies in the fog: its R̄ goes through C_k, not S_k), E sums the arriving radiance by cos
+      auto surf = [&](int64_t v) __attribute__((always_inline)) {
         const T r_mid = rs[v], qt = q[v], bt = bb[v];
         const bool blocked = ((bl[v] >> bit) & 1) != 0;
         T r_arr = r_mid, x = T(0);
@@ -231,16 +232,31 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
           r_arr = r_mid + x * (r_mid - qt);
         }
         r_arr = blocked ? bt : r_arr;
-        if (ATT && FL) {  // the blocked direction's R̄ goes through C_k, not S_k
-          sk[v] -= blocked ? w * (r_mid - qt) : T(0);
+        if (ATT && FL) {
+          sk[v] += blocked ? T(0) : w * (r_mid - qt);
           ck[v] += blocked ? w : T(0);
         } else if (FL) {  // no fog step: R̄ is the arriving radiance
-          al[v] += blocked ? w * (bt - r_mid) : T(0);
+          al[v] += w * (blocked ? bt : r_mid);
         }
         const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
         ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
         const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
-        rd[v] = blocked ? (ps[v] ? r_through : T(0)) : rd[v];
+        rd[v] = ps[v] ? r_through : T(0);
+      };
+      for (int64_t c = 0; c < nvec; ++c) {
+        const int64_t v0 = c * VW;
+        if (SURF && flag[c]) {
+#pragma omp simd
+          for (int64_t l = 0; l < VW; ++l) surf(v0 + l);
+        } else {
+#pragma omp simd
+          for (int64_t l = 0; l < VW; ++l) fog(v0 + l);
+        }
+      }
+      if (SURF && flag[nvec]) {
+        for (int64_t v = nvec * VW; v < nv; ++v) surf(v);
+      } else {
+        for (int64_t v = nvec * VW; v < nv; ++v) fog(v);
       }
     }
   }
