@@ -1,6 +1,7 @@
 """The native CPU kernel of the step scheme's face sweep (``forward/sweep/_native.py``) against
 the XLA loop it replaces, and what happens where it cannot be built."""
 
+import functools
 import os
 import shutil
 
@@ -194,3 +195,59 @@ def test_old_builds_are_pruned(tmp_path):
     assert gone == [tmp_path / "sweep_face-old.so"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "sweep_face-keep.so",
                                                           "sweep_face-recent.so"]
+
+
+@needs_compiler
+@pytest.mark.parametrize("form", ["isotropic", "general"])
+def test_world_frame_equals_the_face_frame(form, x64):
+    """``sweep_face_world`` (the kernel reading q, b and writing Λ, E at each face node's world
+    node) against the face-frame path it replaces (``to_face`` → the face sweep →
+    ``from_face``), on every face of a lattice with three different sides, open and periodic:
+    equal values, equal tangents (its JVP is the face path's) and under vmap each member."""
+    from difffog.geometry._directions import FACE_AXES
+
+    assert _native.available(), _native.status()
+    M, world, dt = 2, (7, 6, 5), jnp.dtype("float64")
+    rng = np.random.default_rng(3)
+    for f, (axis, sign) in enumerate(FACE_AXES):
+        shape = K.to_face(jnp.zeros(world), axis, sign).shape
+        _, _, tau, bc, geo, consts = _face(M, shape, dt, seed=f)
+        if form == "general":
+            Qf, consts = _general_form(M, shape, dt, rng, linear=True, order=1, sun=True, face=f)
+            q = jnp.asarray(rng.random(world + Qf.shape[3:]), dt)
+        else:
+            q = jnp.asarray(rng.random(world), dt)
+        b = jnp.asarray(rng.random(world), dt)
+        for periodic in [(False, False, False), (True, True, False)]:
+            kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=not periodic[0])
+            vol = (True, True, None)
+            got = jax.jit(lambda *a: K.sweep_face_world(*a, axis=axis, sign=sign, **kw))(
+                q, b, tau, bc, geo, consts)
+            path = functools.partial(K._face_path, axis, sign, M, periodic, 2 * M + 1,
+                                     kw["surfaces"], vol, False)
+            ref = jax.jit(path)(q, b, tau, bc, geo, consts)
+            for r, g in zip(ref, got):
+                assert g.shape == r.shape
+                np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=1e-13,
+                                           atol=1e-13 * float(jnp.max(jnp.abs(r))))
+            assert float(jnp.max(got[0])) > 0  # Λ summed, and E where there are surfaces
+            assert (float(jnp.max(got[1])) > 0) == kw["surfaces"]
+        # tangents in q, b and τ: the face path's (the batched program's)
+        dq, db, dtau = (jnp.asarray(rng.standard_normal(x.shape), dt) for x in (q, b, tau))
+        kw = dict(M=M, periodic=(False, False, False), warmup=2 * M + 1, surfaces=True)
+        fw = lambda *a: K.sweep_face_world(*a, axis=axis, sign=sign, **kw)  # noqa: E731
+        pw, tw = jax.jvp(lambda *a: fw(*a, bc, geo, consts), (q, b, tau), (dq, db, dtau))
+        path = functools.partial(K._face_path, axis, sign, M, (False,) * 3, 2 * M + 1, True,
+                                 (True, True, None), False)
+        pr, tr = jax.jvp(lambda *a: path(*a, bc, geo, consts), (q, b, tau), (dq, db, dtau))
+        for x, y in zip(tw + pw, tr + pr):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-12,
+                                       atol=1e-12 * float(jnp.max(jnp.abs(y))))
+        assert float(jnp.max(jnp.abs(tw[0]))) > 0
+        if f == 0:  # vmapped (render_batch): each member
+            qb = jnp.stack([q, 2.0 * q + 0.1])
+            out = jax.jit(jax.vmap(lambda x: fw(x, b, tau, bc, geo, consts)))(qb)
+            for i in range(2):
+                one = fw(qb[i], b, tau, bc, geo, consts)
+                for x, y in zip(out, one):
+                    np.testing.assert_allclose(np.asarray(x[i]), np.asarray(y), rtol=1e-13)

@@ -442,6 +442,86 @@ def _native_applies(halo, dt) -> bool:
             and np.dtype(dt) in (np.float32, np.float64) and _native.available())
 
 
+def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
+                 periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
+                 vol=(True, True, None), frame: tuple[int, int] | None = None):
+    """``_sweep_face_loop``'s values from the native kernel (``_native.sweep_face``); with
+    ``frame`` = (axis, sign), Q and B in the world frame and Λ, E returned in it
+    (``sweep_face_world``)."""
+    nw = tau_half_unit.shape[0]
+    dt = Q.dtype
+    aniso = Q.ndim == 4
+    _, ns = _slabber(nw, M, periodic[0], warmup)
+    length_k, kidx = _distinct_lengths(consts, M, dt)
+    s0, s1, fog_on = _fog_slabs(vol, ns, M, periodic[0])
+    none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
+    table, nk = _source_table(consts, dt) if aniso else (None, 0)
+    return _native.sweep_face(
+        Q, B, tau_half_unit, geo.normal if surfaces else none[0],
+        geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
+        bc.astype(dt), length_k, kidx, consts.weight.astype(dt), consts.unit.astype(dt),
+        M - jnp.asarray(consts.pq, jnp.int32), M=M, ns=ns,
+        segment=(s0, s1, fog_on, vol[1]), surfaces=surfaces, periodic=periodic,
+        table=table if aniso and table.shape[1] else None, nk=nk,
+        slope=consts.slope.astype(dt) if consts.slope is not None else None, frame=frame)
+
+
+def _fog_slabs(vol, ns: int, M: int, periodic_w: bool) -> tuple[int, int, bool]:
+    """(s0, s1, fog step?): the slabs [s0, s1) that hold fog do the fog step (and Λ), the others
+    neither (``vol`` = (attenuate, fluence, vol_range))."""
+    attenuate, _, vol_range = vol
+    if vol_range is None or periodic_w or not attenuate:
+        return 0, ns, attenuate
+    return vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
+
+
+def world_native_applies(kernel: str, consts: SweepConsts, dt) -> bool:
+    """Whether ``sweep_face_world`` serves a face: the loop kernel's values on one device, the
+    native kernel built, the step or linear scheme (not the sub-stepped one)."""
+    return kernel == "loop" and consts.sub is None and _native_applies(None, dt)
+
+
+def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
+                     axis: int, sign: int, M: int, periodic: tuple[bool, bool, bool],
+                     warmup: int, surfaces: bool, attenuate: bool = True, fluence: bool = True,
+                     vol_range: tuple[int, int] | None = None, recompute: bool = False):
+    """``sweep_face`` of the face (``axis``, ``sign``) with q, b, Λ and E in the world frame
+    (nx, ny, nz[, ...]), the geometry, τ and the radiance leaving in the face frame: the values
+    from the native kernel, which reads and writes each face node's world node, so that
+    neither the face's copies of the sources nor the transposes of Λ and E back are made
+    (per light iteration on this 2-core CPU they cost as much as the sweeps themselves on
+    cloud-plane's 16 channels).  Derivatives are the face-frame path's (``sweep_face`` between
+    ``to_face`` and ``from_face``: its batched program's).  Where ``world_native_applies``."""
+    vol = (bool(attenuate), bool(fluence), None if vol_range is None else tuple(vol_range))
+    return _sweep_face_world(int(axis), int(sign), M, tuple(periodic), int(warmup),
+                             bool(surfaces), vol, bool(recompute), q, b, tau_half_unit, bc, geo,
+                             consts)
+
+
+def _face_path(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b, tau_half_unit, bc,
+               geo, consts):
+    """``sweep_face_world`` through the face frame (its derivatives' program)."""
+    lf, ef, ex = _sweep_face(M, periodic, warmup, surfaces, vol, None, "loop", recompute,
+                             to_face(q, axis, sign), to_face(b, axis, sign), tau_half_unit, bc,
+                             geo, consts)
+    return from_face(lf, axis, sign), from_face(ef, axis, sign), ex
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
+def _sweep_face_world(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b,
+                      tau_half_unit, bc, geo, consts):
+    return _native_call(q, b, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
+                        warmup=warmup, surfaces=surfaces, vol=vol, frame=(axis, sign))
+
+
+@_sweep_face_world.defjvp
+def _sweep_face_world_jvp(axis, sign, M, periodic, warmup, surfaces, vol, recompute, primals,
+                          tangents):
+    path = functools.partial(_face_path, axis, sign, M, periodic, warmup, surfaces, vol,
+                             recompute)
+    return jax.jvp(path, primals, tangents)
+
+
 def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                      M: int, periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
                      vol=(True, True, None), halo: Halo | None = None):
@@ -487,22 +567,11 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     bc_d = bc.astype(dt)
     start = M - jnp.asarray(consts.pq, jnp.int32)  # window origin in the padded plane
 
-    attenuate, fluence, vol_range = vol
-    # the slabs [s0, s1) that hold fog: the fog step (and Λ) there only, neither elsewhere
-    if vol_range is None or per_w or not attenuate:
-        s0, s1, fog_on = 0, ns, attenuate
-    else:
-        s0, s1, fog_on = vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
+    attenuate, fluence, _ = vol
+    s0, s1, fog_on = _fog_slabs(vol, ns, M, per_w)
     if _native_applies(halo, dt):  # the same sweep as one custom call
-        none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
-        table, nk = _source_table(consts, dt) if aniso else (None, 0)
-        return _native.sweep_face(
-            Q, B, tau_half_unit, geo.normal if surfaces else none[0],
-            geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
-            bc_d, length_k, kidx, weight, unit, start, M=M, ns=ns,
-            segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic,
-            table=table if aniso and table.shape[1] else None, nk=nk,
-            slope=consts.slope.astype(dt) if linear else None)
+        return _native_call(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
+                            warmup=warmup, surfaces=surfaces, vol=vol)
 
     # (XLA's loops from here: the slabbed inputs, then the scans)
     byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)

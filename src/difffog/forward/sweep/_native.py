@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import hashlib
 import os
 import shlex
@@ -196,7 +197,8 @@ def _threads() -> int:
 
 def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, unit, start, *,
                M: int, ns: int, segment: tuple[int, int, bool, bool], surfaces: bool,
-               periodic: tuple[bool, bool, bool], table=None, nk: int = 0, slope=None):
+               periodic: tuple[bool, bool, bool], table=None, nk: int = 0, slope=None,
+               frame: tuple[int, int] | None = None):
     """The custom call: ``_sweep_face_loop``'s arrays in the face frame (nw, nu, nv[, ...]),
     unslabbed (the kernel visits the ns·M planes of its slabs itself: padding after an open
     sweep axis, a periodic one's warm-up in wrap order), and its direction constants → Λ, E
@@ -206,13 +208,23 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
 
     The general form: Q (nw, nu, nv, 1 + J [+ 3]) with ``table`` (D, J), its first ``nk``
     columns the moments' (Λ then (nw, nu, nv, 1 + nk) when nk > 0), and with ``slope`` (D, 3)
-    the linear scheme (Q's last three channels the slope h∇Q)."""
+    the linear scheme (Q's last three channels the slope h∇Q).
+
+    frame: (axis, sign) of the face: Q and B are then in the world frame (nx, ny, nz[, C]) and so
+    are Λ and E, which the kernel reads and writes at each face node's world node (the face's
+    copies, ``_kernel.to_face``, and the transposes back are not made); the geometry and τ stay
+    in the face frame."""
     import jax
     import jax.numpy as jnp
 
     dt = Q.dtype
-    nw, nu, nv = Q.shape[:3]
+    nw, nu, nv = tau.shape[:3]
     C = 1 if Q.ndim == 3 else int(Q.shape[3])
+    if frame is None:
+        world, (wb, sw, su, sv), out_shape = 0, (0, 0, 0, 0), (nw, nu, nv)
+    else:
+        world, out_shape = 1, tuple(Q.shape[:3])
+        wb, sw, su, sv = world_strides(out_shape, *frame)
     J = 0 if table is None else int(table.shape[1])
     linear = slope is not None
     D = (2 * M + 1) ** 2
@@ -224,8 +236,8 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
     # 3K + 12 values; the general form: C channels, 4K factors, 1 + nk sums, 8 more)
     per_node = (3 * K + 12) if C == 1 and not linear else (C + 4 * K + 1 + nk + 8)
     tile = int(max(1, min(nu, TILE_BYTES // (per_node * nv * item))))
-    lam_shape = (nw, nu, nv) + ((1 + nk,) if nk else ())
-    out = [jax.ShapeDtypeStruct(lam_shape, dt), jax.ShapeDtypeStruct((nw, nu, nv), dt)] + [
+    lam_shape = out_shape + ((1 + nk,) if nk else ())
+    out = [jax.ShapeDtypeStruct(lam_shape, dt), jax.ShapeDtypeStruct(out_shape, dt)] + [
         jax.ShapeDtypeStruct((M, D, nu, nv), dt),
         jax.ShapeDtypeStruct((2, D, nu + 2 * M, nv + 2 * M), dt)]
     s0, s1, att, fl = segment
@@ -241,5 +253,26 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
         M=i64(M), nw=i64(nw), nu=i64(nu), nv=i64(nv), ns=i64(ns), D=i64(D), K=i64(K),
         nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()), tile=i64(tile),
         surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
-        att_in=i64(att), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk), linear=i64(linear))
+        att_in=i64(att), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk), linear=i64(linear),
+        world=i64(world), wb=i64(wb), sw=i64(sw), su=i64(su), sv=i64(sv))
     return lam, irr, exit_
+
+
+@functools.lru_cache(maxsize=64)
+def world_strides(shape: tuple[int, int, int], axis: int, sign: int) -> tuple[int, int, int, int]:
+    """(base, sw, su, sv): face node (w, u, v) of the face (``axis``, ``sign``) of a lattice of
+    ``shape`` is the world node base + w·sw + u·su + v·sv, counted in C order (``_kernel.
+    to_face``'s map, applied in NumPy to the node numbers: on the host, also under a trace)."""
+    from ._kernel import face_plane_axes
+
+    u, v = face_plane_axes(axis)
+    idx = np.moveaxis(np.arange(int(np.prod(shape))).reshape(shape), (axis, u, v), (0, 1, 2))
+    idx = idx[::-1] if sign < 0 else idx
+    base = int(idx[0, 0, 0])
+    steps = [int(idx[(1, 0, 0)] - base) if idx.shape[0] > 1 else 0,
+             int(idx[(0, 1, 0)] - base) if idx.shape[1] > 1 else 0,
+             int(idx[(0, 0, 1)] - base) if idx.shape[2] > 1 else 0]
+    w, u_, v_ = np.indices(idx.shape, sparse=True)
+    if not np.array_equal(idx, base + w * steps[0] + u_ * steps[1] + v_ * steps[2]):
+        raise AssertionError("to_face is not an axis permutation with flips")
+    return (base, *steps)

@@ -53,9 +53,11 @@ from ._kernel import (
     sweep_face,
     sweep_face_mesh,
     sweep_face_transposed,
+    sweep_face_world,
     substep_offsets,
     substep_weight_scale,
     to_face,
+    world_native_applies,
 )
 
 METHODS = ("auto", "jacobi", "gmres")
@@ -556,12 +558,27 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     # cubic lattice, three otherwise, not six; the fog step over the union of the faces' fog
     # planes).  On a mesh with a "face" axis of 2 each half runs one face of an axis's pair: XLA
     # on a CPU runs one fused loop at a time per device, so this is what puts a second core to
-    # work (no vol_range there); without one, each face alone.
+    # work (no vol_range there); without one, each face alone.  Where the native CPU kernel
+    # serves every face (one device, the loop kernel, not sub-stepped), each face is its own
+    # custom call that reads q, b and writes Λ, E in the world frame: no face-frame copies of
+    # the sources, no transposes back (on cloud-plane's 20 source and 16 fluence channels they
+    # cost as much per iteration as the sweeps), nothing large for XLA to compile.
     groups = g.face_groups(six=one)
     if not (one or nf == 2):
         groups = tuple((f,) for group in groups for f in group)
+    world = one and all(world_native_applies(pb.kernel, g.consts[f], q.dtype)
+                        for group in groups for f in group)
     for group in groups:
         periodic = g.periodic(group[0])
+        if world:  # the native kernel, each face reading q, b and writing Λ, E in the world frame
+            for f in group:
+                axis, sign = FACE_AXES[f]
+                lf, ef, ex = sweep_face_world(
+                    q, b, pb.tau_half[f], pb.sky * g.sky_frac[f], g.faces[f], _face_consts(pb, f),
+                    axis=axis, sign=sign, periodic=periodic, vol_range=g.vol_range(f),
+                    **{k: v for k, v in kw.items() if k != "kernel"})
+                lam, irr, exits[f] = lam + lf, irr + ef, ex
+            continue
         if one:
             sweep = functools.partial(
                 sweep_face, periodic=periodic,

@@ -48,7 +48,18 @@ struct Dims {
   // isotropic step scheme (``unit``).
   int64_t C, J, NK;
   bool lin;
+  // Q, B, Λ and E in the world frame (``world``): face node (w, u, v) is world node
+  // wb + w·sw + u·su + v·sv (an axis permutation and a flip: ``_kernel.to_face``), so that
+  // the face's copies (and XLA's transposes to and from them) are not needed; else the face
+  // frame, node (w·nu + u)·nv + v
+  bool world;
+  int64_t wb, sw, su, sv;
 };
+
+// Where face node (p, u, v)'s Q, B, Λ and E lie in their arrays (in nodes).
+inline int64_t node_at(const Dims& g, int64_t p, int64_t u, int64_t v) {
+  return g.world ? g.wb + p * g.sw + u * g.su + v * g.sv : (p * g.nu + u) * g.nv + v;
+}
 
 template <typename T>
 struct Args {
@@ -133,8 +144,9 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
   const int64_t rows = u1 - u0, n = rows * nv;
   const int64_t off = (p * nu + u0) * nv;
-  const T* Q = a.Q + off;
-  const T* B = a.B + off;
+  // Q and B of the tile's nodes: in place (face frame) or gathered (world frame; scratch)
+  const T* Q = g.world ? nullptr : a.Q + off;
+  const T* B = g.world ? nullptr : a.B + off;
   const T* tau = a.tau + off;
   const int64_t K = ATT ? g.K : 0;
   const int64_t KC = SURF ? K : 0;  // the blocked weights C_k
@@ -147,7 +159,8 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   constexpr int64_t WB = 8 * int64_t(sizeof(W));
   const int64_t NW = SURF ? (g.D + WB - 1) / WB : 0;
   const int64_t nbytes = 2 * n + (SURF ? g.nb * n : 0);
-  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0) + 1 + NW) * n +
+  const int64_t NQ = g.world ? 2 : 0;  // the gathered Q and B
+  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0) + 1 + NW + NQ) * n +
                      (nbytes + sizeof(T) - 1) / sizeof(T)));
   T* em = work.data();
   T* S = em + K * n;
@@ -155,7 +168,19 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   T* accl = C + KC * n;
   T* acci = accl + n;
   T* nrm = acci + n;
-  W* passw = reinterpret_cast<W*>(nrm + (SURF ? 3 * n : 0));
+  if (g.world) {
+    T* qw = nrm + (SURF ? 3 * n : 0);
+    T* bw = qw + n;
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t v = 0; v < nv; ++v) {
+        const int64_t w = node_at(g, p, u0 + r, v);
+        qw[r * nv + v] = a.Q[w];
+        bw[r * nv + v] = a.B[w];
+      }
+    Q = qw;
+    B = bw;
+  }
+  W* passw = reinterpret_cast<W*>(nrm + (SURF ? 3 * n : 0) + NQ * n);
   W* bitw = passw + n;
   uint8_t* pass = reinterpret_cast<uint8_t*>(bitw + NW * n);
   uint8_t* special = pass + n;
@@ -279,8 +304,17 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
         accl[j] += ck[j] != T(0) ? avg(tau[j] * len, e[j]) * (B[j] - Q[j]) * ck[j] : T(0);
     }
   }
-  std::memcpy(a.lam + off, accl, size_t(n) * sizeof(T));
-  std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
+  if (!g.world) {
+    std::memcpy(a.lam + off, accl, size_t(n) * sizeof(T));
+    std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
+    return;
+  }
+  for (int64_t r = 0; r < rows; ++r)
+    for (int64_t v = 0; v < nv; ++v) {
+      const int64_t w = node_at(g, p, u0 + r, v);
+      a.lam[w] = accl[r * nv + v];
+      a.irr[w] = acci[r * nv + v];
+    }
 }
 
 
@@ -319,14 +353,15 @@ void unit_general(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t
   const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
   const int64_t rows = u1 - u0, n = rows * nv, C = g.C, J = g.J, NK = g.NK;
   const int64_t off = (p * nu + u0) * nv;
-  const T* B = a.B + off;
+  const T* B = g.world ? nullptr : a.B + off;
   const T* tau = a.tau + off;
   const int64_t K = ATT ? g.K : 0;
   const int64_t L1 = 1 + NK;
+  const int64_t NQ = g.world ? 1 : 0;  // B gathered (world frame)
   // scratch: channels (C n), per |L| factors em, A, Bf, W (4 K n), Λ and moments (L1 n), E (n),
   // normal (3 n), row buffers q, s, R̄ (3 nv); bytes: pass (n), blocking bits (nb n)
   const int64_t nbytes = n + (SURF ? g.nb * n : 0);
-  work.resize(size_t((C + 4 * K + L1 + 1 + (SURF ? 3 : 0)) * n + 3 * nv +
+  work.resize(size_t((C + 4 * K + L1 + 1 + (SURF ? 3 : 0) + NQ) * n + 3 * nv +
                      (nbytes + sizeof(T) - 1) / sizeof(T)));
   T* Qc = work.data();
   T* em = Qc + C * n;
@@ -339,10 +374,18 @@ void unit_general(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t
   T* qrow = nrm + (SURF ? 3 * n : 0);
   T* srow = qrow + nv;
   T* arow = srow + nv;
-  uint8_t* pass = reinterpret_cast<uint8_t*>(arow + nv);
+  if (g.world) {
+    T* bw = arow + nv;
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t v = 0; v < nv; ++v) bw[r * nv + v] = a.B[node_at(g, p, u0 + r, v)];
+    B = bw;
+  }
+  uint8_t* pass = reinterpret_cast<uint8_t*>(arow + nv + NQ * n);
   uint8_t* bits = pass + n;
-  for (int64_t j = 0; j < n; ++j)  // channels first
-    for (int64_t c = 0; c < C; ++c) Qc[c * n + j] = a.Q[(off + j) * C + c];
+  for (int64_t j = 0; j < n; ++j) {  // channels first
+    const T* qn = a.Q + node_at(g, p, u0 + j / nv, j % nv) * C;
+    for (int64_t c = 0; c < C; ++c) Qc[c * n + j] = qn[c];
+  }
   for (int64_t k = 0; k < K; ++k) {
     const T len = a.length_k[k];
     T *e = em + k * n, *x1 = fa + k * n, *x2 = fb + k * n, *x3 = fw + k * n;
@@ -441,10 +484,12 @@ void unit_general(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t
     }
   }
   if (!kept(g, i)) return;
-  T* lam = a.lam + off * L1;
-  for (int64_t j = 0; j < n; ++j)
-    for (int64_t c = 0; c < L1; ++c) lam[j * L1 + c] = acc[c * n + j];
-  std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
+  for (int64_t j = 0; j < n; ++j) {
+    const int64_t w = node_at(g, p, u0 + j / nv, j % nv);
+    T* lam = a.lam + w * L1;
+    for (int64_t c = 0; c < L1; ++c) lam[c] = acc[c * n + j];
+    a.irr[w] = acci[j];
+  }
 }
 
 template <typename T>
@@ -520,15 +565,15 @@ template <typename T>
 void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
   const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
   const int64_t C = g.C;
-  const T* q0 = g.per_w ? a.Q + source(g, m) * g.nu * g.nv * C : nullptr;
+  const int64_t p0 = g.per_w ? source(g, m) : -1;
   for (int64_t d = 0; d < g.D; ++d) {
     T* pl = buf + d * PU * PV;
     std::fill(pl, pl + PU * PV, a.bc[d]);
-    if (q0) {  // direction d's source: Q_0 + Σ_j table[d, j] Q_j
+    if (p0 >= 0) {  // direction d's source: Q_0 + Σ_j table[d, j] Q_j
       const T* tab = a.table + d * g.J;
       for (int64_t u = 0; u < g.nu; ++u)
         for (int64_t v = 0; v < g.nv; ++v) {
-          const T* qn = q0 + (u * g.nv + v) * C;
+          const T* qn = a.Q + node_at(g, p0, u, v) * C;
           T q = qn[0];
           for (int64_t c = 0; c < g.J; ++c) q += tab[c] * qn[1 + c];
           pl[(u + M) * PV + M + v] = q;
@@ -633,10 +678,11 @@ ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
                          int64_t nv, int64_t ns, int64_t D, int64_t K, int64_t nb, int64_t s0,
                          int64_t s1, int64_t threads, int64_t tile, int64_t surfaces,
                          int64_t per_w, int64_t per_u, int64_t per_v, int64_t att_in,
-                         int64_t fl_in, int64_t C, int64_t J, int64_t NK, int64_t linear) {
+                         int64_t fl_in, int64_t C, int64_t J, int64_t NK, int64_t linear,
+                         int64_t world, int64_t wb, int64_t sw, int64_t su, int64_t sv) {
   Dims g{M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile,
          surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, fl_in != 0,
-         C, J, NK, linear != 0};
+         C, J, NK, linear != 0, world != 0, wb, sw, su, sv};
   if (M < 1 || nw < 1 || nu < 1 || nv < 1 || ns * M < nw || tile < 1 ||
       D != (2 * M + 1) * (2 * M + 1) || C != 1 + J + (linear ? 3 : 0) || NK > J || NK < 0)
     return ffi::Error::InvalidArgument("difffog_sweep_face: inconsistent dimensions");
@@ -657,8 +703,8 @@ ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                               ffi::Ffi::Bind()
-                                  .Arg<ffi::AnyBuffer>()  // Q (nw, nu, nv)
-                                  .Arg<ffi::AnyBuffer>()  // B
+                                  .Arg<ffi::AnyBuffer>()  // Q (nw, nu, nv[, C]) or world
+                                  .Arg<ffi::AnyBuffer>()  // B (nw, nu, nv) or world
                                   .Arg<ffi::AnyBuffer>()  // τ_half_unit
                                   .Arg<ffi::AnyBuffer>()  // normal (nw, nu, nv, 3)
                                   .Arg<ffi::AnyBuffer>()  // blocked bytes (nw, nu, nv, nb)
@@ -672,8 +718,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Arg<ffi::AnyBuffer>()  // start (D, 2) int32
                                   .Arg<ffi::AnyBuffer>()  // table (D, J) (or a dummy)
                                   .Arg<ffi::AnyBuffer>()  // slope (D, 3) (or a dummy)
-                                  .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv[, 1 + NK])
-                                  .Ret<ffi::AnyBuffer>()  // E
+                                  .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv[, 1 + NK]) or world
+                                  .Ret<ffi::AnyBuffer>()  // E (nw, nu, nv) or world
                                   .Ret<ffi::AnyBuffer>()  // exit (M, D, nu, nv)
                                   .Ret<ffi::AnyBuffer>()  // scratch: two carries (2, D, PU, PV)
                                   .Attr<int64_t>("M")
@@ -697,4 +743,9 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Attr<int64_t>("C")
                                   .Attr<int64_t>("J")
                                   .Attr<int64_t>("NK")
-                                  .Attr<int64_t>("linear"));
+                                  .Attr<int64_t>("linear")
+                                  .Attr<int64_t>("world")  // Q, B, Λ, E in the world frame
+                                  .Attr<int64_t>("wb")
+                                  .Attr<int64_t>("sw")
+                                  .Attr<int64_t>("su")
+                                  .Attr<int64_t>("sv"));
