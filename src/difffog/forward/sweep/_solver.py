@@ -17,6 +17,7 @@ import dataclasses
 import functools
 import math
 import os
+import warnings
 
 import equinox as eqx
 import jax
@@ -1085,6 +1086,15 @@ class SweepSolver(eqx.Module):
                              "devices=1 (or another scheme on a device mesh)")
         if not isinstance(self.restart, int) or self.restart < 2:
             raise SceneError(f"SweepSolver: restart must be an integer >= 2, got {self.restart!r}")
+        if self.kernel == "pallas":
+            from ._pallas import interpret_mode  # (imported only where it is asked for)
+
+            if interpret_mode():
+                warnings.warn(
+                    f"SweepSolver: kernel=\"pallas\" on the {jax.default_backend()} backend runs "
+                    f"Pallas's interpret mode (it compiles for GPUs only): the same values, "
+                    f"3-10x slower than kernel=\"batched\"; kernel=\"auto\" takes the fast one",
+                    stacklevel=3)
 
     def resolved_method(self, geom: "SweepGeometry | None" = None) -> str:
         """The iteration ``method`` stands for ("auto" → the measured faster one)."""
