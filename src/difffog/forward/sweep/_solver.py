@@ -563,7 +563,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     # serves every face (one device, the loop kernel, not sub-stepped), each face is its own
     # custom call that reads q, b and writes Λ, E in the world frame: no face-frame copies of
     # the sources, no transposes back (on cloud-plane's 20 source and 16 fluence channels they
-    # cost as much per iteration as the sweeps), nothing large for XLA to compile.
+    # took about half as long as the sweeps), nothing large for XLA to compile.
     groups = g.face_groups(six=one)
     if not (one or nf == 2):
         groups = tuple((f,) for group in groups for f in group)

@@ -126,18 +126,17 @@ inline T avg(T t, T x) {
 // One unit: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0), every direction:
 // src and dst are the chain's carries (D, PU, PV) before and after the plane.
 //
-// The direction loop runs over whole rows in the fog-only form (vectorised; per direction the
+// The direction loop runs over whole rows, one 64-byte vector at a time (per direction the
 // rows read and written are each one contiguous block).  Two things keep it short:
 // - Λ is Σ_d w_d R̄_d with R̄_d = Q + (R_d − Q)·a2_k, or Q + (B − Q)·a1_k after a blocked
 //   arrival (a2_k = (1 − e^{−2τ_k})/(2τ_k), a1_k = (1 − e^{−τ_k})/τ_k for the direction's
 //   distinct |L|), so the loop only sums S_k += w_d (R_d − Q) per |L| (and C_k += w_d over the
 //   blocked ones) and Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k] once per node afterwards:
 //   the same sum, regrouped;
-// - where surfaces matter (a SURFACE node, a set blocking bit or a normal: the shell around the
-//   shapes) a second pass over each run of such nodes along a row adds what the fog-only form
-//   left out: a blocked arrival (the surface's radiosity B instead of the ray), E by cos.  A
-//   fog node's blocking bits and normal are 0, where the fog-only form is the whole update (so
-//   runs may bridge short gaps of fog nodes).
+// - only a vector that holds a node where surfaces matter (a SURFACE node, a set blocking bit
+//   or a normal: the shell around the shapes) takes the form with surfaces: a blocked arrival
+//   (the surface's radiosity B instead of the ray), E by cos; the others the fog-only form
+//   (a fog node's blocking bits and normal are 0, where the two forms agree).
 template <typename T, bool ATT, bool SURF, bool FL>
 void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int64_t p,
           int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>& runs) {
