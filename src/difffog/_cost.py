@@ -78,19 +78,22 @@ def fit_edge_samples(downsample: int) -> int:
 #: (fog-balls N = 32-96, M = 2-5, this 2-core CPU: each within 0.75-1.2× of the measured)
 CPU_UPDATES_PER_S = 0.42e9
 #: the same for the isotropic step scheme's native sweep (``forward/sweep/_native.py``): rate and
-#: per-node cost fitted to bench_cost.py's 9 sweep rows at stop 63 (fog-balls N = 32-96,
-#: M = 2-5, this 2-core CPU, copy 26.8 GB/s: each within 0.53-1.24× of the measured, the
-#: small lattices' under; benchmarks/results/cost_native.md)
-CPU_NATIVE_UPDATES_PER_S = 1.1e9
-CPU_NATIVE_SECONDS_PER_NODE = 4.8e-7
-#: the native kernel's general form (stop 64: the linear scheme, anisotropic moments), seconds
-#: per node-and-direction update, plus this per moment: cloud-plane N = 64, M = 3 (linear
-#: scheme), this 2-core CPU, copy 26.3 GB/s (bench_sweep.py --phase-order 0 1 2 3): 0.064 /
-#: 0.119 / 0.225 / 0.327 s per iteration at K = 0 / 3 / 8 / 15 moments, 0.83 / 1.54 / 2.92 /
-#: 4.24 ns per update (the XLA loop: 0.148 / 0.227 / 1.064 / 1.744 s); fog-balls M = 3 with
-#: the linear scheme 1.50 / 1.25 ns at N = 64 / 128 (0.116 / 0.770 s)
-CPU_NATIVE_GENERAL_S_PER_UPDATE = 1.2e-9
-CPU_NATIVE_S_PER_UPDATE_MOMENT = 0.23e-9
+#: per-node cost fitted to bench_cost.py's 9 sweep rows at stop 65, since the kernel reads and
+#: writes the world frame (fog-balls N = 32-96, M = 2-5, this 2-core CPU, copy 26.8 GB/s: each
+#: within 0.68-1.17× of the measured, the small lattices' under; at stop 63, with the face
+#: copies, 1.1e9 and 4.8e-7; benchmarks/results/cost_native.md)
+CPU_NATIVE_UPDATES_PER_S = 1.27e9
+CPU_NATIVE_SECONDS_PER_NODE = 3.6e-7
+#: the native kernel's general form (the linear scheme, anisotropic moments), seconds per
+#: node-and-direction update, plus this per moment, fitted (least squares in the relative error)
+#: at stop 65, since the kernel reads and writes the world frame: cloud-plane N = 64, M = 3
+#: (linear scheme), this 2-core CPU (bench_sweep.py --phase-order 0 1 2 3): 0.051 / 0.111 /
+#: 0.199 / 0.252 s per iteration at K = 0 / 3 / 8 / 15 moments, 0.66 / 1.44 / 2.58 / 3.27 ns
+#: per update (stop 64, with the face copies: 0.83 / 1.54 / 2.92 / 4.24); fog-balls M = 3 with
+#: the linear scheme 1.38 / 1.23 ns at N = 64 / 128 (0.106 / 0.760 s; its shell of surface
+#: nodes costs more than cloud-plane's fog): the estimate 0.65-1.34× the measured over the six rows
+CPU_NATIVE_GENERAL_S_PER_UPDATE = 0.9e-9
+CPU_NATIVE_S_PER_UPDATE_MOMENT = 0.18e-9
 #: an anisotropic phase (``SweepSolver.phase_order`` L, K = (L+1)² − 1 moments): the light
 #: iteration's time grows by this fraction per moment (every direction's source built from K
 #: moments, K accumulations per update).  cloud-plane N = 64, M = 3, this 2-core CPU
