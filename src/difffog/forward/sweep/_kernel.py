@@ -67,9 +67,11 @@ _I0 = np.int32(0)  # index literal (dynamic_slice wants one integer type, also u
 
 
 def to_face(x, axis: int, sign: int):
-    """(nx, ny, nz, ...) → (nw, nu, nv, ...) with w the sweep axis, oriented along the sweep."""
+    """(nx, ny, nz, ...) → (nw, nu, nv, ...) with w the sweep axis, oriented along the sweep
+    (a JAX or a NumPy array: ``_native.world_strides`` reads the map off node numbers on the
+    host)."""
     u, v = face_plane_axes(axis)
-    y = jnp.moveaxis(x, (axis, u, v), (0, 1, 2))
+    y = x.transpose((axis, u, v) + tuple(range(3, x.ndim)))
     return y[::-1] if sign < 0 else y
 
 
@@ -544,11 +546,16 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     instead of 25/49/121).  The padded carry's border holds ``bc`` (open sides) and is never
     written, or is refreshed by wrapping (periodic sides).
     """
+    dt = Q.dtype
+    if _native_applies(halo, dt):  # the same sweep as one custom call
+        return _native_call(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
+                            warmup=warmup, surfaces=surfaces, vol=vol)
+
+    # (XLA's loops from here)
     nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
     D = P * P
     per_w, per_u, per_v = periodic
-    dt = Q.dtype
     # Anisotropic: Q (nw, nu, nv, 1 + J [+ 3]), the isotropic part, then the sources that
     # direction d weights by ``_source_table``'s row d (the K moments', then the sun's), then
     # with the linear scheme the source's slope h∇Q (3 channels); Λ gets K moments
@@ -569,11 +576,8 @@ def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
 
     attenuate, fluence, _ = vol
     s0, s1, fog_on = _fog_slabs(vol, ns, M, per_w)
-    if _native_applies(halo, dt):  # the same sweep as one custom call
-        return _native_call(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
-                            warmup=warmup, surfaces=surfaces, vol=vol)
 
-    # (XLA's loops from here: the slabbed inputs, then the scans)
+    # the slabbed inputs, then the scans
     byte_of = jnp.asarray(np.arange(D) // 8, jnp.int32)
     bit_of = jnp.asarray((np.arange(D) % 8).astype(np.uint8))
 

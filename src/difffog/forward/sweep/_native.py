@@ -262,17 +262,15 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
 def world_strides(shape: tuple[int, int, int], axis: int, sign: int) -> tuple[int, int, int, int]:
     """(base, sw, su, sv): face node (w, u, v) of the face (``axis``, ``sign``) of a lattice of
     ``shape`` is the world node base + w·sw + u·su + v·sv, counted in C order (``_kernel.
-    to_face``'s map, applied in NumPy to the node numbers: on the host, also under a trace)."""
-    from ._kernel import face_plane_axes
+    to_face`` applied in NumPy to the node numbers: on the host, also under a trace)."""
+    from ._kernel import to_face
 
-    u, v = face_plane_axes(axis)
-    idx = np.moveaxis(np.arange(int(np.prod(shape))).reshape(shape), (axis, u, v), (0, 1, 2))
-    idx = idx[::-1] if sign < 0 else idx
+    idx = to_face(np.arange(int(np.prod(shape))).reshape(shape), axis, sign)
     base = int(idx[0, 0, 0])
     steps = [int(idx[(1, 0, 0)] - base) if idx.shape[0] > 1 else 0,
              int(idx[(0, 1, 0)] - base) if idx.shape[1] > 1 else 0,
              int(idx[(0, 0, 1)] - base) if idx.shape[2] > 1 else 0]
-    w, u_, v_ = np.indices(idx.shape, sparse=True)
-    if not np.array_equal(idx, base + w * steps[0] + u_ * steps[1] + v_ * steps[2]):
+    w, u, v = np.indices(idx.shape, sparse=True)
+    if not np.array_equal(idx, base + w * steps[0] + u * steps[1] + v * steps[2]):
         raise AssertionError("to_face is not an axis permutation with flips")
     return (base, *steps)
