@@ -61,6 +61,14 @@ inline int64_t node_at(const Dims& g, int64_t p, int64_t u, int64_t v) {
   return g.world ? g.wb + p * g.sw + u * g.su + v * g.sv : (p * g.nu + u) * g.nv + v;
 }
 
+// Rows [u0, u0 + rows) of face plane p of a one-channel array (B, or the isotropic Q) as a
+// contiguous tile (rows, nv): the world frame's gather.
+template <typename T>
+void gather(const Dims& g, const T* x, int64_t p, int64_t u0, int64_t rows, T* out) {
+  for (int64_t r = 0; r < rows; ++r)
+    for (int64_t v = 0; v < g.nv; ++v) out[r * g.nv + v] = x[node_at(g, p, u0 + r, v)];
+}
+
 template <typename T>
 struct Args {
   const T *Q, *B, *tau, *normal, *bc, *length_k, *weight, *unit, *table, *slope;
@@ -139,7 +147,7 @@ inline T avg(T t, T x) {
 //   (a fog node's blocking bits and normal are 0, where the two forms agree).
 template <typename T, bool ATT, bool SURF, bool FL>
 void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int64_t p,
-          int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>& runs) {
+          int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>& flags) {
   const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
   const int64_t rows = u1 - u0, n = rows * nv;
   const int64_t off = (p * nu + u0) * nv;
@@ -169,15 +177,10 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   T* nrm = acci + n;
   if (g.world) {
     T* qw = nrm + (SURF ? 3 * n : 0);
-    T* bw = qw + n;
-    for (int64_t r = 0; r < rows; ++r)
-      for (int64_t v = 0; v < nv; ++v) {
-        const int64_t w = node_at(g, p, u0 + r, v);
-        qw[r * nv + v] = a.Q[w];
-        bw[r * nv + v] = a.B[w];
-      }
+    gather(g, a.Q, p, u0, rows, qw);
+    gather(g, a.B, p, u0, rows, qw + n);
     Q = qw;
-    B = bw;
+    B = qw + n;
   }
   W* passw = reinterpret_cast<W*>(nrm + (SURF ? 3 * n : 0) + NQ * n);
   W* bitw = passw + n;
@@ -199,13 +202,13 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   // each row as whole vectors (64 bytes) and a remainder; a vector that holds a node where
   // surfaces matter (a SURFACE node, a set blocking bit or a normal: the shell around the
   // shapes) takes the form with surfaces, the others the fog-only form (the same for a fog
-  // node, whose blocking bits and normal are 0).  ``runs``: per row, one flag per vector.
+  // node, whose blocking bits and normal are 0).  ``flags``: per row, one per vector.
   constexpr int64_t VW = 64 / int64_t(sizeof(T));
   const int64_t nvec = nv / VW, nch = nvec + 1;  // + the remainder's flag
-  runs.assign(size_t(rows * nch), 0);
+  flags.assign(size_t(rows * nch), 0);
   if (SURF)
     for (int64_t r = 0; r < rows; ++r)
-      for (int64_t v = 0; v < nv; ++v) runs[size_t(r * nch + v / VW)] |= special[r * nv + v];
+      for (int64_t v = 0; v < nv; ++v) flags[size_t(r * nch + v / VW)] |= special[r * nv + v];
   T wsum = T(0);
   for (int64_t d = 0; d < g.D; ++d) {
     const int64_t k = ATT ? a.kidx[d] : 0;
@@ -231,7 +234,7 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
       const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
       T* ck = C + k * n + o;
       T* ai = acci + o;
-      const int32_t* flag = runs.data() + r * nch;
+      const int32_t* flag = flags.data() + r * nch;
       auto fog = [&](int64_t v) __attribute__((always_inline)) {
         const T r_mid = rs[v], qt = q[v];
         T r_out = r_mid;
@@ -374,10 +377,8 @@ void unit_general(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t
   T* srow = qrow + nv;
   T* arow = srow + nv;
   if (g.world) {
-    T* bw = arow + nv;
-    for (int64_t r = 0; r < rows; ++r)
-      for (int64_t v = 0; v < nv; ++v) bw[r * nv + v] = a.B[node_at(g, p, u0 + r, v)];
-    B = bw;
+    gather(g, a.B, p, u0, rows, arow + nv);
+    B = arow + nv;
   }
   uint8_t* pass = reinterpret_cast<uint8_t*>(arow + nv + NQ * n);
   uint8_t* bits = pass + n;
@@ -594,7 +595,7 @@ void sweep(const Dims& g, const Args<T>& a) {
   const int64_t tiles = (g.nu + g.tile - 1) / g.tile;
   const int64_t nthreads = std::max<int64_t>(1, std::min<int64_t>(g.threads, tiles));
   std::vector<std::vector<T>> work(static_cast<size_t>(nthreads));
-  std::vector<std::vector<int32_t>> runs(static_cast<size_t>(nthreads));
+  std::vector<std::vector<int32_t>> flags(static_cast<size_t>(nthreads));
   for (int64_t m = 0; m < M; ++m) {
     initial(g, a, m, bufs[0]);
     std::memcpy(bufs[1], bufs[0], size_t(chain) * sizeof(T));
@@ -617,7 +618,7 @@ void sweep(const Dims& g, const Args<T>& a) {
         for (int64_t j = next++; j < tiles; j = next++) {
           const int64_t u0 = j * g.tile;
           fn(g, a, src, dst, i, p, u0, std::min(u0 + g.tile, g.nu), work[size_t(t)],
-             runs[size_t(t)]);
+             flags[size_t(t)]);
         }
       };
       std::vector<std::thread> pool;
