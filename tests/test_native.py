@@ -179,6 +179,26 @@ def test_without_a_compiler_the_xla_loop_serves(tmp_path, monkeypatch, x64, nati
     assert not _native.available() and "turned off" in _native.status()
 
 
+def test_a_part_that_fails_to_compile_leaves_nothing(tmp_path, monkeypatch, native_state):
+    """The library is compiled as ``PARTS`` objects at once: one part's compiler error (the
+    others succeeding) makes ``available()`` False with that error's line in ``status()``, and
+    leaves neither objects nor a library in the build folder."""
+    fake = tmp_path / "fake-c++"
+    fake.write_text("#!/bin/sh\n"
+                    "case \"$*\" in *--version*) echo 'fake c++ 1.0'; exit 0;; esac\n"
+                    "case \"$*\" in *-DDIFFFOG_PART=1*) echo 'sweep_face.cc:1: error: part 1 "
+                    "broke' >&2; exit 1;; esac\n"
+                    "for a; do [ \"$prev\" = -o ] && : > \"$a\"; prev=$a; done\n")
+    fake.chmod(0o755)
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    monkeypatch.setenv("CXX", str(fake))
+    _native._STATE.clear()
+    assert not _native.available()
+    assert _native.status() == "XLA loop: not built (sweep_face.cc:1: error: part 1 broke)"
+    assert not list((cache / "difffog" / "native").rglob("*"))
+
+
 def test_old_builds_are_pruned(tmp_path):
     """Builds of other sources, compilers or CPUs are deleted once not loaded for
     ``PRUNE_DAYS``; recent ones, the one being kept and other files stay."""

@@ -10,7 +10,9 @@
 //
 // Built by ``_native.py`` with the machine's C++ compiler on first use, against jaxlib's XLA
 // FFI headers; registered as the custom call "difffog_sweep_face_<hash>" (CPU).  Derivatives
-// never come here: the sweep's JVP and transposes are JAX programs (``_kernel``).
+// never come here: the sweep's JVP and transposes are JAX programs (``_kernel``).  The build
+// compiles this file three times at once, DIFFFOG_PART=0 for the handler (XLA's FFI headers),
+// 1 for float, 2 for double, and links the three; without DIFFFOG_PART it is the whole library.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -20,9 +22,14 @@
 #include <type_traits>
 #include <vector>
 
+#ifndef DIFFFOG_PART
+#define DIFFFOG_PART -1
+#endif
+#if DIFFFOG_PART <= 0
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
+#endif
 
 #if defined(__x86_64__) && defined(__GLIBC__) && defined(__GNUC__) && !defined(__clang__) && \
     (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35))
@@ -34,7 +41,8 @@ __attribute__((simd("notinbranch"))) double expm1(double) noexcept;
 }
 #endif
 
-namespace {
+// named (the two objects share ``sweep<double>``), hidden from the library's exports
+namespace __attribute__((visibility("hidden"))) difffog_sweep {
 
 inline float em1(float x) { return expm1f(x); }
 inline double em1(double x) { return expm1(x); }
@@ -636,6 +644,16 @@ void sweep(const Dims& g, const Args<T>& a) {
   }
 }
 
+#if DIFFFOG_PART == 1
+template void sweep<float>(const Dims& g, const Args<float>& a);
+#elif DIFFFOG_PART == 2
+template void sweep<double>(const Dims& g, const Args<double>& a);
+#elif DIFFFOG_PART == 0
+extern template void sweep<float>(const Dims& g, const Args<float>& a);
+extern template void sweep<double>(const Dims& g, const Args<double>& a);
+#endif
+
+#if DIFFFOG_PART <= 0
 template <typename T>
 Args<T> args(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau, ffi::AnyBuffer normal,
              ffi::AnyBuffer bits, ffi::AnyBuffer free, ffi::AnyBuffer surf, ffi::AnyBuffer bc,
@@ -699,7 +717,11 @@ ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
   return ffi::Error::Success();
 }
 
-}  // namespace
+#endif  // DIFFFOG_PART <= 0
+}  // namespace difffog_sweep
+
+#if DIFFFOG_PART <= 0
+using difffog_sweep::SweepFaceImpl;
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                               ffi::Ffi::Bind()
@@ -749,3 +771,4 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Attr<int64_t>("sw")
                                   .Attr<int64_t>("su")
                                   .Attr<int64_t>("sv"));
+#endif  // DIFFFOG_PART <= 0
