@@ -271,3 +271,59 @@ def test_world_frame_equals_the_face_frame(form, x64):
                 one = fw(qb[i], b, tau, bc, geo, consts)
                 for x, y in zip(out, one):
                     np.testing.assert_allclose(np.asarray(x[i]), np.asarray(y), rtol=1e-13)
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_native_gram_schmidt_equals_the_xla_products(dtype, x64):
+    """GMRES's Arnoldi step orthogonalized by the native kernel (the live rows only) equals
+    XLA's products over all rows (``_krylov._cgs2``), also with stale rows beyond the live
+    ones and under vmap; w is orthogonal to the live rows."""
+    from difffog.forward.sweep import _krylov
+
+    assert _native.available() and _krylov._native_gram_schmidt(jnp.dtype(dtype), True)
+    assert not _krylov._native_gram_schmidt(jnp.dtype(dtype), False)
+    rng = np.random.default_rng(3)
+    n, rows = 3 * 1024 + 77, 9  # not a whole number of the kernel's column blocks
+    q, _ = np.linalg.qr(rng.standard_normal((n, rows)))
+    V = jnp.asarray(q.T, dtype)  # orthonormal rows, as GMRES keeps them
+    a = jnp.asarray(rng.standard_normal(n) + 3.0 * q[:, 0], dtype)
+    tol = 1e-12 if dtype == "float64" else 2e-5
+    for j in (0, 3, rows - 1):
+        h, w, hn = jax.jit(_native.gram_schmidt)(V, a, j + 1)
+        h_x, w_x, hn_x = _krylov._cgs2(V, a, j)
+        np.testing.assert_allclose(h, h_x, rtol=tol, atol=tol * 3)
+        np.testing.assert_allclose(w, w_x, rtol=tol, atol=tol * 3)
+        np.testing.assert_allclose(hn, hn_x, rtol=tol)
+        assert j + 1 == rows or float(jnp.max(jnp.abs(h[j + 1:]))) == 0.0
+        assert float(jnp.max(jnp.abs(V[: j + 1] @ w))) < 10 * tol * float(hn)
+    hb, wb, nb = jax.vmap(_native.gram_schmidt, in_axes=(None, 0, 0))(
+        V, jnp.stack([a, 2 * a]), jnp.array([2, 5], jnp.int32))
+    for k, (aa, live) in enumerate(((a, 2), (2 * a, 5))):
+        h1, w1, n1 = _native.gram_schmidt(V, aa, live)
+        np.testing.assert_array_equal(hb[k], h1)
+        np.testing.assert_array_equal(wb[k], w1)
+
+
+@needs_compiler
+def test_gmres_with_the_native_gram_schmidt_solves_as_with_xla(x64):
+    """The same restarted GMRES solve (a nonsymmetric contraction, restarts included) with the
+    native Gram–Schmidt and with XLA's products: the same solution and step count, float64."""
+    from difffog.forward.sweep import _krylov
+
+    rng = np.random.default_rng(5)
+    n = 300
+    K = jnp.asarray(0.9 * rng.random((n, n)) / n * 2.0 * np.eye(n)[rng.permutation(n)] +
+                    0.95 * rng.random((n, n)) / n, jnp.float64)
+    b = jnp.asarray(rng.standard_normal(n), jnp.float64)
+    x_true = np.linalg.solve(np.eye(n) - np.asarray(K), np.asarray(b))
+
+    def apply_k(u, with_sources):
+        return K @ u + jnp.where(with_sources, b, 0.0)
+
+    out = {nat: _krylov.gmres(apply_k, (n,), jnp.float64, restart=5, max_matvecs=200,
+                              tol=1e-10, native=nat) for nat in (True, False)}
+    (x_n, _, k_n, _), (x_x, _, k_x, _) = out[True], out[False]
+    assert int(k_n) == int(k_x) and int(k_n) > 6  # more than one cycle
+    np.testing.assert_allclose(x_n, x_x, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(x_n, x_true, rtol=1e-8, atol=1e-9)

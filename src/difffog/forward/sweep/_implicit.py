@@ -296,6 +296,8 @@ class KrylovSolver(lx.AbstractLinearSolver):
     restart: Krylov steps per cycle (memory: restart + 1 vectors).
     max_matvecs: the products allowed; a solve that has not reached ``rtol`` by then returns
         ``RESULTS.max_steps_reached`` (and a non-finite one too).
+    native: its Gram–Schmidt by the native CPU kernel where that serves (``_krylov.gmres``);
+        False for a device mesh's sharded state.
 
     A :class:`Preconditioner` in the solve's options (``options["preconditioner"]``) makes it
     flexible GMRES with that right preconditioner; the transposed solve gets its transpose.
@@ -306,6 +308,7 @@ class KrylovSolver(lx.AbstractLinearSolver):
     rtol: float = eqx.field(static=True)
     restart: int = eqx.field(static=True, default=40)
     max_matvecs: int = eqx.field(static=True, default=400)
+    native: bool = eqx.field(static=True, default=True)
 
     def init(self, operator, options):
         pre = options.get("preconditioner")
@@ -331,7 +334,8 @@ class KrylovSolver(lx.AbstractLinearSolver):
         x0 = None if y0 is None else jax.flatten_util.ravel_pytree(y0)[0].astype(b.dtype)
         x, _, k, err = gmres(apply_k, b.shape, b.dtype, restart=self.restart,
                              max_matvecs=self.max_matvecs, tol=self.rtol,
-                             precondition=None if pre is None else precondition, x0=x0)
+                             precondition=None if pre is None else precondition, x0=x0,
+                             native=self.native)
         ok = (err <= self.rtol) & jnp.all(jnp.isfinite(x))
         result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
         return unravel(x), result, {"num_steps": k}

@@ -13,11 +13,16 @@ form: each direction's source built from the node's channels, Λ's moments summe
 the sub-stepped scheme, a device mesh's halo, another backend and every derivative stay JAX
 programs.
 
-The library is compiled on first use with the machine's C++ compiler (``$CXX``, else ``c++``),
-as three objects at once (``PARTS``), against jaxlib's FFI headers, into ``$XDG_CACHE_HOME/difffog/native`` (``~/.cache``), named by
-a hash of the source, the flags, the compiler, jaxlib and the CPU (``-march=native``): a later
+``native/gram_schmidt.cc``, in the same library, orthogonalizes each GMRES step against the
+live rows of its Krylov basis only (``gram_schmidt``; XLA's products read every row).
+
+The library is compiled on first use with the machine's C++ compiler (``$CXX``, else
+``c++``), four objects at once (the sweep's ``PARTS`` and the Gram–Schmidt's), against
+jaxlib's FFI headers, into ``$XDG_CACHE_HOME/difffog/native`` (``~/.cache``), named by a hash
+of the sources, the flags, the compiler, jaxlib and the CPU (``-march=native``): a later
 process loads it (milliseconds).  Without a compiler, or if the build fails, the sweep keeps
-XLA's loop (same values; :func:`status` says why).  ``DIFFFOG_NATIVE=0`` turns it off.
+XLA's loop and GMRES XLA's products (same values; :func:`status` says why).
+``DIFFFOG_NATIVE=0`` turns both off.
 """
 
 from __future__ import annotations
@@ -44,10 +49,14 @@ NATIVE_ENV = "DIFFFOG_NATIVE"
 #: JAX's persistent cache never calls a kernel built from another source
 TARGET = "difffog_sweep_face"
 _SOURCE = Path(__file__).with_name("native") / "sweep_face.cc"
+#: GMRES's Gram–Schmidt over the live rows of its basis (``gram_schmidt``), in the same library
+_GS_SOURCE = _SOURCE.with_name("gram_schmidt.cc")
+GS_TARGET = "difffog_gram_schmidt"
 _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-simd",
           "-fno-math-errno", "-fno-trapping-math", "-pthread"]
-#: the source is compiled as this many objects at once (``DIFFFOG_PART``: the FFI handler,
-#: float, double), then linked: 9.3 s on this project's 2-core CPU against 15.4–18.2 s as one
+#: the sweep's source is compiled as this many objects (``DIFFFOG_PART``: the FFI handler,
+#: float, double), at once with the Gram–Schmidt's, then linked: 9.3 s on this project's 2-core
+#: CPU against 15.4–18.2 s as one
 PARTS = 3
 #: builds not loaded for this many days are deleted when another is built (one per source,
 #: compiler, jaxlib or CPU change, ~100 KB each; a machine that still uses one rebuilds it)
@@ -109,7 +118,7 @@ def _build() -> Path:
     cxx = shlex.split(cxx)  # $CXX may carry a wrapper or flags ("ccache g++")
     version = subprocess.run([*cxx, "--version"], capture_output=True, text=True,
                              timeout=30).stdout.splitlines()[:1]
-    src = _SOURCE.read_bytes()
+    src = _SOURCE.read_bytes() + b"\0" + _GS_SOURCE.read_bytes()
     libs = ["-lmvec"] if ctypes.util.find_library("mvec") else []  # glibc's vector math
     key = hashlib.sha256(b"\0".join([src, " ".join(_FLAGS + libs + [f"parts={PARTS}"]).encode(),
                                      str(version).encode(),
@@ -142,15 +151,16 @@ def _build() -> Path:
 
 def _compile_parts(cxx: list[str], include: list[str], objs: Path, out: str,
                    libs: list[str]) -> None:
-    """Compile the source's ``PARTS`` objects at once (one per core: the handler, float,
-    double) and link them into ``out``; raises subprocess.CalledProcessError (its stderr the
+    """Compile the sweep's ``PARTS`` objects (the handler, float, double) and the Gram–Schmidt's
+    at once and link them into ``out``; raises subprocess.CalledProcessError (its stderr the
     compiler's) or subprocess.TimeoutExpired."""
     flags = [f for f in _FLAGS if f != "-shared"]
-    procs, outs = [], []
+    units = [(_SOURCE, [f"-DDIFFFOG_PART={k}"]) for k in range(PARTS)] + [(_GS_SOURCE, [])]
+    procs, outs, objects = [], [], []
     try:
-        for k in range(PARTS):
-            cmd = [*cxx, *flags, *include, f"-DDIFFFOG_PART={k}", "-c", str(_SOURCE), "-o",
-                   str(objs / f"part{k}.o")]
+        for k, (source, defines) in enumerate(units):
+            objects.append(str(objs / f"part{k}.o"))
+            cmd = [*cxx, *flags, *include, *defines, "-c", str(source), "-o", objects[-1]]
             procs.append((cmd, subprocess.Popen(cmd, stdout=subprocess.PIPE,
                                                 stderr=subprocess.PIPE, text=True)))
         outs = [proc.communicate(timeout=300) for _, proc in procs]
@@ -162,8 +172,8 @@ def _compile_parts(cxx: list[str], include: list[str], objs: Path, out: str,
     for (cmd, proc), (stdout, stderr) in zip(procs, outs):
         if proc.returncode:
             raise subprocess.CalledProcessError(proc.returncode, cmd, stdout, stderr)
-    subprocess.run([*cxx, "-shared", "-pthread", *(str(objs / f"part{k}.o") for k in range(PARTS)),
-                    "-o", out, *libs], check=True, capture_output=True, text=True, timeout=300)
+    subprocess.run([*cxx, "-shared", "-pthread", *objects, "-o", out, *libs], check=True,
+                   capture_output=True, text=True, timeout=300)
 
 
 def _prune(folder: Path, keep: Path, days: float = PRUNE_DAYS) -> list[Path]:
@@ -200,7 +210,10 @@ def available() -> bool:
             target = f"{TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(handle.DifffogSweepFace),
                                         platform="cpu")
-            _STATE.update(ok=True, why=str(lib), handle=handle, target=target)
+            gs = f"{GS_TARGET}_{hashlib.sha256(_GS_SOURCE.read_bytes()).hexdigest()[:12]}"
+            jax.ffi.register_ffi_target(gs, jax.ffi.pycapsule(handle.DifffogGramSchmidt),
+                                        platform="cpu")
+            _STATE.update(ok=True, why=str(lib), handle=handle, target=target, gs_target=gs)
         except (OSError, subprocess.SubprocessError, AttributeError) as e:
             lines = (getattr(e, "stderr", "") or str(e)).strip().splitlines() or [type(e).__name__]
             first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
@@ -286,6 +299,23 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
         att_in=i64(att), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk), linear=i64(linear),
         world=i64(world), wb=i64(wb), sw=i64(sw), su=i64(su), sv=i64(sv))
     return lam, irr, exit_
+
+
+def gram_schmidt(V, a, live):
+    """One Arnoldi step's classical Gram–Schmidt applied twice against the rows [0, ``live``)
+    of V (rows, n) (``live`` traced): (h (rows,), zero beyond ``live``; w = a − hᵀV; ‖w‖), as
+    ``_krylov``'s XLA products compute them, reading only the live rows
+    (``native/gram_schmidt.cc``).  Call where :func:`available`."""
+    import jax
+    import jax.numpy as jnp
+
+    dt = V.dtype
+    call = jax.ffi.ffi_call(_STATE["gs_target"], (
+        jax.ShapeDtypeStruct(a.shape, dt), jax.ShapeDtypeStruct(V.shape[:1], dt),
+        jax.ShapeDtypeStruct((), dt)), vmap_method="sequential")
+    w, h, norm = call(V, jnp.asarray(a, dt), jnp.asarray(live, jnp.int32),
+                      threads=np.int64(_threads()))
+    return h, w, norm
 
 
 @functools.lru_cache(maxsize=64)

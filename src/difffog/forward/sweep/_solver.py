@@ -742,7 +742,8 @@ def _iterate_gmres(pb: _Problem):
     x, hist, k, err = gmres(apply_k, (size,), dt, restart=pb.restart,
                             max_matvecs=pb.max_iterations, tol=pb.tol,
                             progress=_report(pb.progress), precondition=precondition,
-                            x0=None if pb.init is None else flat(pb.init))
+                            x0=None if pb.init is None else flat(pb.init),
+                            native=math.prod(pb.mesh_shape) == 1)
     # the fixed point as GMRES found it; ``_non_negative`` projects it after the implicit
     # function, so that the implicit derivative is taken at the fixed point itself
     return unflat(x), (hist, k, err)
@@ -1326,7 +1327,8 @@ class SweepSolver(eqx.Module):
         cycles = 4
         linear_solver = CheckedSolver(KrylovSolver(
             rtol=self.adjoint_rtol, restart=40,
-            max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2), throw=self.throw)
+            max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2,
+            native=math.prod(self.layout()) == 1), throw=self.throw)
         matrix_free = self.tangents == "matrix-free"
         root, (hist, k, err) = fixed_point(
             _solve_fixed_point, _rewrite, pb, linear_solver, precondition=_preconditioner,
