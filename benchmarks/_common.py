@@ -392,9 +392,12 @@ def iteration_seconds(pb, k_iter: int, repeat: int) -> dict:
         tk.append(time_calls(lambda: ck(pbk), 1, first=False).times[0])
     per = [(b - a) / (k_iter - 1) for a, b in zip(t1, tk)]
     s_iter = statistics.median(per)
-    return dict(per=per, s_iter=s_iter, s_best=min(per),
-                setup_s=statistics.median(t1) - s_iter, compile_s=compile_s, compiled=ck,
-                out=out)
+    # the best from the two programs' fastest calls (a pair's difference, min(per), can read
+    # negative when one call of the pair hit a slow moment); setup from the same, 0 where the
+    # noise exceeds it
+    s_best = (min(tk) - min(t1)) / (k_iter - 1)
+    return dict(per=per, s_iter=s_iter, s_best=s_best, setup_s=max(0.0, min(t1) - s_best),
+                compile_s=compile_s, compiled=ck, out=out)
 
 
 def finite(tree) -> bool:
