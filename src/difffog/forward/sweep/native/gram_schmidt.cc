@@ -56,7 +56,8 @@ void cgs2(const T* V, const T* a, int64_t n, int64_t rows, int64_t live, int64_t
           T* h, T* norm) {
   live = std::max<int64_t>(0, std::min(live, rows));
   const int64_t blocks = (n + BLOCK - 1) / BLOCK;
-  const int64_t nt = std::max<int64_t>(1, std::min(threads, blocks));
+  // a thread per 256 blocks of live row (a thread's start costs more than a small step)
+  const int64_t nt = std::max<int64_t>(1, std::min({threads, blocks, blocks * live / 256}));
   std::vector<double> part(static_cast<size_t>(nt * live)), sq(static_cast<size_t>(nt));
   std::vector<double> h1(static_cast<size_t>(live)), h2(static_cast<size_t>(live));
   // pass(t, b0, b1): thread t's blocks [b0, b1), a fixed partition
