@@ -55,8 +55,8 @@ GS_TARGET = "difffog_gram_schmidt"
 _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-simd",
           "-fno-math-errno", "-fno-trapping-math", "-pthread"]
 #: the sweep's source is compiled as this many objects (``DIFFFOG_PART``: the FFI handler,
-#: float, double), at once with the Gram–Schmidt's, then linked: 9.3 s on this project's 2-core
-#: CPU against 15.4–18.2 s as one
+#: float, double), at once with the Gram–Schmidt's, then linked: the three 9.3 s on this
+#: project's 2-core CPU against 15.4–18.2 s as one; with the Gram–Schmidt's 9.5–11.8 s
 PARTS = 3
 #: builds not loaded for this many days are deleted when another is built (one per source,
 #: compiler, jaxlib or CPU change, ~100 KB each; a machine that still uses one rebuilds it)
