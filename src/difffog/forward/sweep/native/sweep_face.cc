@@ -41,7 +41,8 @@ __attribute__((simd("notinbranch"))) double expm1(double) noexcept;
 }
 #endif
 
-// named (the two objects share ``sweep<double>``), hidden from the library's exports
+// named (the handler's object calls ``sweep<float>`` and ``sweep<double>`` in the other two),
+// hidden from the library's exports
 namespace __attribute__((visibility("hidden"))) difffog_sweep {
 
 inline float em1(float x) { return expm1f(x); }
