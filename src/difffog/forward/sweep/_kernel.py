@@ -440,8 +440,7 @@ def _native_applies(halo, dt) -> bool:
     the step and linear schemes, isotropic or with moments (its general form where Q has
     channels), on one device's whole plane, float32 or float64, on a CPU, where the kernel is
     built (and ``DIFFFOG_NATIVE`` does not turn it off)."""
-    return (halo is None and jax.default_backend() == "cpu"
-            and np.dtype(dt) in (np.float32, np.float64) and _native.available())
+    return halo is None and _native.serves(dt)
 
 
 def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
@@ -492,8 +491,9 @@ def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     from the native kernel, which reads and writes each face node's world node, so that
     neither the face's copies of the sources nor the transposes of Λ and E back are made
     (on cloud-plane's 20 source and 16 fluence channels, this 2-core CPU, they took about half
-    as long as the sweeps themselves: a light solve 9.4 → 7.4 s without them).  Derivatives are the face-frame path's (``sweep_face`` between
-    ``to_face`` and ``from_face``: its batched program's).  Where ``world_native_applies``."""
+    as long as the sweeps themselves: a light solve 9.4 → 7.4 s without them).  Derivatives
+    are the face-frame path's (``sweep_face`` between ``to_face`` and ``from_face``: its
+    batched program's).  Where ``world_native_applies``."""
     vol = (bool(attenuate), bool(fluence), None if vol_range is None else tuple(vol_range))
     return _sweep_face_world(int(axis), int(sign), M, tuple(periodic), int(warmup),
                              bool(surfaces), vol, bool(recompute), q, b, tau_half_unit, bc, geo,

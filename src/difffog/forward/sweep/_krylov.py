@@ -77,13 +77,11 @@ def _err(rel, sig):
 def _native_gram_schmidt(dtype, native: bool) -> bool:
     """Whether the Arnoldi steps' Gram–Schmidt is the native CPU kernel's
     (``_native.gram_schmidt``: the live rows of the basis only): asked for (``native``: one
-    device, not a mesh's sharded state), on a CPU, float32 or float64, the kernel built."""
-    import numpy as np
-
+    device, not a mesh's sharded state) and where the native kernels serve (``_native.serves``:
+    a CPU, float32 or float64, the library built)."""
     from . import _native
 
-    return (native and jax.default_backend() == "cpu"
-            and np.dtype(dtype) in (np.float32, np.float64) and _native.available())
+    return native and _native.serves(dtype)
 
 
 def _cgs2(V, a, j):

@@ -221,6 +221,15 @@ def available() -> bool:
         return _STATE["ok"]
 
 
+def serves(dtype) -> bool:
+    """Whether the native kernels serve arrays of ``dtype`` here: JAX's default backend a CPU,
+    float32 or float64, the library built (:func:`available`)."""
+    import jax
+
+    return (jax.default_backend() == "cpu" and np.dtype(dtype) in (np.float32, np.float64)
+            and available())
+
+
 def status() -> str:
     """One line: where the native kernel was loaded from, or why it is not used."""
     ok = available()
