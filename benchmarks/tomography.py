@@ -71,6 +71,9 @@ def main(argv=None):
     ap.add_argument("--balance", default=None,
                     help="the balancing principle's prior/data share (a number), or off "
                          "(default: fit_density's: on unless --prior fixes the weight)")
+    ap.add_argument("--balance-rounds", type=int, default=None,
+                    help="how many times the final level may rebalance the prior's weight "
+                         "(default: fit_density's)")
     ap.add_argument("--first-collision", default=None, choices=["beam", "deposit"],
                     help="the light solve's first collision (SweepSolver.first_collision)")
     ap.add_argument("--scheme", default=None, choices=["auto", "step", "linear", "substep"],
@@ -103,6 +106,8 @@ def main(argv=None):
         kw["prior_weight"] = args.prior
     if args.balance is not None:
         kw["balance"] = False if args.balance == "off" else float(args.balance)
+    if args.balance_rounds is not None:
+        kw["balance_rounds"] = args.balance_rounds
     if args.prior_kind is not None:
         kw["prior"] = args.prior_kind
     if args.supersample is not None:
