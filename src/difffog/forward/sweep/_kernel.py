@@ -1575,7 +1575,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         if not aniso:
             return q
         hd = jax.lax.dynamic_index_in_dim(table, d, 0, keepdims=False)
-        return q[0] + sum(hd[j] * q[1 + j] for j in range(nj))
+        return q[0] + jnp.tensordot(hd, q[1:], axes=1)
 
     Qs, Bs, ts = slabs(Q), slabs(B), slabs(tau_half_unit)
     if aniso:  # channels first: (ns, 1 + J, M, nu, nv)
@@ -1614,6 +1614,9 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
             if surfaces:
                 avg1_t, nt, bt = rows(avg1_own), rows(nrm_s), rows(bits_s)
             blk = (M, tu, nv)
+            if aniso:  # the rows of the 2M-plane window this tile's crossings can read
+                qwin = jax.lax.dynamic_slice(qwp, (_I0, _I0, u0, _I0),
+                                             (1 + nj, 2 * M, tu + 2 * M, nv + 2 * M))
 
             def direction(d, c):
                 dst, lamp, acc, irr = c
@@ -1626,6 +1629,9 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
                     bit_of, M, blk, surfaces)
                 if surfaces:
                     r = jnp.where(blocked, Bt, r)
+                if aniso:  # direction d's source over the window: one contraction, not one
+                    # per crossing (each of which XLA would run as several small programs)
+                    qd = source_d(qwin, d)
                 for i, o in enumerate(crossing):
                     if surfaces:
                         r = jnp.where(restarts[i], Bt, r)
@@ -1633,7 +1639,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
                     em = jax.lax.dynamic_slice(em_w, (k,) + o, (1,) + blk)[0]
                     av = jax.lax.dynamic_slice(avg_w, (k,) + o, (1,) + blk)[0]
                     if aniso:
-                        qj = source_d(jax.lax.dynamic_slice(qwp, (_I0,) + o, (1 + nj,) + blk), d)
+                        qj = jax.lax.dynamic_slice(qd, (o[0], o[1] - u0, o[2]), blk)
                     else:
                         qj = jax.lax.dynamic_slice(qwp, o, blk)
                     rbar = qj + (r - qj) * av
@@ -1658,7 +1664,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
                     irr = irr + r_arr * jnp.maximum(-ldotn, 0.0) * weight[d]
                 r_through = r_arr + em * (r_arr - q4)
                 if fluence:
-                    acc = acc + jnp.stack([chan[d, c] * r_avg for c in range(nc)])
+                    acc = acc + chan[d][:, None, None, None] * r_avg[None]
                 r_out = jnp.where(pt, r_through, 0.0)
                 dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
                 return dst, lamp, acc, irr
