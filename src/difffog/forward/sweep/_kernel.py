@@ -1652,7 +1652,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
                             jax.lax.dynamic_update_slice(
                                 a, jax.lax.dynamic_slice(a, o, blk) + v / M, o)
                             for a, v in zip(lamp, adds))
-                q4 = source_d(Qt, d)
+                # the arrival plane's source: this slab's planes in the window already hold it
+                q4 = qd[M:, M : M + tu, M : M + nv] if aniso else Qt
                 at_k = lambda a: jax.lax.dynamic_index_in_dim(a, k, 0, keepdims=False)  # noqa
                 em = at_k(em_t)
                 r_arr = r + em * (r - q4)
