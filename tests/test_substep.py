@@ -181,6 +181,51 @@ def _loop_matches_batched(cases):
             assert float(jnp.max(a[0])) > 0.1  # the fluence was accumulated
 
 
+@pytest.mark.parametrize("L", [0, 2])
+def test_loop_restricted_to_the_fog_slabs_gives_the_same_light(L):
+    """The sub-stepped loop given the planes that hold fog (``vol_range``, as the plan makes
+    it) only moves the rays through the other slabs: E and the exit radiance everywhere, and Λ
+    over the fog's planes, equal the loop that does the fog step everywhere, with surfaces,
+    blocked segments, a periodic side and (L = 2) per-direction sources; Λ is 0 well away from
+    the fog."""
+    from difffog.forward.sweep._harmonics import basis
+    from difffog.forward.sweep._kernel import (_sweep_face_substep_loop, face_consts,
+                                               substep_weight_scale)
+    from helpers import random_face_geometry
+
+    rng = np.random.default_rng(5)
+    M, shape, lo, hi = 3, (17, 9, 8), 6, 10
+    D = (2 * M + 1) ** 2
+    harm = basis(L, M).faces if L else None
+    consts = face_consts(direction_set(M), 0, harm=harm, substep=True)
+    fog = np.zeros(shape, bool)
+    fog[lo:hi] = True
+    Q = rng.random(shape + ((1 + harm.shape[-1],) if L else ()))
+    Q[~fog] = 0.0
+    if L:
+        Q[..., 1:] *= 0.1
+    tau = np.where(fog, 0.8 * rng.random(shape), 0.0)
+    geo = random_face_geometry(rng, shape, D)
+    periodic = (False, True, False)
+    geo = eqx.tree_at(lambda g: g.wscale, geo, jnp.asarray(substep_weight_scale(
+        geo.free, geo.surf, geo.blocked, consts.pq, consts.sub, consts.weight, M=M,
+        periodic=periodic, warmup=0, surfaces=True), jnp.float32), is_leaf=lambda x: x is None)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    args = (f32(Q), f32(rng.random(shape)), f32(tau), f32(rng.random(D)), geo, consts)
+    kw = dict(M=M, periodic=periodic, warmup=0, surfaces=True)
+    run = jax.jit(lambda *a: (_sweep_face_substep_loop(*a, **kw),
+                              _sweep_face_substep_loop(*a, **kw, vol=(True, True, (lo, hi)))))
+    (lam, irr, ex), (lam_r, irr_r, ex_r) = run(*args)
+    np.testing.assert_allclose(np.asarray(irr_r), np.asarray(irr), rtol=2e-6, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(ex_r), np.asarray(ex), rtol=2e-6, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(lam_r[lo:hi]), np.asarray(lam[lo:hi]), rtol=2e-6,
+                               atol=2e-6)
+    far = -(-hi // M) * M + M  # the planes after the slab that finishes the fog's
+    assert float(jnp.max(jnp.abs(lam[far:]))) > 0.1  # the full loop's vacuum Λ
+    assert float(jnp.max(jnp.abs(lam_r[far:]))) == 0.0  # not computed there
+    assert float(jnp.max(lam_r[lo:hi])) > 0.1
+
+
 # slow: the default suite's 12-minute budget on 2 cores (stop 56); the sub-stepped scheme is not a
 # default
 @pytest.mark.slow

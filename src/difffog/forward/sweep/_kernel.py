@@ -375,7 +375,8 @@ def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, 
     if consts.sub is not None:  # the sub-stepped scheme's two programs
         kw = dict(M=M, periodic=periodic, warmup=warmup, surfaces=surfaces, fluence=vol[1])
         if kernel == "loop" and halo is None:
-            return _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo, consts, **kw)
+            return _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo, consts, **kw,
+                                            vol=vol)
         return _sweep_face_substep(Q, B, tau_half_unit, bc, geo, consts, halo=halo, **kw)
     if kernel in ("batched", "pallas"):
         return _sweep_face_batched(Q, B, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
@@ -1525,7 +1526,7 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
 
 def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts,
                              *, M: int, periodic: tuple[bool, bool, bool], warmup: int,
-                             surfaces: bool, fluence: bool = True):
+                             surfaces: bool, fluence: bool = True, vol=None):
     """``_sweep_face_substep``'s values (same arguments and results, to rounding) as a loop
     over the D directions, each on its own (M, nu, nv) block, as ``_sweep_face_loop`` does for
     the step scheme: what a CPU wants.  Per slab the 2M planes a segment can cross (the
@@ -1534,7 +1535,14 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
     crossing), the source, the solid flags; a crossing then reads its block of each at its
     offset with a ``dynamic_slice`` and adds its deposit into a padded Λ window at the same
     offset (on periodic sides the window's margins are folded back after the loop).  The
-    batched program (``_sweep_face_substep``) gives the derivatives."""
+    batched program (``_sweep_face_substep``) gives the derivatives.
+
+    ``vol`` = (attenuate, fluence, vol_range), as ``_sweep_face_loop`` takes it: the slabs
+    [s0, s1) that hold fog (``_fog_slabs``) and the one after them (whose crossings finish
+    the last fog slab's Λ) take the sub-stepped fog step; the others only move the rays (the
+    shift, a blocked arrival's and a chain's restarts' radiosity, E) and return Λ = 0 (no fog
+    there: τ = 0 and no source, so the rays are the same; a vacuum node's Λ is not needed, as
+    with the step scheme's ``vol_range``)."""
     nw, nu, nv = Q.shape[:3]
     P = 2 * M + 1
     D = P * P
@@ -1687,12 +1695,68 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
             dst = _wrap_border(dst, 3, nv, M)
         return ((dst, src), ts_, Qs_, solid, lam_w[:, M:]), (done, irr)
 
+    def vacuum(carry, slab):  # no fog in this slab's window: the rays only move
+        (src, dst), _, _, solid_prev, lam_prev = carry
+        Qs_, Bs_, ts_, fs_, ss_, nrm_s, bits_s = slab
+        solid = ~(fs_ | ss_)
+        pass_s = (fs_ | ss_) if surfaces else fs_
+        surf_f = ss_.astype(dt)
+        swp = pad(jnp.concatenate([solid_prev, solid]).astype(dt)) if surfaces else None
+
+        def tile(t, c):
+            dst, irr_s = c
+            u0 = jnp.asarray(t * tu, jnp.int32)
+            rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
+            Bt, st, sft, pt = rows(Bs_), rows(ss_), rows(surf_f), rows(pass_s)
+            if surfaces:
+                nt, bt = rows(nrm_s), rows(bits_s)
+            blk = (M, tu, nv)
+
+            def direction(d, c):
+                dst, irr = c
+                d = jnp.asarray(d, jnp.int32)
+                su, sv = u0 + start[d, 0], start[d, 1]
+                r = jax.lax.dynamic_slice(src, (d, _I0, su, sv), (1,) + blk)[0]
+                if surfaces:
+                    _, blocked, restarts, _ = _substep_chain(
+                        swp, st, sft, bt, d, su, sv, u0, sub_start, byte_of, bit_of, M, blk,
+                        surfaces)
+                    r = jnp.where(blocked, Bt, r)
+                    for restart in restarts:
+                        r = jnp.where(restart, Bt, r)
+                    ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
+                    irr = irr + r * jnp.maximum(-ldotn, 0.0) * weight[d]
+                r_out = jnp.where(pt, r, 0.0)
+                dst = jax.lax.dynamic_update_slice(dst, r_out[None], (d, _I0, M + u0, _I0 + M))
+                return dst, irr
+
+            dst, irr = jax.lax.fori_loop(0, D, direction, (dst, jnp.zeros(blk, dt)))
+            return dst, jax.lax.dynamic_update_slice_in_dim(irr_s, irr, u0, axis=1)
+
+        dst, irr = jax.lax.fori_loop(0, nu // tu, tile, (dst, jnp.zeros((M, nu, nv), dt)))
+        if per_u:
+            dst = _wrap_border(dst, 2, nu, M)
+        if per_v:
+            dst = _wrap_border(dst, 3, nv, M)
+        # the previous slab's Λ as it stands (no crossing of this slab adds to it)
+        return ((dst, src), ts_, Qs_, solid, jnp.zeros_like(lam_prev)), (lam_prev, irr)
+
     r0 = _initial_carry(Qs[0], table, bc_d, D, M, periodic)
     q_shape = Qs.shape[1:]
     init = ((r0, r0), jnp.zeros((M, nu, nv), dt), jnp.zeros(q_shape, dt),
             jnp.zeros((M, nu, nv), bool), jnp.zeros((nc + nw_chan, M, nu, nv), dt))
     xs = (Qs, Bs, ts, fs, ss, nrm, bits)
-    carry, (lam, irr) = jax.lax.scan(step, init, xs, unroll=2)
+    s0, s1, fog_on = _fog_slabs((True, fluence, None) if vol is None else vol, ns, M, per_w)
+    s1 = min(ns, s1 + 1)  # the slab after the fog's last finishes its Λ
+    if not fog_on:
+        s0 = s1 = ns
+    carry, outs = init, []
+    for a, b, fn in ((0, s0, vacuum), (s0, s1, step), (s1, ns, vacuum)):
+        if b > a:
+            carry, out = jax.lax.scan(fn, carry, jax.tree.map(lambda x: x[a:b], xs), unroll=2)
+            outs.append(out)
+    lam, irr = (jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+                for parts in zip(*outs))
     lam_last = carry[4]
     if per_w:  # the slab after the last, in wrap order, finishes the last slab's Λ
         order = np.arange(M) % nw
@@ -1703,7 +1767,7 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
         nxt = (qn, take(B), take(tau_half_unit), take(geo.free), take(geo.surf),
                jnp.moveaxis(take(geo.normal), -1, 0) if surfaces else nrm[0],
                jnp.moveaxis(take(geo.blocked), -1, 0) if surfaces else bits[0])
-        _, (lam_last, _) = step(carry, nxt)
+        _, (lam_last, _) = (step if fog_on else vacuum)(carry, nxt)
     exit_ = jnp.swapaxes(carry[0][0][..., M : M + nu, M : M + nv], 0, 1)
     lam = jnp.concatenate([lam[1:], lam_last[None]])  # step s finished slab s − 1's Λ
     return _substep_outputs(jnp.moveaxis(lam, 1, -1), irr, exit_, weight, nk, nw, per_w,

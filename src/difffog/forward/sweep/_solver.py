@@ -563,8 +563,12 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     # serves every face (one device, the loop kernel, not sub-stepped), each face is its own
     # custom call that reads q, b and writes Λ, E in the world frame: no face-frame copies of
     # the sources, no transposes back (on cloud-plane's 20 source and 16 fluence channels they
-    # took about half as long as the sweeps), nothing large for XLA to compile.
-    groups = g.face_groups(six=one)
+    # took about half as long as the sweeps), nothing large for XLA to compile.  The
+    # sub-stepped loop runs an axis's ± pair together (three programs): it does the fog step
+    # only over its group's fog slabs, and on a cubic lattice the six faces' union of them is
+    # most of the planes (cloud-plane, N = 32: a light solve 11.3 s in pairs against 13.3-14.5
+    # s in one group of six, the same compile time).
+    groups = g.face_groups(six=one and not (g.substep and pb.kernel == "loop"))
     if not (one or nf == 2):
         groups = tuple((f,) for group in groups for f in group)
     world = one and all(world_native_applies(pb.kernel, g.consts[f], q.dtype)
