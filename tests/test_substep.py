@@ -190,7 +190,7 @@ def test_loop_restricted_to_the_fog_slabs_gives_the_same_light(L):
     the fog."""
     from difffog.forward.sweep._harmonics import basis
     from difffog.forward.sweep._kernel import (_sweep_face_substep_loop, face_consts,
-                                               substep_weight_scale)
+                                               substep_weight_scale, sweep_face_transposed)
     from helpers import random_face_geometry
 
     rng = np.random.default_rng(5)
@@ -224,6 +224,29 @@ def test_loop_restricted_to_the_fog_slabs_gives_the_same_light(L):
     assert float(jnp.max(jnp.abs(lam[far:]))) > 0.1  # the full loop's vacuum Λ
     assert float(jnp.max(jnp.abs(lam_r[far:]))) == 0.0  # not computed there
     assert float(jnp.max(lam_r[lo:hi])) > 0.1
+
+    # its transpose (a gradient's adjoint) is the restricted loop's, to rounding: ⟨R(Q, B),
+    # (Λ̄, Ē)⟩ = ⟨(Q, B), Rᵀ(Λ̄, Ē)⟩ with no boundary light, Λ̄ over the fog's planes
+    lam_bar = np.zeros(lam.shape)
+    lam_bar[lo:hi] = rng.standard_normal(lam_bar[lo:hi].shape)
+    irr_bar = rng.standard_normal(shape)
+    nq = Q.shape[-1] if L else 0
+    tr = jax.jit(lambda lb, eb: sweep_face_transposed(
+        lb, eb, args[2], geo, consts, **kw, q_channels=nq, vol_range=(lo, hi)))
+    q_bar, b_bar = tr(f32(lam_bar), f32(irr_bar))
+    fwd = jax.jit(lambda q, b: _sweep_face_substep_loop(q, b, *args[2:3], jnp.zeros_like(
+        args[3]), *args[4:], **kw, vol=(True, True, (lo, hi)))[:2])
+    lam0, irr0 = fwd(*args[:2])
+    lhs = np.sum(np.asarray(lam0, np.float64) * lam_bar) + np.sum(np.asarray(irr0) * irr_bar)
+    rhs = (np.sum(np.asarray(args[0], np.float64) * np.asarray(q_bar))
+           + np.sum(np.asarray(args[1], np.float64) * np.asarray(b_bar)))
+    assert abs(lhs - rhs) < 1e-5 * (abs(lhs) + 1.0), (lhs, rhs)
+    # and it gives what the full transpose gives, where the fog is and on the surfaces
+    q_full, b_full = jax.jit(lambda lb, eb: sweep_face_transposed(
+        lb, eb, args[2], geo, consts, **kw, q_channels=nq))(f32(lam_bar), f32(irr_bar))
+    np.testing.assert_allclose(np.asarray(b_bar), np.asarray(b_full), rtol=2e-5, atol=2e-5)
+    np.testing.assert_allclose(np.asarray(q_bar[lo:hi]), np.asarray(q_full[lo:hi]), rtol=2e-5,
+                               atol=2e-5)
 
 
 # slow: the default suite's 12-minute budget on 2 cores (stop 56); the sub-stepped scheme is not a

@@ -858,7 +858,8 @@ def _unslabs(x, nw: int, periodic_w: bool):
 def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
                           consts: SweepConsts, *, M: int, periodic: tuple[bool, bool, bool],
                           warmup: int, surfaces: bool, fluence: bool = True,
-                          q_channels: int = 0):
+                          q_channels: int = 0, vol_range: tuple[int, int] | None = None,
+                          attenuate: bool = True):
     """The transpose of one face sweep's linear map (Q, B) → (Λ, E) at fixed τ and zero
     boundary radiance (the map a light solve's adjoint needs, ``_solver._jacobi_transposed``):
     (Λ̄, Ē) → (Q̄, B̄), the step scheme (``_sweep_face_batched``'s arithmetic, whose transpose
@@ -871,8 +872,9 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
 
     ``q_channels``: 0 for an isotropic source Q (nw, nu, nv), else 1 + J (the channels of
     ``_source_table``); Λ̄ then has 1 + K channels when the table has K moments.  The
-    sub-stepped scheme (``consts.sub``) goes to ``_sweep_face_substep_transposed``; the
-    linear-source scheme has none."""
+    sub-stepped scheme (``consts.sub``) goes to ``_sweep_face_substep_transposed``, which
+    takes ``vol_range`` (the planes that hold fog) and ``attenuate`` (False: no fog at all) as
+    its forward loop does; the linear-source scheme has none."""
     nw, nu, nv = tau_half_unit.shape
     P = 2 * M + 1
     D = P * P
@@ -882,7 +884,8 @@ def sweep_face_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
     if consts.sub is not None:
         return _sweep_face_substep_transposed(
             lam_bar, irr_bar, tau_half_unit, geo, consts, M=M, periodic=periodic, warmup=warmup,
-            surfaces=surfaces, fluence=fluence, q_channels=q_channels)
+            surfaces=surfaces, fluence=fluence, q_channels=q_channels, vol_range=vol_range,
+            attenuate=attenuate)
     if consts.slope is not None:
         raise SolverError("sweep_face_transposed: the step and sub-stepped schemes only")
     slabs, ns = _slabber(nw, M, per_w, warmup)
@@ -1329,7 +1332,9 @@ def _substep_chain(swp, st, sft, bt, d, su, sv, u0, sub_start, byte_of, bit_of, 
 def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeometry,
                                   consts: SweepConsts, *, M: int,
                                   periodic: tuple[bool, bool, bool], warmup: int,
-                                  surfaces: bool, fluence: bool = True, q_channels: int = 0):
+                                  surfaces: bool, fluence: bool = True, q_channels: int = 0,
+                                  vol_range: tuple[int, int] | None = None,
+                                  attenuate: bool = True):
     """``sweep_face_transposed`` for the sub-stepped scheme: the transpose of
     ``_sweep_face_substep``'s linear map (Q, B) → (Λ, E) at fixed τ and zero boundary radiance
     (to rounding), as ``_sweep_face_substep_loop``'s direction loop run backwards.  Λ̄ first
@@ -1342,7 +1347,10 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
     of its deposit from the padded Λ̄ window of the two slabs' planes at its offset and adding
     its source's cotangent into a padded window at the same offset (margins folded back after
     the loop); a chain's validity and surface restarts (geometry) are replayed forwards
-    first."""
+    first.  With ``vol_range`` it transposes the forward loop's restriction to the slabs that
+    hold fog (``_sweep_face_substep_loop``'s ``vol``): the other slabs carry the radiance's
+    cotangent back through the shift, the blocked arrivals and the restarts only (their Λ̄ and
+    Q̄ are not used: Λ = 0 and no fog there)."""
     nw, nu, nv = tau_half_unit.shape
     P = 2 * M + 1
     D = P * P
@@ -1498,8 +1506,56 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
         qw = _fold_plane(qwin, M, per_u, per_v)  # (nq, 2M, nu, nv)
         return (nxt, qw[:, :M]), (qb + qw[:, M:] + q_next, bb)
 
+    def vacuum(carry, slab):  # the forward's move-only slab, transposed
+        abar, q_next = carry
+        _, _, eb_s, _, _, fs_, ss_, sp_, nrm_s, bits_s = slab
+        solid_s = ~(fs_ | ss_)
+        pass_s = (fs_ | ss_) if surfaces else fs_
+        surf_f = ss_.astype(dt)
+        rbo = _fold_plane(abar, M, per_u, per_v)  # (D, M, nu, nv)
+        swp = pad(jnp.concatenate([sp_, solid_s]).astype(dt)) if surfaces else None
+
+        def tile(t, c):
+            nxt, bb_s = c
+            u0 = jnp.asarray(t * tu, jnp.int32)
+            rows = lambda a: jax.lax.dynamic_slice_in_dim(a, u0, tu, axis=a.ndim - 2)  # noqa
+            pt, st, sft, et = rows(pass_s), rows(ss_), rows(surf_f), rows(eb_s)
+            if surfaces:
+                nt, bt = rows(nrm_s), rows(bits_s)
+            blk = (M, tu, nv)
+
+            def direction(d, c):
+                nxt, bb = c
+                d = jnp.asarray(d, jnp.int32)
+                su, sv = u0 + start[d, 0], start[d, 1]
+                ro = jax.lax.dynamic_slice(rbo, (d, _I0, u0, _I0), (1,) + blk)[0]
+                r = jnp.where(pt, ro, 0.0)
+                if surfaces:
+                    _, blocked, restarts, _ = _substep_chain(
+                        swp, st, sft, bt, d, su, sv, u0, sub_start, byte_of, bit_of, M, blk,
+                        surfaces)
+                    ldotn = nt[0] * unit[d, 0] + nt[1] * unit[d, 1] + nt[2] * unit[d, 2]
+                    r = r + et * jnp.maximum(-ldotn, 0.0) * weight[d]
+                    for cut in restarts[::-1] + [blocked]:  # the forward's, reversed
+                        bb = bb + jnp.where(cut, r, 0.0)
+                        r = jnp.where(cut, 0.0, r)
+                nxt = jax.lax.dynamic_update_slice(nxt, r[None], (d, _I0, su, sv))
+                return nxt, bb
+
+            nxt, bb = jax.lax.fori_loop(0, D, direction, (nxt, jnp.zeros(blk, dt)))
+            return nxt, jax.lax.dynamic_update_slice_in_dim(bb_s, bb, u0, axis=1)
+
+        nxt0 = jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt)
+        nxt, bb = jax.lax.fori_loop(0, nu // tu, tile, (nxt0, jnp.zeros((M, nu, nv), dt)))
+        return (nxt, jnp.zeros_like(q_next)), (q_next, bb)
+
     xs = (prev(lb), lb, eb, ts, prev(ts), fs, ss, prev(solid), nrm, bits)
     init = (jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt), jnp.zeros((nq, M, nu, nv), dt))
+    # the forward loop's slabs: the fog step over [s0, s1), the rays only moved elsewhere
+    s0, s1, fog_on = _fog_slabs((attenuate, fluence, vol_range), ns, M, per_w)
+    s1 = min(ns, s1 + 1)
+    if not fog_on:
+        s0 = s1 = ns
     first = np.arange(M) % nw
     if per_w:  # the slab after the last, in wrap order, finished the last slab's Λ
         take = lambda a: jnp.take(a, first, axis=0)  # noqa
@@ -1508,8 +1564,15 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
                  take(tau_half_unit), ts[-1], fs_e, ss_e, solid[-1],
                  jnp.moveaxis(take(geo.normal), -1, 0) if surfaces else nrm[0],
                  jnp.moveaxis(take(geo.blocked), -1, 0) if surfaces else bits[0])
-        init, (q_e, b_e) = step(init, extra)
-    (a_first, _), (qbs, bbs) = jax.lax.scan(step, init, xs, reverse=True)
+        init, (q_e, b_e) = (step if fog_on else vacuum)(init, extra)
+    carry, outs = init, []
+    for a, b, fn in ((s1, ns, vacuum), (s0, s1, step), (0, s0, vacuum)):
+        if b > a:
+            carry, out = jax.lax.scan(fn, carry, jax.tree.map(lambda x: x[a:b], xs),
+                                      reverse=True)
+            outs.insert(0, out)
+    (a_first, _) = carry
+    qbs, bbs = (jnp.concatenate(parts) if len(parts) > 1 else parts[0] for parts in zip(*outs))
     if per_w:  # the periodic sweep's initial guess: each direction's source of the first slab
         r0 = _fold_plane(a_first, M, per_u, per_v)  # (D, M, nu, nv)
         add = r0.sum(0)[None]

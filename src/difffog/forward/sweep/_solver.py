@@ -879,10 +879,15 @@ def _jacobi_transposed(v, pb: "_Problem"):
         return (to_face(lam_bar, axis, sign), to_face(irr_bar, axis, sign), pb.tau_half[f],
                 g.faces[f], _face_consts(pb, f))
 
-    for group in g.face_groups():  # faces alike in one program, as in ``_sweep_all``
+    # faces alike in one program, as in ``_sweep_all`` (the sub-stepped scheme's ± pairs: its
+    # transpose, like its loop, moves the rays only outside the group's fog slabs)
+    for group in g.face_groups(six=not g.substep):
+        vol_range = (functools.reduce(_union, (g.vol_range(f) for f in group)) if g.substep
+                     else None)
         sweep = functools.partial(sweep_face_transposed, M=g.M, periodic=g.periodic(group[0]),
                                   warmup=g.warmup, surfaces=g.has_surfaces, fluence=fluence,
-                                  q_channels=nq)
+                                  q_channels=nq, vol_range=vol_range,
+                                  attenuate=True if pl is None else pl.fog)
         qf, bf = jax.lax.map(lambda a: sweep(*a), _face_stack(face_args, group))
         for i, f in enumerate(group):
             axis, sign = FACE_AXES[f]
