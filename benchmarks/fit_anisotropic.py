@@ -7,7 +7,8 @@ cameras reduced ``--downsample`` times.  Prints each estimate's error (% of the 
 stated standard error, the steps and the time.
 
     python benchmarks/fit_anisotropic.py [--N 48] [--target-N 64] [--downsample 4]
-        [--phase-order 3] [--first-collision beam|deposit] [--model-error refine]
+        [--phase-order 3] [--first-collision beam|deposit] [--scheme auto|substep]
+        [--model-error refine]
         [--targets data_synthetic/cloud-plane/set0]
         [--out benchmarks/results/fit_anisotropic.md]
 
@@ -37,6 +38,8 @@ def main(argv=None):
                     help="fit(model_error=...): \"refine\" or a finer resolution")
     ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"],
                     help="SweepSolver.first_collision, of the targets and the fit")
+    ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear", "substep"],
+                    help="SweepSolver.scheme, of the targets and the fit")
     ap.add_argument("--targets", default=None,
                     help="a folder of <camera>.npy targets rendered at the scene file's "
                          "parameters (instead of rendering them at --target-N)")
@@ -63,8 +66,10 @@ def main(argv=None):
             f" (sweep N = {r['resolution']}, M = {r['directions']})" if r else ""))
     else:
         targets = df.render(scene, accuracy=None, resolution=a.target_N, M=a.M,
-                            phase_order=a.phase_order, first_collision=a.first_collision).images
-        described = f"sweep N = {a.target_N}, M = {a.M}, phase_order {a.phase_order}"
+                            phase_order=a.phase_order, first_collision=a.first_collision,
+                            scheme=a.scheme).images
+        described = (f"sweep N = {a.target_N}, M = {a.M}, phase_order {a.phase_order}, "
+                     f"scheme {a.scheme}")
     target_s = time.perf_counter() - t
     start = {"fog.scattering": 0.7 * truth["fog.scattering"],
              "fog.absorption": 1.5 * truth["fog.absorption"], "fog.g": 0.7}
@@ -72,7 +77,8 @@ def main(argv=None):
     me = a.model_error
     res = df.fit(scene, targets, start, resolution=a.N, downsample=a.downsample,
                  model_settings={"M": a.M, "phase_order": a.phase_order,
-                                 "first_collision": a.first_collision}, progress=True,
+                                 "first_collision": a.first_collision, "scheme": a.scheme},
+                 progress=True,
                  model_error=int(me) if me and me.isdigit() else me)
     fit_s = time.perf_counter() - t
     lines = ["# Fit of ζ, γ and g to cloud-plane (anisotropic sweep)", "",
@@ -80,7 +86,7 @@ def main(argv=None):
              f"- scene: cloud-plane {' '.join(a.overrides)}",
              f"- targets: {described} ({target_s:.0f} s); fit: N = {a.N}, phase_order "
              f"{a.phase_order}, both cameras / {a.downsample}; start ζ × 0.7, γ × 1.5, "
-             f"g = 0.7; first collision {a.first_collision}", "",
+             f"g = 0.7; first collision {a.first_collision}, scheme {a.scheme}", "",
              "| unknown | truth | estimate | error % | stated standard error % | model error % "
              "| total uncertainty % |",
              "|---|---:|---:|---:|---:|---:|---:|"]
