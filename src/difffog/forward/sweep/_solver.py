@@ -567,7 +567,8 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     # sub-stepped loop runs an axis's ± pair together (three programs): it does the fog step
     # only over its group's fog slabs, and on a cubic lattice the six faces' union of them is
     # most of the planes (cloud-plane, N = 32: a light solve 11.3 s in pairs against 13.3-14.5
-    # s in one group of six, for 6 s more compile time).
+    # s in one group of six; the first call 22 s with the loop's one-scan cond, 27-31 s before
+    # the restriction).
     groups = g.face_groups(six=one and not (g.substep and pb.kernel == "loop"))
     if not (one or nf == 2):
         groups = tuple((f,) for group in groups for f in group)
