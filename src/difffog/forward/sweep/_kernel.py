@@ -477,6 +477,14 @@ def _fog_slabs(vol, ns: int, M: int, periodic_w: bool) -> tuple[int, int, bool]:
     return vol_range[0] // M, min(ns, -(-vol_range[1] // M)), True
 
 
+def _substep_fog_slabs(vol, ns: int, M: int, periodic_w: bool) -> tuple[int, int, bool]:
+    """(s0, s1, fog?): the slabs [s0, s1) where the sub-stepped loop and its transpose (which
+    must agree on it) take the fog step: ``_fog_slabs``' and the one after them, whose
+    crossings finish the last fog slab's Λ; none without fog (s0 = s1 = ns)."""
+    s0, s1, fog_on = _fog_slabs(vol, ns, M, periodic_w)
+    return (s0, min(ns, s1 + 1), True) if fog_on else (ns, ns, False)
+
+
 def world_native_applies(kernel: str, consts: SweepConsts, dt) -> bool:
     """Whether ``sweep_face_world`` serves a face: the loop kernel's values on one device, the
     native kernel built, the step or linear scheme (not the sub-stepped one)."""
@@ -1552,10 +1560,7 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
     xs = (prev(lb), lb, eb, ts, prev(ts), fs, ss, prev(solid), nrm, bits)
     init = (jnp.zeros((D, M, nu + 2 * M, nv + 2 * M), dt), jnp.zeros((nq, M, nu, nv), dt))
     # the forward loop's slabs: the fog step over [s0, s1), the rays only moved elsewhere
-    s0, s1, fog_on = _fog_slabs((attenuate, fluence, vol_range), ns, M, per_w)
-    s1 = min(ns, s1 + 1)
-    if not fog_on:
-        s0 = s1 = ns
+    s0, s1, fog_on = _substep_fog_slabs((attenuate, fluence, vol_range), ns, M, per_w)
     first = np.arange(M) % nw
     if per_w:  # the slab after the last, in wrap order, finished the last slab's Λ
         take = lambda a: jnp.take(a, first, axis=0)  # noqa
@@ -1809,10 +1814,8 @@ def _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts:
     init = ((r0, r0), jnp.zeros((M, nu, nv), dt), jnp.zeros(q_shape, dt),
             jnp.zeros((M, nu, nv), bool), jnp.zeros((nc + nw_chan, M, nu, nv), dt))
     xs = (Qs, Bs, ts, fs, ss, nrm, bits)
-    s0, s1, fog_on = _fog_slabs((True, fluence, None) if vol is None else vol, ns, M, per_w)
-    s1 = min(ns, s1 + 1)  # the slab after the fog's last finishes its Λ
-    if not fog_on:
-        s0 = s1 = ns
+    s0, s1, fog_on = _substep_fog_slabs((True, fluence, None) if vol is None else vol, ns, M,
+                                        per_w)
     if s0 == 0 and s1 == ns:
         body = step
     else:  # one scan, each slab's step chosen by a flag: each body compiled once (cloud-tomo,
