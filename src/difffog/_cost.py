@@ -227,7 +227,9 @@ class CostEstimate:
 
     shape: the lattice (nx, ny, nz) with its vacuum margin; directions: per cube face.
     memory: bytes per component at the solve's peak; peak_bytes: their sum.
-    seconds_per_iteration: one bounce (six sweeps) of the light solve; setup_s: host set-up.
+    seconds_per_iteration: one bounce (six sweeps) of the light solve; setup_s: host set-up;
+    once_s: the sweep of the sun's once-scattered light on its finer direction set, once per
+    solve (``SweepSolver.once_M``; 0 without).
     """
 
     solver: str
@@ -238,6 +240,7 @@ class CostEstimate:
     seconds_per_iteration: float = 0.0
     setup_s: float = 0.0
     backend: str = "cpu"
+    once_s: float = 0.0
 
     @property
     def nodes(self) -> int:
@@ -249,7 +252,7 @@ class CostEstimate:
 
     @property
     def solve_s(self) -> float:
-        return TYPICAL_ITERATIONS * self.seconds_per_iteration
+        return TYPICAL_ITERATIONS * self.seconds_per_iteration + self.once_s
 
     def as_dict(self) -> dict:
         return {"solver": self.solver, "lattice_shape": list(self.shape), "M": self.M,
@@ -258,7 +261,7 @@ class CostEstimate:
                 "memory_bytes": {k: int(v) for k, v in self.memory.items()},
                 "seconds_per_iteration": self.seconds_per_iteration,
                 "solve_s_typical": self.solve_s, "typical_iterations": TYPICAL_ITERATIONS,
-                "setup_s": self.setup_s}
+                "setup_s": self.setup_s, "once_s": self.once_s}
 
     def setup_text(self) -> str:
         return _secs(self.setup_s)
@@ -337,7 +340,7 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
                    kernel: str = "auto", gradient: bool = False, tangent_solves: int = 0,
                    phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
                    sweep_residuals: str = "auto", edge_samples: int = EDGE_SAMPLES,
-                   **_ignored) -> CostEstimate:
+                   once_M: int | None = None, **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
@@ -348,7 +351,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         ``tangents="linearised"``);
     phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``);
     scheme: the transport scheme ("auto": the solver's rule, judged from the scene);
-    tangents, sweep_residuals: as ``SweepSolver``'s."""
+    tangents, sweep_residuals, once_M: as ``SweepSolver``'s (once_M: one more sweep per solve
+        on that direction set, costed as an iteration there; its lattice shell)."""
     backend = backend or _backend()
     if kernel == "auto":
         from .forward.sweep._kernel import kernel_for
@@ -356,13 +360,14 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         kernel = kernel_for(backend)
     f = 4  # float32
     M = int(M)
-    shape = lattice_shape(scene, resolution, M + 1)
+    from .forward.sweep._solver import SweepSolver
+
+    once = SweepSolver(M=M, phase_order=phase_order, once_M=once_M).resolved_once_M(scene)
+    shape = lattice_shape(scene, resolution, max(M, once) + 1)
     n = math.prod(shape)
     D = (2 * M + 1) ** 2
     rays = camera_rays(scene, cameras, int(supersample), int(edge_samples))
     surfaces = bool(scene.shapes)
-    from .forward.sweep._solver import SweepSolver
-
     K = (SweepSolver(phase_order=phase_order).resolved_phase_order(scene) + 1) ** 2 - 1
     state = n * (2 + K if surfaces else 1 + K)  # Λ and its K moments, E
     nu = sorted(shape)[-1] + 2 * M
@@ -448,7 +453,20 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if substep:
         setup += (M - 1) * D * (SETUP_S_PER_SUBSTEP_CROSSING * n
                                 + SETUP_S_PER_SUBSTEP_CALL * 6 * -(-max(shape) // M))
-    return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend)
+    once_s = 0.0
+    if once:  # its sweep as one iteration on its direction set: time, set-up, carries, residuals
+        sub = estimate_sweep(scene, resolution=resolution, M=once, supersample=supersample,
+                             cameras=cameras, restart=restart, backend=backend, kernel=kernel,
+                             gradient=gradient, phase_order=phase_order,
+                             scheme="substep" if substep else "step", tangents=tangents,
+                             sweep_residuals=sweep_residuals, edge_samples=edge_samples)
+        once_s = sub.seconds_per_iteration * (n / sub.nodes)
+        setup += sub.setup_s - (SETUP_S_PER_RAY * rays)  # its faces, not the cameras again
+        # (its carries while it runs, beyond the solve's, which come after)
+        mem["once-scattered sweep"] = max(0, sub.memory["face carries"] - mem["face carries"])
+        if "linearised sweeps" in sub.memory:
+            mem["once-scattered sweep"] += sub.memory["linearised sweeps"]
+    return CostEstimate("sweep", shape, M, rays, mem, per_iter, setup, backend, once_s)
 
 
 def _density_max(fog) -> float:

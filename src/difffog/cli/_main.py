@@ -49,6 +49,11 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                         "uncollided sun and sky at each node) or deposit (what the beams lose, "
                         "box-filtered as the lattice's steps are: conserves energy where a step "
                         "is optically thick; see docs/validation.md)")
+    p.add_argument("--once-M", dest="once_M", type=int, default=None, metavar="K",
+                   help="sweep: carry the sun's once-scattered light on the finer direction "
+                        "set of half-width K (a Henyey-Greenstein fog under a sun: its forward "
+                        "lobe, which M = 3 samples coarsely; one more sub-stepped sweep per "
+                        "solve; default: off; see docs/validation.md)")
 
 
 def positive_int(name: str, value: int | None) -> int | None:
@@ -71,7 +76,8 @@ def model_settings(args, solver: str, *, accuracy: str | None) -> dict:
              "devices": ("--devices", getattr(args, "devices", None)),
              "phase_order": ("--phase-order", getattr(args, "phase_order", None)),
              "scheme": ("--scheme", getattr(args, "scheme", None)),
-             "first_collision": ("--first-collision", getattr(args, "first_collision", None))}
+             "first_collision": ("--first-collision", getattr(args, "first_collision", None)),
+             "once_M": ("--once-M", positive_int("--once-M", getattr(args, "once_M", None)))}
     if getattr(args, "iterations", None) is not None:
         flags["max_iterations"] = ("--iterations", args.iterations)
         flags["tol"] = ("--iterations", 0.0)  # exactly K iterations

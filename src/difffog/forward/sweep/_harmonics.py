@@ -123,3 +123,15 @@ def delta_m(g, L: int, xp=np):
     f = g ** (L + 1)
     coef = [(g ** l - f) / (1.0 - f) for l in range(1, L + 1)]
     return f, (xp.stack(coef) if coef else xp.zeros((0,), xp.asarray(g).dtype))
+
+
+
+@functools.lru_cache(maxsize=None)
+def harmonic_moments(L: int, M: int) -> np.ndarray:
+    """(K, K) T⁻¹ (symmetric): the moments m of ``basis(L, M)`` → the real harmonics' own
+    moments a = T⁻¹·m = Σ_d w_d (Y(d) − μ) R̄_d (the direction set's quadrature of ∫ Y R dΩ,
+    without the basis's orthonormalization), and back: the coefficients on Ỹ = (Y − μ)·T of
+    Σ_k a_k (Y_k − μ_k) are T⁻¹·a."""
+    if L == 0:
+        return np.zeros((0, 0))
+    return np.linalg.inv(basis(L, M).transform)

@@ -32,7 +32,11 @@ class LightField(AbstractLight):
     result: a :class:`difffog.RESULTS` code (int32).
     moments: with an anisotropic phase (``SweepSolver.phase_order`` L > 0), the K = (L+1)² − 1
         angular moments Σ_L w_L Ỹ_k(L̂) R of the scattered light (``_harmonics.Basis``), else
-        None; sky_moments: those of the uncollided sky (None without a first-collision sky).
+        None; sky_moments: those of the uncollided sky (None without a first-collision sky);
+        once_source: with ``SweepSolver.once_M``, the anisotropic source per unit ζ' of the
+        sun's once-scattered light swept on that finer direction set (in ``moments``' basis,
+        what their δ-M coefficients g'_k times ``moments`` are for the rest; its fluence is in
+        ``fluence``), else None.
     source_slope: with the linear-source scheme (``SweepSolver.scheme``), h∇Q: the isotropic
         source's change per lattice spacing along x, y, z (nx, ny, nz, 3), else None;
         fluence_slope: h∇(Λ + sky_fluence), the scattered light's (what the cameras' in-scatter
@@ -60,6 +64,7 @@ class LightField(AbstractLight):
     result: Int[Array, ""]
     moments: Float[Array, "nx ny nz K"] | None = None
     sky_moments: Float[Array, "nx ny nz K"] | None = None
+    once_source: Float[Array, "nx ny nz K"] | None = None
     source_slope: Float[Array, "nx ny nz 3"] | None = None
     fluence_slope: Float[Array, "nx ny nz 3"] | None = None
     dip: Float[Array, ""] | None = None

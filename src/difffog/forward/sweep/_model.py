@@ -334,8 +334,11 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     j_aniso = None
     if order > 0:
         mom = light.moments if light.sky_moments is None else light.moments + light.sky_moments
-        mom = jax.vmap(lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(mom)
-        j_aniso = (zeta_r * dens)[..., None] * coef * mom
+        aniso = coef * mom
+        if light.once_source is not None:  # the once-scattered sun's (``SweepSolver.once_M``)
+            aniso = aniso + light.once_source
+        aniso = jax.vmap(lambda a: ext(a, cam.near_fluid), in_axes=-1, out_axes=-1)(aniso)
+        j_aniso = (zeta_r * dens)[..., None] * aniso
     if cam.support_index is not None:  # the fog ends sharply at its box: extend it there
         sup = lambda a: _on_support(a, cam.support_index)  # noqa: E731
         sup_k = jax.vmap(sup, in_axes=-1, out_axes=-1)
@@ -573,7 +576,8 @@ class SweepModel(AbstractForwardModel):
         self.cameras = select_cameras(scene, cameras)
         t = time.perf_counter()
         M = self.solver.M
-        lattice = voxelize(scene, resolution, M, margin=M + 1)
+        shell = self.solver.lattice_M(scene)
+        lattice = voxelize(scene, resolution, shell, margin=shell + 1)
         voxelize_s = time.perf_counter() - t
         t = time.perf_counter()
         self.geometry = self.solver.prepare(scene, lattice)
@@ -743,6 +747,8 @@ class SweepModel(AbstractForwardModel):
         cos = jnp.where(geom.surf, jnp.maximum(normal @ s, 0.0), 0.0)
         geom = eqx.tree_at(lambda g: (g.sun_cos, g.sun_vec), geom, (cos, s),
                            is_leaf=lambda x: x is None)
+        if geom.once is not None:  # the once-scattered sweep's phase follows the sun too
+            geom = eqx.tree_at(lambda g: g.once.sun_vec, geom, s, is_leaf=lambda x: x is None)
         if lin.vis is not None:
             geom = eqx.tree_at(lambda g: g.sun_vis, geom, moved(geom.sun_vis, lin.vis))
         cg = eqx.tree_at(lambda c: c.sun_vec, cg, s, is_leaf=lambda x: x is None)
@@ -966,6 +972,8 @@ class SweepModel(AbstractForwardModel):
                                "scheme": ("linear" if self.geometry.linear else
                                           "substep" if self.geometry.substep else "step"),
                                "first_collision": s.first_collision,
+                               "once_M": (None if self.geometry.once is None
+                                          else self.geometry.once.M),
                                "adjoint": s.adjoint,
                                "kernel": s.resolved_kernel()},
             "resolution": self.resolution,

@@ -35,7 +35,7 @@ from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
 from ._implicit import CheckedSolver, KrylovSolver, fixed_point
 from ._dsa import DiffusionPreconditioner, neighbour, on_fluence
-from ._harmonics import MAX_ORDER, basis, delta_m, moment_coefficients
+from ._harmonics import MAX_ORDER, basis, delta_m, harmonic_moments, moment_coefficients
 from ._krylov import gmres
 from ._lightfield import LightField
 from ._march import in_forward_mode
@@ -122,6 +122,9 @@ class SweepGeometry(eqx.Module):
     # the sun's direction traced (``sun.zenith_deg`` / ``sun.azimuth_deg`` as unknowns), near
     # the static ``sun_dir`` the host's parts were built for; None: ``sun_dir``
     sun_vec: jax.Array | None = None
+    # the geometry of the same lattice at the direction set that carries the sun's
+    # once-scattered light (``SweepSolver.once_M``), or None: the solve's own
+    once: "SweepGeometry | None" = None
 
     def sun_vector(self, dtype):
         """The unit vector towards the sun (3,) the light solve uses (traced or static)."""
@@ -374,6 +377,15 @@ class _Problem(eqx.Module):
     # a guess of the light state (Λ, E) to start the iteration from (``SweepSolver.solve``'s
     # ``init``; None: from zero)
     init: tuple[jax.Array, jax.Array] | None = None
+    # the sun's once-scattered light swept on the finer direction set of ``geom.once``
+    # (``SweepSolver._once_scattered``): its fluence Λ₁, its anisotropic source per unit ζ'
+    # in this direction set's basis (what ``phase_coef``·moments is for the state's light,
+    # (nx, ny, nz, K)) and its irradiance on surfaces; a fixed part of the light, which
+    # ``_sources`` adds to the state's (None: the sun's first collision is in the state's
+    # own sweeps)
+    once_fluence: jax.Array | None = None
+    once_source: jax.Array | None = None
+    once_irradiance: jax.Array | None = None
 
 
 def _report(meter: AbstractProgressMeter):
@@ -392,7 +404,7 @@ def _mask(cond, x, value=0.0):
     return jnp.where(cond[..., None] if x.ndim > cond.ndim else cond, value, x)
 
 
-def _sources(state, pb: _Problem):
+def _sources(state, pb: _Problem, first_collision: bool | None = None):
     """(Q, B): the step source radiance at fog nodes — (nx, ny, nz), or with an anisotropic
     phase or the linear scheme (nx, ny, nz, 1 + K [+ 1] [+ 3]): the isotropic part, then each
     moment's ζ'/σ_t'·g'_l·m_k (the collided light's and the uncollided sky's moments), then
@@ -402,18 +414,31 @@ def _sources(state, pb: _Problem):
     radiosity B of surface nodes."""
     lam, irr = state
     g = pb.geom
+    # the sun's once-scattered light swept apart (``once_*``): the state holds the rest, and
+    # the sun's first collision is no source of the state's sweeps (``first_collision``
+    # None); ``source_field`` asks for it (True) with the once-scattered light in the state
+    once = pb.once_fluence is not None
+    first_collision = not once if first_collision is None else first_collision
+    if once:
+        irr = irr + pb.once_irradiance
     if not (g.channels or g.linear):
         q = jnp.where(g.solid, 0.0, pb.ssa * (lam + pb.sun_fluence + pb.sky_fluence) / FOUR_PI)
     else:
         lam0 = lam[..., 0] if g.channels else lam
+        if once:
+            lam0 = lam0 + pb.once_fluence
         sun_iso = pb.sun_fluence if pb.sun_phase is None else 0.0
         q0 = pb.ssa * (lam0 + sun_iso + pb.sky_fluence) / FOUR_PI
         parts = [q0[..., None]]
         if g.channels:
             mom = lam[..., 1:] if pb.sky_moments is None else lam[..., 1:] + pb.sky_moments
-            parts.append(pb.ssa[..., None] * pb.phase_coef * mom)
+            aniso = pb.phase_coef * mom
+            if once:
+                aniso = aniso + pb.once_source
+            parts.append(pb.ssa[..., None] * aniso)
         if pb.sun_phase is not None:
-            parts.append((pb.sun_albedo * pb.sun_fluence)[..., None])
+            sun_q = pb.sun_albedo * pb.sun_fluence
+            parts.append((sun_q if first_collision else jnp.zeros_like(sun_q))[..., None])
         if g.linear:
             parts.append(_source_slope(lam0, pb))
         q = _mask(g.solid, jnp.concatenate(parts, axis=-1))
@@ -701,7 +726,7 @@ def _iterate(pb: _Problem):
 
 
 _SOURCE_FIELDS = ("sun_fluence", "sky_fluence", "emission", "direct", "sky", "sky_moments",
-                  "sun_slope", "sky_slope")
+                  "sun_slope", "sky_slope", "once_fluence", "once_source", "once_irradiance")
 
 
 def _with_sources(pb: _Problem, on) -> _Problem:
@@ -1026,6 +1051,17 @@ class SweepSolver(eqx.Module):
         N = 32: −2.8% at ζ = 100 but −13% at ζ = 1000, where one node spans 60 mean free
         paths, against "beam"'s +5.1% and +3.5%.  The same in thin fog.  The linear scheme's
         first-collision slope stays the beam's own.
+    once_M: a Henyey–Greenstein fog under a sun: sweep the sun's once-scattered light (its
+        first collision, with the exact phase averaged over each direction's cell) on the
+        finer direction set of half-width ``once_M`` instead of the solve's M, once per light
+        solve (sub-stepped: its segments span once_M planes), and give the solve its fluence
+        and its δ-M source (degree by degree, in the M basis) as a fixed part of the light
+        (``_once_scattered``); every later order stays on M.  The sun's forward lobe (g =
+        0.85: half its peak within 7°) is narrower than M = 3's directions (18° apart at a
+        face's centre), which read a thin sunlit slab's R 2-4% high.  Ignored (0) for an
+        isotropic fog or without a sun (``resolved_once_M``); the lattice's surface shell and
+        margin follow the larger set (``lattice_M``).  None (default): off.  Measured
+        (docs/validation.md, "The once-scattered light on a finer direction set"): see there.
     """
 
     M: int = eqx.field(static=True, default=3)
@@ -1049,6 +1085,7 @@ class SweepSolver(eqx.Module):
     sweep_residuals: str = eqx.field(static=True, default="auto")
     first_collision: str = eqx.field(static=True, default="beam")
     adjoint: str = eqx.field(static=True, default="auto")
+    once_M: int | None = eqx.field(static=True, default=None)
 
     def layout(self) -> tuple[int, int, int]:
         """The (faces, u, v) device mesh the sweeps run on."""
@@ -1095,6 +1132,9 @@ class SweepSolver(eqx.Module):
         if self.scheme == "substep" and (self.devices > 1 or self.mesh is not None):
             raise SceneError("SweepSolver: scheme=\"substep\" runs on one device; use "
                              "devices=1 (or another scheme on a device mesh)")
+        om = self.once_M
+        if om is not None and (isinstance(om, bool) or not isinstance(om, int) or om < 1):
+            raise SceneError(f"SweepSolver: once_M must be None or an integer >= 1, got {om!r}")
         if not isinstance(self.restart, int) or self.restart < 2:
             raise SceneError(f"SweepSolver: restart must be an integer >= 2, got {self.restart!r}")
         if self.kernel == "pallas":
@@ -1164,11 +1204,36 @@ class SweepSolver(eqx.Module):
                            self.M)
         return "linear" if depth > LINEAR_STEP_DEPTH else "step"
 
+    def resolved_once_M(self, scene=None) -> int:
+        """The direction set (half-width) that carries the sun's once-scattered light in
+        ``scene``: ``once_M`` where the scene has a sun and an anisotropic phase in the solve
+        (what the finer set resolves: the exact phase's forward lobe), else 0 (the solve's own
+        M, nothing swept apart)."""
+        om = self.once_M
+        if om is None or om == self.M or scene is None or scene.sun is None:
+            return 0
+        return int(om) if self.resolved_phase_order(scene) > 0 else 0
+
+    def lattice_M(self, scene=None) -> int:
+        """The surface shell (and vacuum margin) the lattice needs: the largest direction
+        set swept on it."""
+        return max(self.M, self.resolved_once_M(scene))
+
     def prepare(self, scene, lattice) -> SweepGeometry:
         """The static structure of ``scene`` on ``lattice`` (host, once)."""
         scheme = self.resolved_scheme(scene, lattice)
-        return prepare_sweep(scene, lattice, self.M, self.terms, self.resolved_phase_order(scene),
+        order = self.resolved_phase_order(scene)
+        geom = prepare_sweep(scene, lattice, self.M, self.terms, order,
                              linear=scheme == "linear", substep=scheme == "substep")
+        if once_M := self.resolved_once_M(scene):
+            # the sub-stepped scheme, whatever the solve's: its segments span once_M planes,
+            # longer than the solve's, and the sun's first collision falls off along them as
+            # e^(−τ/μ₀) (g = 0.85 slabs at N = 32 under a zenith sun, τ = 16: R +12.5%, T
+            # +23% with the step scheme's constant source per segment at once_M = 6; +1.1%,
+            # +1.3% sub-stepped)
+            once = prepare_sweep(scene, lattice, once_M, self.terms, order, substep=True)
+            geom = eqx.tree_at(lambda g: g.once, geom, once, is_leaf=lambda x: x is None)
+        return geom
 
     def problem(self, geom: SweepGeometry, params: Params) -> _Problem:
         dt = params.scattering.dtype
@@ -1268,7 +1333,13 @@ class SweepSolver(eqx.Module):
             sky_fluence = dep(sky_fluence)
             if sky_moments is not None:
                 sky_moments = dep(sky_moments)
+        once = (None, None, None)
+        if geom.once is not None and sun_phase is not None:
+            once = self._once_scattered(geom, params, sigma_t, sun_albedo * sun_beam)
         return _Problem(
+            once_fluence=once[0],
+            once_source=once[1],
+            once_irradiance=once[2],
             geom=geom,
             tau_half=tuple(to_face(t, axis, sign) for t, (axis, sign) in zip(tau_world, FACE_AXES)),
             fog_mask=fog_mask,
@@ -1300,6 +1371,53 @@ class SweepSolver(eqx.Module):
             kernel=self.resolved_kernel(),
             recompute=self.resolved_sweep_residuals(geom) == "recompute",
         )
+
+    def _once_scattered(self, geom: SweepGeometry, params: Params, sigma_t, sun_source):
+        """(Λ₁, S₁, E₁): the sun's first collision (``sun_source``, ζ/σ_t'·F·T̄ per node) with
+        the exact phase averaged over each direction's cell, swept once on the direction set
+        of ``geom.once`` (half-width ``once_M``): the once-scattered light's fluence Λ₁, its
+        anisotropic source per unit ζ' and its irradiance E₁ on surfaces.  S₁ is the δ-M
+        phase applied to the light's harmonic moments degree by degree, Σ_l g'_l Σ_m a_lm
+        (Y_lm − μ_lm) with a = T_M₁⁻¹·m₁ (``harmonic_moments``), in ``geom``'s basis: T_M⁻¹·(g'
+        ⊙ a).  (Its moments carried over to that basis and weighted there by the solve's
+        per-function g'_k, which its orthonormalization mixes across degrees, read a sunlit
+        slab's R 4.5% high instead of 2.1%.)  A strongly forward-scattering phase
+        concentrates this light within ~(1 − g) rad of the sun's direction, which the solve's
+        own M = 3 directions sample coarsely (thin g = 0.85 slabs read R 2-4% high; the
+        direction sets compared in ``benchmarks/slab_directions.py``); every later order of
+        scattering is smoother and stays on ``geom``'s directions."""
+        g1 = geom.once
+        dt = sigma_t.dtype
+        tau1 = [
+            jnp.where(g1.solid, 0.0,
+                      sigma_t if g1.substep else
+                      segment_depth(sigma_t, g1.M, axis, g1.periodic_xy and axis < 2))
+            * (g1.h / 2.0)
+            for axis, _ in FACE_AXES
+        ]
+        src = jnp.where(g1.solid, 0.0, sun_source)
+        if self.first_collision == "deposit" and not g1.substep:
+            sigma_box = sum(tau1[FACE_AXES.index((a, 1))] for a in range(3)) / (g1.h / 2)
+            src = _deposit_average(src, sigma_t, sigma_box, g1.solid, g1.M, g1.periodic_xy)
+        zero = jnp.zeros(g1.shape, dt)
+        # the channels of the solve's anisotropic source: none but the sun's
+        q = jnp.concatenate([jnp.zeros(g1.shape + (1 + g1.n_moments,), dt), src[..., None]],
+                            axis=-1)
+        # (no fog mask: the solve's own decides where Λ is kept, and a step scheme's nodes
+        # beside the fog, whose box-filtered segments reach into it, use it)
+        pb1 = _Problem(
+            geom=g1, tau_half=tuple(to_face(t, a, sg) for t, (a, sg) in zip(tau1, FACE_AXES)),
+            sigma_t=sigma_t, ssa=zero, sun_fluence=zero, sky_fluence=zero, rho=zero,
+            emission=zero, direct=zero, sky_direct=zero,
+            sky=jnp.zeros((), dt), sun_phase=_cell_phase(g1, params.g, dt),
+            max_iterations=1, tol=0.0, mesh_shape=self.layout(), kernel=self.resolved_kernel(),
+            recompute=self.resolved_sweep_residuals(g1) == "recompute")
+        lam1, irr1 = _sweep_all(q, jnp.zeros(g1.shape, dt), pb1)
+        L = geom.order
+        a = lam1[..., 1:] @ jnp.asarray(harmonic_moments(L, g1.M), dt)
+        coef = delta_m(params.g, L, jnp)[1][basis(L, geom.M).degree - 1]
+        src = (coef * a) @ jnp.asarray(harmonic_moments(L, geom.M), dt)
+        return lam1[..., 0], _mask(g1.solid, src), irr1
 
     def solve(self, geom: SweepGeometry, params: Params, init=None) -> LightField:
         """The converged light field (differentiable in ``params``), with its result code:
@@ -1352,6 +1470,10 @@ class SweepSolver(eqx.Module):
         root_state = root if in_forward_mode() else jax.tree.map(jax.lax.stop_gradient, root)
         root = _non_negative(root, geom.channels)
         q, b = _sources(root, pb)
+        if pb.once_fluence is not None:  # the light: the state's and the once-scattered sun's
+            lam0 = root[0][..., 0] + pb.once_fluence
+            root = (jnp.concatenate([lam0[..., None], root[0][..., 1:]], axis=-1),
+                    root[1] + pb.once_irradiance)
         irradiance = jnp.where(geom.surf, geom.cnorm * root[1] + pb.sky_direct, 0.0)
         lam = root[0] if pb.fog_mask is None else _mask(~pb.fog_mask, root[0])
         moments = q_slope = f_slope = None
@@ -1368,6 +1490,7 @@ class SweepSolver(eqx.Module):
             fluence=lam,
             moments=moments,
             sky_moments=pb.sky_moments_beam,
+            once_source=pb.once_source,
             source_slope=q_slope,
             fluence_slope=f_slope,
             sun_fluence=pb.sun_beam,
@@ -1394,11 +1517,14 @@ def source_field(pb: _Problem, light: LightField, sun: bool = True):
     g = pb.geom
     if not (g.channels or g.linear) and sun:
         return light.source
+    if pb.once_fluence is not None:  # ``light``'s fluence holds the once-scattered light's
+        pb = eqx.tree_at(lambda p: (p.once_fluence, p.once_irradiance), pb,
+                         (jnp.zeros_like(pb.once_fluence), jnp.zeros_like(pb.once_irradiance)))
     if not sun:
         pb = eqx.tree_at(lambda p: p.sun_fluence, pb, jnp.zeros_like(pb.sun_fluence))
     lam = light.fluence if not g.channels else jnp.concatenate(
         [light.fluence[..., None], light.moments], axis=-1)
-    q = _sources((lam, jnp.zeros(g.shape, lam.dtype)), pb)[0]
+    q = _sources((lam, jnp.zeros(g.shape, lam.dtype)), pb, first_collision=True)[0]
     if g.channels and not sun and pb.sun_phase is not None:  # drop the sun's channel
         q = jnp.delete(q, 1 + g.n_moments, axis=-1)
     return q

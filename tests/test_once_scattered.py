@@ -1,0 +1,142 @@
+"""The sun's once-scattered light on a finer direction set (``SweepSolver.once_M``): the
+change of harmonic basis it relies on, where it applies, a sunlit forward-scattering slab
+against adding-doubling, and gradients against finite differences."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import difffog as df
+from difffog import Params, get_param, load_scene, set_param
+from difffog.forward.sweep._harmonics import basis, harmonic_moments, real_sh
+from difffog.forward.sweep._solver import SweepSolver, source_field
+from difffog.geometry._lattice import voxelize
+from difffog.study._slab import slab_problem, slab_reflectance
+from helpers import build_model, slab_table_reference, small_scene
+
+
+@pytest.mark.parametrize("L,M", [(1, 3), (3, 3), (3, 6)])
+def test_harmonic_moments_carry_a_function_between_bases(L, M):
+    """T⁻¹ takes a basis's moments to the harmonics' own and back: Σ a_k (Y_k − μ_k) is the
+    function whose Ỹ-coefficients are T⁻¹·a, at any direction; and the moments of a
+    function sampled on the direction set are T⁻¹ times its Ỹ-moments."""
+    B = basis(L, M)
+    Tinv = harmonic_moments(L, M)
+    rng = np.random.default_rng(L + 10 * M)
+    a = rng.normal(size=B.K)
+    v = rng.normal(size=(50, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    direct = (real_sh(v, L)[:, 1:] - B.mean) @ a
+    np.testing.assert_allclose(B.evaluate(v) @ (Tinv @ a), direct, atol=1e-12)
+    from difffog.geometry._directions import direction_set
+
+    ds = direction_set(M)
+    vec, w = ds.vectors.reshape(-1, 3), ds.weights.reshape(-1)
+    R = rng.random(len(w))  # a radiance on the set
+    m = B.evaluate(vec).T @ (w * R)  # its Ỹ-moments
+    np.testing.assert_allclose(Tinv @ m, (real_sh(vec, L)[:, 1:] - B.mean).T @ (w * R),
+                               atol=1e-12)
+
+
+def test_once_M_applies_where_the_sun_scatters_anisotropically():
+    """Only a Henyey–Greenstein fog under a sun has a forward lobe to resolve: elsewhere the
+    setting is ignored (no second geometry, the lattice's shell unchanged); bad values are a
+    one-line error."""
+    cloud, balls = load_scene("cloud-plane"), load_scene("fog-balls")
+    s = SweepSolver(M=3, once_M=6)
+    assert s.resolved_once_M(cloud) == 6 and s.lattice_M(cloud) == 6
+    assert s.resolved_once_M(balls) == 0 and s.lattice_M(balls) == 3  # isotropic
+    assert SweepSolver(M=3, once_M=6, phase_order=0).resolved_once_M(cloud) == 0
+    assert SweepSolver(M=3, once_M=3).resolved_once_M(cloud) == 0  # the solve's own set
+    assert s.resolved_once_M(load_scene("cloud-plane", ["sun.irradiance=0"])) == 6
+    for bad in (0, -2, 2.5, True, "6"):
+        with pytest.raises(df.SceneError, match="once_M must be None or an integer >= 1"):
+            SweepSolver(once_M=bad)
+    small = small_scene("fog-balls", size=(6, 5))
+    geom = s.prepare(small, voxelize(small, 12, 3))
+    assert geom.once is None
+
+
+def slab_rt(tau, albedo, zenith, n_fog, M, once_M, scheme="auto"):
+    """(R, T) of a g = 0.85 slab under a sun as a camera reads it (test_anisotropic's
+    ``slab_rt`` with the once-scattered light's directions)."""
+    sun = (1.0, zenith)
+    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-9, phase_order=3, once_M=once_M,
+                         scheme=scheme)
+    shell = max(M, once_M or 0)
+    scene, lat, margin = slab_problem(tau, albedo, n_fog, shell, sun=sun, sky=0.0, g=0.85)
+    geom = solver.prepare(scene, lat)
+    assert (geom.once is not None) == (once_M is not None)
+
+    @jax.jit
+    def run(p):
+        light = solver.solve(geom, p)
+        pb = solver.problem(geom, p)
+        return light, pb.sigma_t, source_field(pb, light, sun=False)
+
+    light, sigma, q = run(Params.from_scene(scene, jnp.float64))
+    assert int(light.result) == df.RESULTS.successful
+    dens = np.asarray(lat.density)[0, 0]
+    ss = (albedo * tau * dens, 0.85, np.asarray(light.sun_fluence)[0, 0], tau * dens)
+    return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
+                            sky=0.0, sun=sun, basis=basis(3, M), sun_scatter=ss)
+
+
+# R, T error against adding-doubling at N = 32, M = 3 (benchmarks/slab_anisotropic.py):
+# without once_M, 60° a = 0.99 τ = 1 reads R +4.3%; with once_M = 6 +0.8% (T +0.1%)
+@pytest.mark.parametrize("zenith,albedo,tau,scheme,bound", [
+    (60.0, 0.99, 1.0, "auto", 0.015),
+    pytest.param(0.0, 0.9, 16.0, "auto", 0.03, marks=pytest.mark.slow),
+    pytest.param(0.0, 0.9, 4.0, "substep", 0.025, marks=pytest.mark.slow)])
+def test_a_sunlit_forward_scattering_slab_against_adding_doubling(zenith, albedo, tau, scheme,
+                                                                   bound, x64):
+    R, T = slab_rt(tau, albedo, zenith, 32, 3, 6, scheme)
+    R_ref, T_ref = slab_table_reference(albedo, tau, "collimated", zenith, g=0.85)
+    assert abs(R / R_ref - 1) < bound, (R, R_ref)
+    assert abs(T / T_ref - 1) < bound, (T, T_ref)
+
+
+# slow: ~80 s (the default suite's 12-minute budget on 2 cores); run at stop 69: passed
+@pytest.mark.slow
+def test_image_gradients_with_the_once_scattered_light_match_finite_differences(x64):
+    """The whole chain with the once-scattered sweep (cloud-plane, L = 1, M = 2, once_M = 3):
+    an image loss's gradient in g, ζ, γ and the ground's albedo (the once-scattered light
+    lights it) against central differences."""
+    scene = small_scene("cloud-plane", size=(8, 6))
+    m = build_model("sweep", scene, resolution=13, M=2, max_iterations=1000, tol=1e-12,
+                    adjoint_rtol=1e-11, phase_order=1, once_M=3)
+    assert m.geometry.once is not None and m.geometry.once.M == 3
+    p0 = m.params(jnp.float64)
+    target = jax.tree.map(lambda a: 0.9 * a, m(p0))
+
+    def loss(p):
+        imgs = m(p)
+        return sum(jnp.sum((imgs[k] - target[k]) ** 2) for k in imgs)
+
+    g = jax.jit(jax.grad(loss))(p0)
+    f = jax.jit(loss)
+    for path in ("fog.g", "fog.scattering", "fog.absorption", "shape.ground.albedo"):
+        v = float(get_param(p0, scene, path))
+        eps = 1e-5 * v
+        fd = float(f(set_param(p0, scene, path, v + eps)) - f(set_param(p0, scene, path, v - eps)))
+        fd /= 2 * eps
+        assert fd != 0
+        assert float(get_param(g, scene, path)) == pytest.approx(fd, rel=1e-5), path
+
+
+def test_the_estimate_counts_the_once_scattered_sweep():
+    """difffog.estimate: the lattice's shell follows the larger direction set, and a solve
+    costs one more sweep on it (an iteration's worth there)."""
+    scene = load_scene("cloud-plane")
+    base = df.estimate(scene, "sweep", resolution=32)
+    once = df.estimate(scene, "sweep", resolution=32, once_M=6)
+    assert base.once_s == 0 and once.once_s > 0
+    assert all(a > b for a, b in zip(once.shape, base.shape))  # the margin of M = 6 + 1
+    assert once.solve_s > base.solve_s
+    assert "once-scattered sweep" in once.memory
+    iso = df.estimate(load_scene("fog-balls"), "sweep", resolution=32, once_M=6)
+    assert iso.once_s == 0 and "once-scattered sweep" not in iso.memory
+    assert math.isfinite(once.setup_s) and once.setup_s > base.setup_s
