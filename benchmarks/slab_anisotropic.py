@@ -22,7 +22,8 @@ import _common as C
 CASES = [("diffuse", None), ("collimated", 0.0), ("collimated", 60.0)]
 
 
-def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam", scheme="auto"):
+def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam", scheme="auto",
+         once_M=None):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -33,9 +34,12 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam", 
     from difffog.study._slab import slab_problem, slab_reflectance
 
     sun = None if illumination == "diffuse" else (1.0, zenith)
-    scene, lat, margin = slab_problem(tau, albedo, N, M, sun=sun, sky=0.0 if sun else 1.0, g=g)
     solver = SweepSolver(M=M, max_iterations=4000, tol=1e-8, phase_order=L,
-                         first_collision=first_collision, scheme=scheme)
+                         first_collision=first_collision, scheme=scheme, once_M=once_M)
+    scene, lat, margin = slab_problem(tau, albedo, N, M, sun=sun, sky=0.0 if sun else 1.0, g=g)
+    if solver.lattice_M(scene) > M:  # the once-scattered light's directions: a wider shell
+        scene, lat, margin = slab_problem(tau, albedo, N, solver.lattice_M(scene),
+                                          sun=sun, sky=0.0 if sun else 1.0, g=g)
     geom = solver.prepare(scene, lat)
 
     @jax.jit
@@ -72,6 +76,10 @@ def main(argv=None):
                     help="SweepSolver.first_collision")
     ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear", "substep"],
                     help="SweepSolver.scheme")
+    ap.add_argument("--collimated-only", action="store_true",
+                    help="only the sunlit rows (what --once-m changes)")
+    ap.add_argument("--once-m", type=int, default=None,
+                    help="SweepSolver.once_M: the sun's once-scattered light on this direction set")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     import jax
@@ -93,12 +101,13 @@ def main(argv=None):
     for N in a.n:
         for M in a.m:
             for L in a.orders:
-                for ill, zen in CASES:
+                for ill, zen in [c for c in CASES
+                                 if not (a.collimated_only and c[0] == "diffuse")]:
                     for albedo in a.albedos:
                         for tau in a.taus:
                             t = time.perf_counter()
                             R, T, k, scheme = slab(tau, albedo, a.g, N, M, L, ill, zen,
-                                                   a.first_collision, a.scheme)
+                                                   a.first_collision, a.scheme, a.once_m)
                             Rr, Tr = ref(albedo, tau, ill, zen)
                             row = dict(N=N, M=M, L=L, illumination=ill + ("" if zen is None
                                                                           else f" {zen:g}°"),
@@ -115,7 +124,8 @@ def main(argv=None):
              "`python benchmarks/slab_anisotropic.py`"
              + ("" if a.first_collision == "beam"
                 else f"; first collision: {a.first_collision}")
-             + ("" if a.scheme == "auto" else f"; `--scheme {a.scheme}`"), ""]
+             + ("" if a.scheme == "auto" else f"; `--scheme {a.scheme}`")
+             + ("" if a.once_m is None else f"; `--once-m {a.once_m}`"), ""]
     lines += C.machine_lines(C.machine(bandwidth=False)) + [""]
     taus = a.taus
     head = ["N", "M", "L", "illumination", "albedo"] + [f"τ = {t:g}" for t in taus]

@@ -58,7 +58,7 @@ QUICK_SETTINGS = [(16, 2)]
 
 
 def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int,
-                phase_order="auto", scheme="auto", first_collision="beam"):
+                phase_order="auto", scheme="auto", first_collision="beam", once_M=None):
     """Images and timings of one (N, M) setting.
 
     ``difffog.render`` compiles the light solve and the images ahead of time
@@ -71,7 +71,8 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         warnings.simplefilter("always")
         model = df.forward_model(scene, "sweep", accuracy=None, resolution=N, M=M, tol=tol,
                                  max_iterations=max_iterations, phase_order=phase_order,
-                                 scheme=scheme, first_collision=first_collision)
+                                 scheme=scheme, first_collision=first_collision,
+                                 once_M=once_M)
     notes = sorted({str(w.message).split(":")[0] for w in caught})
     out = df.render(model)
     t = out.timings
@@ -89,6 +90,7 @@ def run_setting(scene_name: str, N: int, M: int, tol: float, max_iterations: int
         "phase_order": model.geometry.order,
         "scheme": out.settings["solver_options"]["scheme"],
         "first_collision": first_collision,
+        "once_M": model.solver.resolved_once_M(scene),
     }
     return images, info
 
@@ -107,7 +109,9 @@ def write_markdown(path: Path, rows: list[dict], settings, tol: float, machine: 
         "smoothing of both images (about noise/3 of reference noise left in it); `worst 5%`: "
         "the share of the squared error in the worst 5% of pixels. Times: warm "
         "(compile excluded) seconds on the machine below; `render` covers all cameras of "
-        "the scene in one call.",
+        "the scene in one call."
+        + ("".join(sorted({f" {r['scene']}: the sun's once-scattered light on M = "
+                           f"{r['once_M']} (`--once-m`)." for r in rows if r.get("once_M")}))),
         "",
         *C.machine_lines(machine),
         "",
@@ -171,6 +175,9 @@ def main(argv=None):
                     help="SweepSolver.first_collision")
     ap.add_argument("--phase-order", nargs="+", default=["auto"],
                     help="SweepSolver.phase_order values to run (\"auto\" or integers)")
+    ap.add_argument("--once-m", type=int, default=None,
+                    help="SweepSolver.once_M: the sun's once-scattered light on this direction "
+                         "set (Henyey-Greenstein scenes)")
     C.add_quick(ap)
     args = C.parse(ap, argv)
     scenes = args.scenes or (["fog-balls"] if args.quick else list(INTENDED + OUTSIDE))
@@ -187,7 +194,7 @@ def main(argv=None):
         for (N, M), order in ((s, o) for s in settings for o in orders):
             t = time.perf_counter()
             images, info = run_setting(scene, N, M, args.tol, args.max_iterations, order,
-                                       args.scheme, args.first_collision)
+                                       args.scheme, args.first_collision, args.once_m)
             for cam, img in images.items():
                 ref, noise = C.reference(scene, cam, args.references)
                 m = C.compare(img, ref, noise)
