@@ -166,3 +166,27 @@ def assert_light_gradient(solver, scene, lat, seed: int,
     for path in paths:
         fd = float(central_difference(f, p0, scene, path))
         assert float(df.get_param(g, scene, path)) == pytest.approx(fd, rel=1e-6), path
+
+
+def image_loss_gradient_matches_fd(model, scene, paths, rel: float = 1e-5, scale: float = 0.9):
+    """The gradient of an image loss (squared distance to ``scale`` × the model's own images)
+    at the model's float64 parameters against central differences of relative step 1e-5, for
+    each parameter path (each derivative nonzero)."""
+    import pytest
+
+    p0 = model.params(jnp.float64)
+    target = jax.tree.map(lambda a: scale * a, model(p0))
+
+    def loss(p):
+        imgs = model(p)
+        return sum(jnp.sum((imgs[k] - target[k]) ** 2) for k in imgs)
+
+    g = jax.jit(jax.grad(loss))(p0)
+    f = jax.jit(loss)
+    for path in paths:
+        v = float(df.get_param(p0, scene, path))
+        eps = 1e-5 * v
+        fd = float(f(df.set_param(p0, scene, path, v + eps))
+                   - f(df.set_param(p0, scene, path, v - eps))) / (2 * eps)
+        assert fd != 0, path
+        assert float(df.get_param(g, scene, path)) == pytest.approx(fd, rel=rel), path

@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 import difffog as df
-from difffog import Params, get_param, load_scene, set_param
+from difffog import Params, load_scene
 from difffog.forward.sweep._harmonics import basis, harmonic_moments, real_sh
 from difffog.forward.sweep._solver import SweepSolver, source_field
 from difffog.geometry._lattice import voxelize
 from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import build_model, slab_table_reference, small_scene
+from helpers import (build_model, image_loss_gradient_matches_fd, slab_table_reference,
+                     small_scene)
 
 
 @pytest.mark.parametrize("L,M", [(1, 3), (3, 3), (3, 6)])
@@ -109,22 +110,8 @@ def test_image_gradients_with_the_once_scattered_light_match_finite_differences(
     m = build_model("sweep", scene, resolution=13, M=2, max_iterations=1000, tol=1e-12,
                     adjoint_rtol=1e-11, phase_order=1, once_M=3)
     assert m.geometry.once is not None and m.geometry.once.M == 3
-    p0 = m.params(jnp.float64)
-    target = jax.tree.map(lambda a: 0.9 * a, m(p0))
-
-    def loss(p):
-        imgs = m(p)
-        return sum(jnp.sum((imgs[k] - target[k]) ** 2) for k in imgs)
-
-    g = jax.jit(jax.grad(loss))(p0)
-    f = jax.jit(loss)
-    for path in ("fog.g", "fog.scattering", "fog.absorption", "shape.ground.albedo"):
-        v = float(get_param(p0, scene, path))
-        eps = 1e-5 * v
-        fd = float(f(set_param(p0, scene, path, v + eps)) - f(set_param(p0, scene, path, v - eps)))
-        fd /= 2 * eps
-        assert fd != 0
-        assert float(get_param(g, scene, path)) == pytest.approx(fd, rel=1e-5), path
+    image_loss_gradient_matches_fd(m, scene, ("fog.g", "fog.scattering", "fog.absorption",
+                                               "shape.ground.albedo"))
 
 
 def test_the_estimate_counts_the_once_scattered_sweep():
