@@ -34,6 +34,18 @@ def test_info_names_the_phase_order_of_a_forward_scattering_fog(capsys):
     assert "(L+1)² = 9 angular moments" in out and "g^(L+1) = 0.614" in out
 
 
+def test_info_names_the_once_scattered_sweep(capsys):
+    """--once-M: the lattice's margin follows the larger direction set, and info says what
+    the extra sweep costs; an isotropic fog has nothing to refine (no line, no margin)."""
+    assert main(["info", "cloud-plane", "-N", "16", "-M", "2", "--once-M", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "28x28x28 nodes" in out and "6 vacuum nodes" in out
+    assert "once-scattered light on M = 5 (121 directions per face" in out
+    assert main(["info", "fog-balls", "-N", "24", "-M", "2", "--once-M", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "30x30x30 nodes" in out and "once-scattered" not in out
+
+
 def test_info_periodic_slab_has_no_lateral_margin(capsys):
     assert main(["info", "slab", "-N", "16", "-M", "2"]) == 0
     assert "16x16x22 nodes" in capsys.readouterr().out
@@ -53,6 +65,10 @@ def test_info_periodic_slab_has_no_lateral_margin(capsys):
         (["render", "cloud-plane", "--phase-order", "-1", "--out", "OUT"], "phase_order"),
         (["render", "cloud-plane", "--solver", "splat", "--phase-order", "2", "--out", "OUT"],
          "--phase-order does not apply to --solver splat"),
+        (["render", "cloud-plane", "--once-M", "0", "--out", "OUT"],
+         "--once-M must be a positive integer"),
+        (["render", "cloud-plane", "--solver", "splat", "--once-M", "6", "--out", "OUT"],
+         "--once-M does not apply to --solver splat"),
     ],
 )
 def test_errors_are_one_line_and_exit_2(argv, needle, capsys, tmp_path):

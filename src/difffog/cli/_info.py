@@ -29,13 +29,18 @@ def physics_needed(scene: Scene) -> dict[str, bool]:
 INFO_VOXELIZE_MAX_NODES = 20_000_000
 
 
-def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="auto") -> str:
+def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="auto",
+               once_M: int | None = None) -> str:
     from .._cost import machine_line
     from ..forward.sweep._kernel import kernel_for
     from ..forward._registry import model_estimate
 
     d = scene.domain
-    est = model_estimate(scene, "sweep", resolution=resolution, M=M, phase_order=phase_order)
+    est = model_estimate(scene, "sweep", resolution=resolution, M=M, phase_order=phase_order,
+                         once_M=once_M)
+    from ..forward.sweep._solver import SweepSolver
+
+    shell = SweepSolver(M=M, phase_order=phase_order, once_M=once_M).lattice_M(scene)
     big = est.nodes > INFO_VOXELIZE_MAX_NODES
     fmt = lambda v: "[" + ", ".join(f"{x:g}" for x in v) + "]"  # noqa: E731
     lines = [f"scene      {scene.title}" + (f"  ({scene.source})" if scene.source else "")]
@@ -45,14 +50,18 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
     lat = None
     if not big:
         t = time.perf_counter()
-        lat = voxelize(scene, resolution, M, margin=M + 1)
+        lat = voxelize(scene, resolution, shell, margin=shell + 1)
         tv = time.perf_counter() - t
     done = (f"voxelized in {tv:.2f} s" if lat is not None else
             f"not voxelized: {est.nodes:.3g} nodes (set-up ~{est.setup_text()})")
     lines.append(
         f"lattice    {sx}x{sy}x{sz} nodes, voxel {h:.4g}, M = {M} ({(2 * M + 1) ** 2} directions "
-        f"per face; {M + 1} vacuum nodes around open sides), {done}"
+        f"per face; {shell + 1} vacuum nodes around open sides), {done}"
     )
+    if est.once_s:
+        lines.append(f"once       the sun's once-scattered light on M = {shell} "
+                     f"({(2 * shell + 1) ** 2} directions per face, sub-stepped): one more "
+                     f"sweep per light solve, ~{est.once_s:.2g} s (--once-M)")
     kernel = kernel_for(est.backend)
     if kernel == "loop":  # on a CPU: the sweep native or XLA's (and why)
         from ..forward.sweep import _native
@@ -153,5 +162,6 @@ def run(args) -> int:
     scene = load_scene(args.scene, args.overrides)
     print(scene_info(scene, resolution=args.resolution or s["resolution"],
                      M=args.directions or s["M"],
-                     phase_order="auto" if args.phase_order is None else args.phase_order))
+                     phase_order="auto" if args.phase_order is None else args.phase_order,
+                     once_M=args.once_M))
     return 0
