@@ -56,6 +56,8 @@ def test_once_M_applies_where_the_sun_scatters_anisotropically():
     for bad in (0, -2, 2.5, True, "6"):
         with pytest.raises(df.SceneError, match="once_M must be None or an integer >= 1"):
             SweepSolver(once_M=bad)
+    with pytest.raises(df.SceneError, match="once_M .* runs on one device"):
+        SweepSolver(once_M=6, devices=2)
     small = small_scene("fog-balls", size=(6, 5))
     geom = s.prepare(small, voxelize(small, 12, 3))
     assert geom.once is None

@@ -411,7 +411,9 @@ def _sources(state, pb: _Problem, first_collision: bool | None = None):
     with a sun the first-collision sun's ζ/σ_t'·F·T̄, so that direction d's source is
     Q_0 + Σ_k Ỹ_k(d) Q_k + P_d Q_sun (P_d: the exact phase averaged over d's cell), then with
     the linear scheme the isotropic source's slope h∇Q (``_source_slope``) — and the
-    radiosity B of surface nodes."""
+    radiosity B of surface nodes.  With the sun's once-scattered light swept apart
+    (``once_*``, ``SweepSolver.once_M``) its fluence, source and irradiance join the state's,
+    and the sun's channel is 0 unless ``first_collision`` (``source_field``'s whole source)."""
     lam, irr = state
     g = pb.geom
     # the sun's once-scattered light swept apart (``once_*``): the state holds the rest, and
@@ -1135,6 +1137,9 @@ class SweepSolver(eqx.Module):
         om = self.once_M
         if om is not None and (isinstance(om, bool) or not isinstance(om, int) or om < 1):
             raise SceneError(f"SweepSolver: once_M must be None or an integer >= 1, got {om!r}")
+        if om is not None and (self.devices > 1 or self.mesh is not None):
+            raise SceneError("SweepSolver: once_M (a sub-stepped sweep) runs on one device; use "
+                             "devices=1 or leave once_M unset")
         if not isinstance(self.restart, int) or self.restart < 2:
             raise SceneError(f"SweepSolver: restart must be an integer >= 2, got {self.restart!r}")
         if self.kernel == "pallas":
@@ -1388,17 +1393,10 @@ class SweepSolver(eqx.Module):
         scattering is smoother and stays on ``geom``'s directions."""
         g1 = geom.once
         dt = sigma_t.dtype
-        tau1 = [
-            jnp.where(g1.solid, 0.0,
-                      sigma_t if g1.substep else
-                      segment_depth(sigma_t, g1.M, axis, g1.periodic_xy and axis < 2))
-            * (g1.h / 2.0)
-            for axis, _ in FACE_AXES
-        ]
+        tau1 = [jnp.where(g1.solid, 0.0, sigma_t) * (g1.h / 2.0) for _ in FACE_AXES]
+        # (sub-stepped: each node re-emits at its own σ_t, as the beam loses it, so the beam's
+        # fluence is its deposit, whatever ``first_collision`` says)
         src = jnp.where(g1.solid, 0.0, sun_source)
-        if self.first_collision == "deposit" and not g1.substep:
-            sigma_box = sum(tau1[FACE_AXES.index((a, 1))] for a in range(3)) / (g1.h / 2)
-            src = _deposit_average(src, sigma_t, sigma_box, g1.solid, g1.M, g1.periodic_xy)
         zero = jnp.zeros(g1.shape, dt)
         # the channels of the solve's anisotropic source: none but the sun's
         q = jnp.concatenate([jnp.zeros(g1.shape + (1 + g1.n_moments,), dt), src[..., None]],
