@@ -113,6 +113,12 @@ CPU_SECONDS_PER_NODE = 6.5e-7
 #: loop|batched --scheme step|substep; benchmarks/results/bench_substep.md): loop 2.7-3.8×,
 #: batched 13.5× (N = 64), temporaries +17 MiB (N = 64) and +184-206 MiB (N = 128)
 SUBSTEP_COST_LOOP = 3.3
+#: the once-scattered sweep (``SweepSolver.once_M`` = K, sub-stepped, XLA's loop, the sun's
+#: channel and K moments of order L = 3): seconds per lattice node × direction (6·(2K + 1)²) ×
+#: crossing (K − 1).  Measured (cloud-plane, this 2-core CPU, alone, stop 69): 60.6 ns at
+#: N = 32, K = 6 (29.9 s); 77.6 ns at N = 24, K = 6 (21.6 s); 62 ns at N = 24, K = 4
+#: (3.56 s); scaled for other orders as ``CPU_COST_PER_MOMENT``
+ONCE_S_PER_CROSSING = 6.5e-8
 SUBSTEP_COST_BATCHED = 13.5
 SUBSTEP_BYTES_PER_NODE = 100.0
 #: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
@@ -460,7 +466,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
                              gradient=gradient, phase_order=phase_order,
                              scheme="substep" if substep else "step", tangents=tangents,
                              sweep_residuals=sweep_residuals, edge_samples=edge_samples)
-        once_s = sub.seconds_per_iteration * (n / sub.nodes)
+        once_s = (ONCE_S_PER_CROSSING * n * 6 * (2 * once + 1) ** 2 * (once - 1)
+                  * (1.0 + CPU_COST_PER_MOMENT * K) / (1.0 + CPU_COST_PER_MOMENT * 15))
         setup += sub.setup_s - (SETUP_S_PER_RAY * rays)  # its faces, not the cameras again
         # (its carries while it runs, beyond the solve's, which come after)
         mem["once-scattered sweep"] = max(0, sub.memory["face carries"] - mem["face carries"])
