@@ -113,14 +113,14 @@ CPU_SECONDS_PER_NODE = 6.5e-7
 #: loop|batched --scheme step|substep; benchmarks/results/bench_substep.md): loop 2.7-3.8×,
 #: batched 13.5× (N = 64), temporaries +17 MiB (N = 64) and +184-206 MiB (N = 128)
 SUBSTEP_COST_LOOP = 3.3
+SUBSTEP_COST_BATCHED = 13.5
+SUBSTEP_BYTES_PER_NODE = 100.0
 #: the once-scattered sweep (``SweepSolver.once_M`` = K, sub-stepped, XLA's loop, the sun's
 #: channel and K moments of order L = 3): seconds per lattice node × direction (6·(2K + 1)²) ×
 #: crossing (K − 1).  Measured (cloud-plane, this 2-core CPU, alone, stop 69): 60.6 ns at
 #: N = 32, K = 6 (29.9 s); 77.6 ns at N = 24, K = 6 (21.6 s); 62 ns at N = 24, K = 4
 #: (3.56 s); scaled for other orders as ``CPU_COST_PER_MOMENT``
 ONCE_S_PER_CROSSING = 6.5e-8
-SUBSTEP_COST_BATCHED = 13.5
-SUBSTEP_BYTES_PER_NODE = 100.0
 #: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
 #: (``lx.linearise`` in ``KrylovSolver.init``; a fit's forward-mode tangents, since stop 42,
 #: apply it matrix-free and keep none of this), which keeps the sweeps' residuals: XLA
@@ -357,8 +357,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         ``tangents="linearised"``);
     phase_order: the anisotropic phase's order ("auto": the scene's, as ``SweepSolver``);
     scheme: the transport scheme ("auto": the solver's rule, judged from the scene);
-    tangents, sweep_residuals, once_M: as ``SweepSolver``'s (once_M: one more sweep per solve
-        on that direction set, costed as an iteration there; its lattice shell)."""
+    tangents, sweep_residuals, once_M: as ``SweepSolver``'s (once_M: one more sub-stepped
+        sweep per solve on that direction set, ``ONCE_S_PER_CROSSING``; the lattice's shell
+        and margin follow it)."""
     backend = backend or _backend()
     if kernel == "auto":
         from .forward.sweep._kernel import kernel_for
@@ -460,15 +461,17 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         setup += (M - 1) * D * (SETUP_S_PER_SUBSTEP_CROSSING * n
                                 + SETUP_S_PER_SUBSTEP_CALL * 6 * -(-max(shape) // M))
     once_s = 0.0
-    if once:  # its sweep as one iteration on its direction set: time, set-up, carries, residuals
+    if once:  # its sweep (always sub-stepped): time, its geometry's set-up, carries, residuals
         sub = estimate_sweep(scene, resolution=resolution, M=once, supersample=supersample,
                              cameras=cameras, restart=restart, backend=backend, kernel=kernel,
                              gradient=gradient, phase_order=phase_order,
-                             scheme="substep" if substep else "step", tangents=tangents,
+                             scheme="substep", tangents=tangents,
                              sweep_residuals=sweep_residuals, edge_samples=edge_samples)
         once_s = (ONCE_S_PER_CROSSING * n * 6 * (2 * once + 1) ** 2 * (once - 1)
                   * (1.0 + CPU_COST_PER_MOMENT * K) / (1.0 + CPU_COST_PER_MOMENT * 15))
-        setup += sub.setup_s - (SETUP_S_PER_RAY * rays)  # its faces, not the cameras again
+        # its faces (not the cameras again, nor the sun's shadow rays: it has the solve's beam)
+        setup += sub.setup_s - SETUP_S_PER_RAY * rays - (
+            SETUP_S_PER_NODE_SHADOW * sub.nodes if shadows_exactly(scene) else 0)
         # (its carries while it runs, beyond the solve's, which come after)
         mem["once-scattered sweep"] = max(0, sub.memory["face carries"] - mem["face carries"])
         if "linearised sweeps" in sub.memory:

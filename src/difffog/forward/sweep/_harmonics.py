@@ -125,7 +125,6 @@ def delta_m(g, L: int, xp=np):
     return f, (xp.stack(coef) if coef else xp.zeros((0,), xp.asarray(g).dtype))
 
 
-
 @functools.lru_cache(maxsize=None)
 def harmonic_moments(L: int, M: int) -> np.ndarray:
     """(K, K) T⁻¹ (symmetric): the moments m of ``basis(L, M)`` → the real harmonics' own
