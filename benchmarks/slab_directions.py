@@ -28,6 +28,10 @@ one-dimensional transport problem, exact in depth on a fine grid):
   - ``cell-moments``: the once-scattered light's moments weighted, per cell, by the phase's
     shape inside the cell (Σ_d w_d Z_d R̄_d with Z_d the phase-weighted cell mean of Ỹ)
     instead of the cell centre's Ỹ_d;
+  - ``degreewise``: every order after the first scattered with the δ-M phase applied degree
+    by degree on the harmonics' own moments (a = T⁻¹·m, source Ỹ·T⁻¹·(g' ⊙ a)), as
+    ``SweepSolver(once_M=...)`` does for the once-scattered light, instead of the solve's g'_k
+    on each (degree-mixing) Löwdin function; ``degreewise+first-M<k>`` both;
   - ``clip<c>``: the sun's phase flattened within c/M radians of the forward direction and
     the clipped power left in the beam (its extinction σ − f₁ζ), the cameras' single
     scattering with the same clipped phase (a δ-fit of the first collision).
@@ -163,12 +167,20 @@ def emulate(tau, albedo, g, zenith, M=3, L=3, *, variant="emulate", nz=400, nmu=
     from difffog.forward.sweep._harmonics import Basis
     from difffog.geometry._directions import direction_set
 
+    degreewise = variant.startswith("degreewise")
+    if degreewise:
+        variant = variant[len("degreewise+"):] if "+" in variant else "emulate"
+
     ds = direction_set(M)
     V, W = ds.vectors.reshape(-1, 3), ds.weights.reshape(-1)
     B = Basis(L, M)
     Y = B.evaluate(V)
     f = g ** (L + 1)
     gl = (g ** np.asarray(B.degree) - f) / (1 - f)
+    Tinv = np.linalg.inv(B.transform)
+
+    def phase(m):  # the moments' source coefficients on Ỹ: per function, or degree by degree
+        return ((m @ Tinv) * gl) @ Tinv if degreewise else m * gl
     ext = tau * (1 - albedo * f)
     rescatter = albedo * tau * (1 - f) / ext
     mu0 = math.cos(math.radians(zenith))
@@ -224,7 +236,7 @@ def emulate(tau, albedo, g, zenith, M=3, L=3, *, variant="emulate", nz=400, nmu=
         I = transport(J, V[:, 2], dz)
         lam_k, mom_k = I @ W, I @ (W[:, None] * (Z if k == 0 else Y))
         lam, mom = lam + lam_k, mom + mom_k
-        J = rescatter * (lam_k[:, None] / (4 * math.pi) + (mom_k * gl) @ Y.T)
+        J = rescatter * (lam_k[:, None] / (4 * math.pi) + phase(mom_k) @ Y.T)
         if np.abs(I).max() < 1e-14:
             break
     # the camera: continuous μ, the source azimuth-averaged (slab_reflectance's reading)
@@ -236,7 +248,7 @@ def emulate(tau, albedo, g, zenith, M=3, L=3, *, variant="emulate", nz=400, nmu=
     for sign in (1.0, -1.0):
         om = np.stack([sn[:, None] * np.cos(phi), sn[:, None] * np.sin(phi),
                        sign * np.broadcast_to(cm[:, None], (nmu, nphi))], -1)
-        Jc = rescatter * (lam[:, None] / (4 * math.pi) + (mom * gl) @ B.evaluate(om).mean(1).T)
+        Jc = rescatter * (lam[:, None] / (4 * math.pi) + phase(mom) @ B.evaluate(om).mean(1).T)
         # the sun's single scattering
         Jc += single[:, None] * (phase(om @ sun) if variant.startswith("clip")
                                     else hg(om @ sun, g)).mean(1)[None]
