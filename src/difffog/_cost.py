@@ -119,7 +119,9 @@ SUBSTEP_BYTES_PER_NODE = 100.0
 #: channel and K moments of order L = 3): seconds per lattice node × direction (6·(2K + 1)²) ×
 #: crossing (K − 1).  Measured (cloud-plane, this 2-core CPU, alone, stop 69): 60.6 ns at
 #: N = 32, K = 6 (29.9 s); 77.6 ns at N = 24, K = 6 (21.6 s); 62 ns at N = 24, K = 4
-#: (3.56 s); scaled for other orders as ``CPU_COST_PER_MOMENT``
+#: (3.56 s); scaled for other orders as ``CPU_COST_PER_MOMENT``.  It errs high on larger
+#: lattices: 23 ns at N = 64, K = 6 (56 s, where it says 156 s; the fog's slabs and the
+#: loop's per-direction overhead do not grow with the vacuum margin's nodes)
 ONCE_S_PER_CROSSING = 6.5e-8
 #: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
 #: (``lx.linearise`` in ``KrylovSolver.init``; a fit's forward-mode tangents, since stop 42,
