@@ -374,6 +374,26 @@ def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, cap
     assert not (tmp_path / "o").exists()
 
 
+def test_density_fit_takes_the_model_flags(tmp_path, capsys, monkeypatch):
+    """--scheme and --once-M reach the density fit's models (not ignored): what fit_density
+    is called with (stopped there with a one-line error that names it)."""
+    import importlib
+
+    from difffog import DifffogError
+
+    density = importlib.import_module("difffog.fit._density")  # (difffog.fit is the function)
+
+    def stop(*a, **kw):
+        raise DifffogError(f"settings={kw.get('settings')}")
+
+    monkeypatch.setattr(density, "fit_density", stop)
+    np.save(tmp_path / "T.npy", np.ones((64, 64), np.float32))
+    argv = ["fit", "cloud-tomo-start", "--target", f"top={tmp_path / 'T.npy'}", "--unknown",
+            "fog.density", "--scheme", "step", "--once-M", "4", "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    assert "settings={'scheme': 'step', 'once_M': 4}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("extra,needle", [
     (["--target", "top=MISSING.npy", "--unknown", "fog.scattering"], "no such file"),
     (["--target", "side=T.npy", "--unknown", "fog.scattering"], "has no camera 'side'"),

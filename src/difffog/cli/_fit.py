@@ -419,8 +419,11 @@ def _run_density(args, scene, targets) -> int:
         kw["resolution"] = args.resolution
     if args.downsample is not None:
         kw["downsample"] = positive_int("--downsample", args.downsample)
-    if getattr(args, "scheme", None) is not None:  # else fit_density's (DENSITY_SCHEME)
-        kw["settings"] = {"scheme": args.scheme}
+    # the model settings a density fit takes from the flags (without --scheme: fit_density's
+    # DENSITY_SCHEME)
+    model = {k: getattr(args, k, None) for k in ("scheme", "once_M")}
+    if model := {k: v for k, v in model.items() if v is not None}:
+        kw["settings"] = model
     result = fit_density(scene, images, start=start, grid=grid, prior=kind, prior_weight=weight,
                          balance=balance, M=args.directions or 3, progress=progress, checkpoint=ckpt,
                          resume=args.resume, **kw)
