@@ -363,6 +363,12 @@ def test_fit_resume_continues_a_stopped_fit(fit_targets, tmp_path):
     (["--unknown", "fog.density", "--prior", "tv=-1"], "must be >= 0"),
     (["--unknown", "fog.density", "--prior", "tv=balance"], "tv has no balancing share"),
     (["--unknown", "fog.density", "--resume"], "no checkpoint"),
+    (["--unknown", "fog.density", "--phase-order", "2"],
+     "--phase-order does not apply to --unknown fog.density"),
+    (["--unknown", "fog.density", "--first-collision", "deposit"],
+     "--first-collision does not apply to --unknown fog.density"),
+    (["--unknown", "fog.density", "--devices", "2"],
+     "--devices does not apply to --unknown fog.density"),
 ])
 def test_density_fit_errors_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):
     np.save(tmp_path / "T.npy", np.ones((64, 64), np.float32))

@@ -368,6 +368,12 @@ def _run_density(args, scene, targets) -> int:
     from ..fit._density import BALANCE, DEFAULT_PRIOR, PRIORS, fit_density
     from ..fit._images import load_target
 
+    # the model flags a density fit's levels do not take: refused, not ignored
+    for flag, attr in (("--phase-order", "phase_order"), ("--first-collision", "first_collision"),
+                       ("--devices", "devices")):
+        if getattr(args, attr, None) is not None:
+            raise DifffogError(f"{flag} does not apply to --unknown fog.density (its models take "
+                               f"-N, -M, --scheme and --once-M); drop it")
     others = [u for u in args.unknown if u.partition("=")[0].strip() != "fog.density"]
     if others:
         raise DifffogError(f"--unknown fog.density is fitted alone; drop --unknown {others[0]} "
