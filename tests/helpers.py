@@ -190,3 +190,37 @@ def image_loss_gradient_matches_fd(model, scene, paths, rel: float = 1e-5, scale
                    - f(df.set_param(p0, scene, path, v - eps))) / (2 * eps)
         assert fd != 0, path
         assert float(df.get_param(g, scene, path)) == pytest.approx(fd, rel=rel), path
+
+
+def hg_slab_rt(tau, albedo, g, n_fog, M, L, sun=None, once_M=None, scheme="auto"):
+    """(R, T) of a Henyey–Greenstein slab as a camera sees it (float64): the lattice's
+    scattered light (its moments) plus the sun's single scattering with the exact phase
+    (``study._slab.slab_reflectance``); a sky of 1 without a ``sun`` = (irradiance, zenith).
+    ``once_M``: the sun's once-scattered light on that direction set (the slab's shell follows
+    it), ``scheme``: the solve's."""
+    from difffog.forward.sweep._harmonics import basis
+    from difffog.forward.sweep._solver import SweepSolver, source_field
+    from difffog.study._slab import slab_problem, slab_reflectance
+
+    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-9, phase_order=L, once_M=once_M,
+                         scheme=scheme)
+    scene, lat, margin = slab_problem(tau, albedo, n_fog, max(M, once_M or 0), sun=sun,
+                                      sky=0.0 if sun else 1.0, g=g)
+    geom = solver.prepare(scene, lat)
+    assert (geom.once is not None) == (once_M is not None and sun is not None and L > 0)
+
+    @jax.jit
+    def run(p):
+        light = solver.solve(geom, p)
+        pb = solver.problem(geom, p)
+        return light, pb.sigma_t, source_field(pb, light, sun=sun is None)
+
+    light, sigma, q = run(df.Params.from_scene(scene, jnp.float64))
+    assert int(light.result) == df.RESULTS.successful
+    dens = np.asarray(lat.density)[0, 0]
+    ss = None
+    if sun:  # the exact single scattering, and the sun's beam through the true extinction
+        ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
+    return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
+                            sky=0.0 if sun else 1.0, sun=sun, basis=basis(L, M),
+                            sun_scatter=ss)

@@ -12,11 +12,10 @@ import pytest
 import difffog as df
 from difffog import Params, load_scene
 from difffog.forward.sweep._harmonics import basis, delta_m, real_sh
-from difffog.forward.sweep._solver import SweepSolver, source_field
+from difffog.forward.sweep._solver import SweepSolver
 from difffog.geometry._directions import direction_set
 from difffog.geometry._lattice import voxelize
-from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import (build_model, image_loss_gradient_matches_fd, kernels_agree,
+from helpers import (build_model, hg_slab_rt, image_loss_gradient_matches_fd, kernels_agree,
                      random_face_geometry, slab_table_reference, small_scene)
 
 
@@ -96,32 +95,6 @@ def test_furnace_with_forward_scattering_fog(x64):
 
 
 # ---------------------------------------------------------------- slabs vs adding-doubling
-def slab_rt(tau, albedo, g, n_fog, M, L, sun=None):
-    """(R, T) of an HG slab as a camera sees it: the lattice's scattered light (its moments) plus
-    the sun's single scattering with the exact phase (``slab_reflectance``)."""
-    scene, lat, margin = slab_problem(tau, albedo, n_fog, M, sun=sun, sky=0.0 if sun else 1.0,
-                                      g=g)
-    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-9, phase_order=L)
-    geom = solver.prepare(scene, lat)
-    params = Params.from_scene(scene, jnp.float64)
-
-    @jax.jit
-    def run(p):
-        light = solver.solve(geom, p)
-        pb = solver.problem(geom, p)
-        return light, pb.sigma_t, source_field(pb, light, sun=sun is None)
-
-    light, sigma, q = run(params)
-    assert int(light.result) == df.RESULTS.successful
-    dens = np.asarray(lat.density)[0, 0]
-    ss = None
-    if sun:  # the exact single scattering, and the sun's beam through the true extinction
-        ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
-    return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
-                            sky=0.0 if sun else 1.0, sun=sun, basis=basis(L, M),
-                            sun_scatter=ss)
-
-
 # Measured at N = 32, M = 3, L = 3 (benchmarks/slab_anisotropic.py; docs/validation.md), the
 # bounds ~1 point above: (albedo, tau, illumination) → (|R err|, |T err|)
 HG_BOUNDS = {
@@ -137,7 +110,7 @@ HG_BOUNDS = {
     pytest.param(0.9, 1.0, "collimated", marks=pytest.mark.slow)])
 def test_hg_slab_against_adding_doubling(albedo, tau, illumination, x64):
     sun = (1.0, 0.0) if illumination == "collimated" else None
-    R, T = slab_rt(tau, albedo, 0.85, 32, 3, 3, sun=sun)
+    R, T = hg_slab_rt(tau, albedo, 0.85, 32, 3, 3, sun=sun)
     R_ref, T_ref = slab_table_reference(albedo, tau, illumination, 0.0 if sun else None, g=0.85)
     eR, eT = HG_BOUNDS[(albedo, tau, illumination)]
     assert abs(R / R_ref - 1) < eR, (R, R_ref)

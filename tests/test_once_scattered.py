@@ -4,19 +4,16 @@ against adding-doubling, and gradients against finite differences."""
 
 import math
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import difffog as df
-from difffog import Params, load_scene
+from difffog import load_scene
 from difffog.forward.sweep._harmonics import basis, harmonic_moments, real_sh
-from difffog.forward.sweep._solver import SweepSolver, source_field
+from difffog.forward.sweep._solver import SweepSolver
 from difffog.geometry._lattice import voxelize
-from difffog.study._slab import slab_problem, slab_reflectance
-from helpers import (build_model, image_loss_gradient_matches_fd, slab_table_reference,
-                     small_scene)
+from helpers import (build_model, hg_slab_rt, image_loss_gradient_matches_fd,
+                     slab_table_reference, small_scene)
 
 
 @pytest.mark.parametrize("L,M", [(1, 3), (3, 3), (3, 6)])
@@ -63,31 +60,6 @@ def test_once_M_applies_where_the_sun_scatters_anisotropically():
     assert geom.once is None
 
 
-def slab_rt(tau, albedo, zenith, n_fog, M, once_M, scheme="auto"):
-    """(R, T) of a g = 0.85 slab under a sun as a camera reads it (test_anisotropic's
-    ``slab_rt`` with the once-scattered light's directions)."""
-    sun = (1.0, zenith)
-    solver = SweepSolver(M=M, max_iterations=4000, tol=1e-9, phase_order=3, once_M=once_M,
-                         scheme=scheme)
-    shell = max(M, once_M or 0)
-    scene, lat, margin = slab_problem(tau, albedo, n_fog, shell, sun=sun, sky=0.0, g=0.85)
-    geom = solver.prepare(scene, lat)
-    assert (geom.once is not None) == (once_M is not None)
-
-    @jax.jit
-    def run(p):
-        light = solver.solve(geom, p)
-        pb = solver.problem(geom, p)
-        return light, pb.sigma_t, source_field(pb, light, sun=False)
-
-    light, sigma, q = run(Params.from_scene(scene, jnp.float64))
-    assert int(light.result) == df.RESULTS.successful
-    dens = np.asarray(lat.density)[0, 0]
-    ss = (albedo * tau * dens, 0.85, np.asarray(light.sun_fluence)[0, 0], tau * dens)
-    return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
-                            sky=0.0, sun=sun, basis=basis(3, M), sun_scatter=ss)
-
-
 # R, T error against adding-doubling (benchmarks/slab_anisotropic.py), 60° a = 0.99 τ = 1:
 # at N = 32, M = 3 R +4.3% without once_M, +0.8% with once_M = 6 (T +0.1%); at N = 16, M = 2
 # R +9.2% without, +2.5% with once_M = 4 (T +0.4%): the default suite's case (the M = 3 one
@@ -99,7 +71,8 @@ def slab_rt(tau, albedo, zenith, n_fog, M, once_M, scheme="auto"):
     pytest.param(0.0, 0.9, 4.0, 32, 3, 6, "substep", 0.025, marks=pytest.mark.slow)])
 def test_a_sunlit_forward_scattering_slab_against_adding_doubling(zenith, albedo, tau, n, M,
                                                                    once_M, scheme, bound, x64):
-    R, T = slab_rt(tau, albedo, zenith, n, M, once_M, scheme)
+    R, T = hg_slab_rt(tau, albedo, 0.85, n, M, 3, sun=(1.0, zenith), once_M=once_M,
+                      scheme=scheme)
     R_ref, T_ref = slab_table_reference(albedo, tau, "collimated", zenith, g=0.85)
     assert abs(R / R_ref - 1) < bound, (R, R_ref)
     assert abs(T / T_ref - 1) < bound, (T, T_ref)
