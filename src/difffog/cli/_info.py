@@ -34,12 +34,11 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
     from .._cost import machine_line
     from ..forward.sweep._kernel import kernel_for
     from ..forward._registry import model_estimate
+    from ..forward.sweep._solver import SweepSolver
 
     d = scene.domain
     est = model_estimate(scene, "sweep", resolution=resolution, M=M, phase_order=phase_order,
                          once_M=once_M)
-    from ..forward.sweep._solver import SweepSolver
-
     shell = SweepSolver(M=M, phase_order=phase_order, once_M=once_M).lattice_M(scene)
     big = est.nodes > INFO_VOXELIZE_MAX_NODES
     fmt = lambda v: "[" + ", ".join(f"{x:g}" for x in v) + "]"  # noqa: E731
