@@ -143,6 +143,81 @@ def test_native_general_form_equals_the_xla_loop(linear, order, sun, dtype, x64,
             assert float(jnp.max(jnp.abs(got[0][..., 1:]))) > 0  # the moments were summed
 
 
+SUBSTEP_CASES = [  # M, shape, L, sun, surfaces, vol, periodic sides (w, u, v)
+    (2, (9, 7, 6), 0, False, True, (True, True, None), [(False,) * 3, (True,) * 3]),
+    (3, (11, 9, 7), 2, True, True, (True, True, None), [(True, False, True),
+                                                         (False, True, False)]),
+    (3, (17, 9, 8), 0, False, True, (True, True, (6, 10)), [(False, True, False)]),
+    (3, (10, 8, 9), 1, False, False, (True, False, None), [(True, True, False)]),
+    (4, (9, 3, 10), 0, False, True, (False, True, None), [(False, False, True)]),
+]
+
+
+@needs_compiler
+@pytest.mark.parametrize("case,dtype", [
+    (0, "float64"), (1, "float64"), (2, "float32"), (3, "float64"), (4, "float32"),
+    # slow: each compiles XLA's loop (4-8 s); the default suite's 12 minutes
+    *[pytest.param(c, d, marks=pytest.mark.slow)
+      for c, d in ((0, "float32"), (1, "float32"), (2, "float64"), (3, "float32"),
+                   (4, "float64"))]])
+def test_native_substep_equals_the_xla_loop(case, dtype, x64):
+    """The sub-stepped scheme's native kernel (``_native.sweep_substep``) against XLA's loop
+    (``_sweep_face_substep_loop``), to rounding: Λ (over the sub-steps whose light is known,
+    its moments), E and the exit radiance, with surfaces (blocking bits, chains restarting or
+    lost inside shapes), open and periodic sides (the deposits folded back, a periodic sweep
+    axis's extra slab), anisotropic sources with the sun's channel, fog in some slabs only,
+    no fluence, no fog step, a plane thinner than M."""
+    import dataclasses
+
+    from difffog.forward.sweep._harmonics import basis
+    from helpers import random_face_geometry
+
+    M, shape, L, sun, surfaces, vol, periodics = SUBSTEP_CASES[case]
+    assert _native.available(), _native.status()
+    rng = np.random.default_rng(case)
+    dt = jnp.dtype(dtype)
+    D = (2 * M + 1) ** 2
+    harm = basis(L, M).faces if L else None
+    consts = K.face_consts(direction_set(M), 0, harm=harm, substep=True)
+    if sun:
+        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random(D)))
+    nch = (harm.shape[-1] if L else 0) + int(sun)
+    Q = rng.random(shape + ((1 + nch,) if nch else ()))
+    if nch:
+        Q[..., 1:] *= 0.1
+    geo = random_face_geometry(rng, shape, D)
+    geo = dataclasses.replace(geo, normal=jnp.asarray(geo.normal, dt))
+    tau = 1.5 * rng.random(shape) * (rng.random(shape) > 0.2)  # some nodes without fog
+    args = (jnp.asarray(Q, dt), jnp.asarray(rng.random(shape), dt), jnp.asarray(tau, dt),
+            jnp.asarray(rng.random(D), dt), geo, consts)
+    rtol = 1e-13 if dtype == "float64" else 3e-6
+    for periodic in periodics:
+        kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=surfaces,
+                  fluence=vol[1], vol=vol)
+        ref = jax.jit(lambda *a: K._sweep_face_substep_loop(*a, **kw))(*args)
+        got = jax.jit(lambda *a: K._native_substep_call(*a, **kw))(*args)
+        for r, g in zip(ref, got):
+            assert g.shape == r.shape and g.dtype == r.dtype
+            np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=rtol,
+                                       atol=rtol * float(jnp.max(jnp.abs(r))),
+                                       err_msg=f"{periodic}")
+        assert float(jnp.max(jnp.abs(got[2]))) > 0.05  # light left the face
+        if vol[0] and vol[1]:
+            assert float(jnp.max(got[0])) > 0.1  # the fluence was accumulated
+
+
+@needs_compiler
+def test_the_substep_scheme_on_a_cpu_runs_the_native_kernel():
+    """``sweep_face`` with the loop kernel and the sub-stepped scheme's constants calls the
+    native kernel (its custom call is in the compiled program), unless it is turned off."""
+    assert _native.available(), _native.status()
+    args = _face(2, (6, 5, 4), jnp.dtype("float32"))
+    consts = K.face_consts(direction_set(2), 2, substep=True)
+    kw = dict(M=2, periodic=(False, False, False), warmup=0, surfaces=True, kernel="loop")
+    text = jax.jit(lambda *a: K.sweep_face(*a, consts, **kw)).lower(*args[:5]).as_text()
+    assert _native.SUBSTEP_TARGET in text
+
+
 @needs_compiler
 def test_native_face_sweep_under_vmap_is_each_member(x64):
     """A batched light solve (``render_batch``, a fit's tangents) vmaps the sweep: the custom

@@ -374,6 +374,8 @@ def _sweep_face(M, periodic, warmup, surfaces, vol, halo, kernel, recompute, Q, 
     del recompute  # the values' programs keep nothing
     if consts.sub is not None:  # the sub-stepped scheme's two programs
         kw = dict(M=M, periodic=periodic, warmup=warmup, surfaces=surfaces, fluence=vol[1])
+        if kernel == "loop" and halo is None and _native_applies(halo, Q.dtype):
+            return _native_substep_call(Q, B, tau_half_unit, bc, geo, consts, **kw, vol=vol)
         if kernel == "loop" and halo is None:
             return _sweep_face_substep_loop(Q, B, tau_half_unit, bc, geo, consts, **kw,
                                             vol=vol)
@@ -437,10 +439,11 @@ def _slabber(nw: int, M: int, periodic_w: bool, warmup: int):
 
 
 def _native_applies(halo, dt) -> bool:
-    """Whether ``_sweep_face_loop``'s values come from the native CPU kernel (``_native``):
-    the step and linear schemes, isotropic or with moments (its general form where Q has
-    channels), on one device's whole plane, float32 or float64, on a CPU, where the kernel is
-    built (and ``DIFFFOG_NATIVE`` does not turn it off)."""
+    """Whether the loop kernel's values come from the native CPU kernel (``_native``): the
+    step and linear schemes (``_sweep_face_loop``), isotropic or with moments (its general
+    form where Q has channels), and the sub-stepped one (``_sweep_face_substep_loop``), on one
+    device's whole plane, float32 or float64, on a CPU, where the kernel is built (and
+    ``DIFFFOG_NATIVE`` does not turn it off)."""
     return halo is None and _native.serves(dt)
 
 
@@ -466,6 +469,30 @@ def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts
         segment=(s0, s1, fog_on, vol[1]), surfaces=surfaces, periodic=periodic,
         table=table if aniso and table.shape[1] else None, nk=nk,
         slope=consts.slope.astype(dt) if consts.slope is not None else None, frame=frame)
+
+
+def _native_substep_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
+                         M: int, periodic: tuple[bool, bool, bool], warmup: int,
+                         surfaces: bool, fluence: bool = True, vol=(True, True, None)):
+    """``_sweep_face_substep_loop``'s values from the native kernel
+    (``_native.sweep_substep``)."""
+    if consts.slope is not None:
+        raise SolverError("the sub-stepped scheme has no linear-source variant")
+    nw = tau_half_unit.shape[0]
+    dt = Q.dtype
+    aniso = Q.ndim == 4
+    _, ns = _slabber(nw, M, periodic[0], warmup)
+    length_k, kidx = _distinct_lengths(consts, M, dt)
+    s0, s1, fog_on = _substep_fog_slabs(vol, ns, M, periodic[0])
+    none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
+    table, nk = _source_table(consts, dt) if aniso else (None, 0)
+    return _native.sweep_substep(
+        Q, B, tau_half_unit, geo.normal if surfaces else none[0],
+        geo.blocked if surfaces else none[1], geo.free, geo.surf, bc.astype(dt), length_k, kidx, consts.weight.astype(dt),
+        consts.unit.astype(dt), M - jnp.asarray(consts.pq, jnp.int32),
+        M - jnp.asarray(consts.sub, jnp.int32), M=M, ns=ns,
+        segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic,
+        table=table if aniso and table.shape[1] else None, nk=nk)
 
 
 def _fog_slabs(vol, ns: int, M: int, periodic_w: bool) -> tuple[int, int, bool]:

@@ -9,8 +9,11 @@ last-level cache), one vectorised pass per direction and row tile, and the tiles
 shared among the CPU's cores.  It serves the values of the step scheme (the default for fog
 whose lattice steps are optically thin) and of the linear scheme (thick steps), isotropic or
 with a Henyey–Greenstein fog's angular moments and the sun's phase channel (the general
-form: each direction's source built from the node's channels, Λ's moments summed), on a CPU;
-the sub-stepped scheme, a device mesh's halo, another backend and every derivative stay JAX
+form: each direction's source built from the node's channels, Λ's moments summed), on a CPU.
+Since stop 70 it also serves the sub-stepped scheme (``sweep_substep``: the planes in sweep
+order, each plane's crossing factors built once while it lies within reach of the next
+arrivals, the directions shared among the cores, each depositing into its own window of
+Λ, folded afterwards).  A device mesh's halo, another backend and every derivative stay JAX
 programs.
 
 ``native/gram_schmidt.cc``, in the same library, orthogonalizes each GMRES step against the
@@ -52,6 +55,8 @@ _SOURCE = Path(__file__).with_name("native") / "sweep_face.cc"
 #: GMRES's Gram–Schmidt over the live rows of its basis (``gram_schmidt``), in the same library
 _GS_SOURCE = _SOURCE.with_name("gram_schmidt.cc")
 GS_TARGET = "difffog_gram_schmidt"
+#: the sub-stepped scheme's sweep (``sweep_substep``), in the sweep's source
+SUBSTEP_TARGET = "difffog_sweep_substep"
 _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-simd",
           "-fno-math-errno", "-fno-trapping-math", "-pthread"]
 #: the sweep's source is compiled as this many objects (``DIFFFOG_PART``: the FFI handler,
@@ -213,7 +218,11 @@ def available() -> bool:
             gs = f"{GS_TARGET}_{hashlib.sha256(_GS_SOURCE.read_bytes()).hexdigest()[:12]}"
             jax.ffi.register_ffi_target(gs, jax.ffi.pycapsule(handle.DifffogGramSchmidt),
                                         platform="cpu")
-            _STATE.update(ok=True, why=str(lib), handle=handle, target=target, gs_target=gs)
+            sub = f"{SUBSTEP_TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
+            jax.ffi.register_ffi_target(sub, jax.ffi.pycapsule(handle.DifffogSweepSubstep),
+                                        platform="cpu")
+            _STATE.update(ok=True, why=str(lib), handle=handle, target=target, gs_target=gs,
+                          substep_target=sub)
         except (OSError, subprocess.SubprocessError, AttributeError) as e:
             lines = (getattr(e, "stderr", "") or str(e)).strip().splitlines() or [type(e).__name__]
             first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
@@ -308,6 +317,44 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
         att_in=i64(att), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk), linear=i64(linear),
         world=i64(world), wb=i64(wb), sw=i64(sw), su=i64(su), sv=i64(sv))
     return lam, irr, exit_
+
+
+def sweep_substep(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, unit, start,
+                  sub_start, *, M: int, ns: int, segment: tuple[int, int, bool, bool],
+                  surfaces: bool, periodic: tuple[bool, bool, bool], table=None, nk: int = 0):
+    """The sub-stepped scheme's custom call (``substep_sweep`` in ``native/sweep_face.cc``):
+    ``_kernel._sweep_face_substep_loop``'s arrays in the face frame (nw, nu, nv[, C]) and its
+    direction constants, ``start`` (D, 2) the arrivals' and ``sub_start`` (M − 1, D, 2) the
+    crossings' window origins → Λ over the sub-steps whose light is known (nw, nu, nv[, 1 +
+    nk]), E (nw, nu, nv) and the radiance leaving the last M planes (M, D, nu, nv).
+    ``segment`` = (s0, s1, fog, fluence): the slabs [s0, s1) take the sub-stepped fog step
+    (``_kernel._substep_fog_slabs``), the others only move the rays."""
+    import jax
+    import jax.numpy as jnp
+
+    dt = Q.dtype
+    nw, nu, nv = tau.shape[:3]
+    C = 1 if Q.ndim == 3 else int(Q.shape[3])
+    J = 0 if table is None else int(table.shape[1])
+    D = (2 * M + 1) ** 2
+    nb = int(bits.shape[-1]) if surfaces else 1
+    lam_shape = (nw, nu, nv) + ((1 + nk,) if nk else ())
+    out = [jax.ShapeDtypeStruct(lam_shape, dt), jax.ShapeDtypeStruct((nw, nu, nv), dt),
+           jax.ShapeDtypeStruct((M, D, nu, nv), dt)]
+    s0, s1, fog, fl = segment
+    per_w, per_u, per_v = periodic
+    call = jax.ffi.ffi_call(_STATE["substep_target"], out, vmap_method="sequential")
+    f = lambda x: jnp.asarray(x, dt)  # noqa: E731  (the kernel reads every float as Q's type)
+    i64 = np.int64
+    return tuple(call(
+        Q, f(B), f(tau), f(normal), jnp.asarray(bits, jnp.uint8), jnp.asarray(free, jnp.bool_),
+        jnp.asarray(surf, jnp.bool_), f(bc), f(length_k), jnp.asarray(kidx, jnp.int32),
+        f(weight), f(unit), jnp.asarray(start, jnp.int32), jnp.asarray(sub_start, jnp.int32),
+        f(jnp.zeros((1,)) if table is None else table),
+        M=i64(M), nw=i64(nw), nu=i64(nu), nv=i64(nv), ns=i64(ns), D=i64(D),
+        K=i64(length_k.shape[0]), nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()),
+        surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
+        att_in=i64(fog), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk)))
 
 
 def gram_schmidt(V, a, live):

@@ -83,6 +83,7 @@ struct Args {
   const T *Q, *B, *tau, *normal, *bc, *length_k, *weight, *unit, *table, *slope;
   const uint8_t *bits, *free, *surf;
   const int32_t *kidx, *start;
+  const int32_t* sub = nullptr;  // the sub-stepped scheme's crossings' origins (M − 1, D, 2)
   T *lam, *irr, *exit, *scratch;
 };
 
@@ -645,13 +646,493 @@ void sweep(const Dims& g, const Args<T>& a) {
   }
 }
 
+
+// ---------------------------------------------------------------------------------------------
+// The sub-stepped scheme (``_kernel._sweep_face_substep_loop``'s values): each segment
+// y − L → y crosses the M − 1 planes between its end nodes, where the ray takes the extinction
+// and source of the node nearest to the crossing (``sub``: the window origins of those nodes)
+// over one plane's length and deposits its mean radiance in that node's Λ (and the weight of
+// the sub-steps whose light is known in a last channel, by which each node's Λ is divided at
+// the end).  The chains are visited one residue at a time as in ``sweep``; per arrival plane
+// the window of the M planes before it (their solid flags, the crossings' factors per
+// distinct |L| and sources, padded: wrapped on periodic sides, 0 elsewhere) is built once,
+// the directions are shared among threads, each depositing into its own padded window of
+// the M planes its segments reach, and the windows are folded into Λ afterwards.
+
+// The face plane's node data at sweep plane c: -1 before the first plane (the programs'
+// zeros: no fog, not solid), -2 for an open axis's padding (no fog, solid), else the face
+// plane.
+inline int64_t sub_plane(const Dims& g, int64_t c) {
+  if (c < 0) return -1;
+  const int64_t p = source(g, c);
+  return p < 0 ? -2 : p;
+}
+
+// Whether sweep plane c's Λ is returned (a kept plane of the ns slabs; not the periodic
+// axis's extra slab, whose own planes are the first ones again).
+inline bool sub_kept(const Dims& g, int64_t c) {
+  return c >= 0 && c < g.ns * g.M && kept(g, c);
+}
+
+template <typename T>
+struct SubPlane {
+  // one sweep plane as the crossings read it, padded (PP each): its solid flags, τ_half, per
+  // distinct |L| the crossing's e^{-τ} − 1 and (1 − e^{-τ})/τ (τ = τ_half·2/M·|L|), the source
+  // channels (1 + J); ``fog``: whether the plane holds a face plane's fog (else τ = 0, no source)
+  std::vector<T> solid, tau, em, av, q;
+  bool fog = false;
+};
+
+template <typename T>
+struct SubArrival {
+  // the arrival plane (n each): the source channels, B, per distinct |L| the node's own half
+  // sub-steps' e^{-τ} − 1, (1 − e^{-2τ})/2τ, (1 − e^{-τ})/τ (τ = τ_half·|L|/M), the SURFACE
+  // flag as a number, the normal; bytes: SURFACE, pass, the blocking bytes (nb n)
+  std::vector<T> qa, B, eo, a2, a1, sft, nrm;
+  std::vector<uint8_t> st, pass, bits;
+  int64_t p = -1;
+};
+
+template <typename T>
+void sub_pad(const Dims& g, const T* vals, int64_t stride, T* out) {  // (nu, nv) → (PU, PV)
+  const int64_t M = g.M, PV = g.nv + 2 * M, PP = (g.nu + 2 * M) * PV;
+  std::fill(out, out + PP, T(0));
+  for (int64_t u = 0; u < g.nu; ++u)
+    for (int64_t v = 0; v < g.nv; ++v) out[(u + M) * PV + M + v] = vals[(u * g.nv + v) * stride];
+  wrap_periodic(g, out);
+}
+
+// Sweep plane c's record but its tables (``sub_plane_table``).
+template <typename T>
+void sub_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) {
+  const int64_t M = g.M, n = g.nu * g.nv, C1 = 1 + g.J;
+  const int64_t PP = (g.nu + 2 * M) * (g.nv + 2 * M);
+  r.solid.assign(size_t(PP), T(0));
+  r.tau.assign(size_t(PP), T(0));
+  r.em.resize(size_t(g.K * PP));
+  r.av.resize(size_t(g.K * PP));
+  r.q.assign(size_t(C1 * PP), T(0));
+  const int64_t p = sub_plane(g, c);
+  r.fog = p >= 0;
+  if (p == -1) return;  // before the first plane: the programs' zeros
+  std::vector<T> flag(static_cast<size_t>(n), T(1));
+  const int64_t off = p * n;
+  if (p >= 0)
+    for (int64_t j = 0; j < n; ++j) flag[j] = T(!(a.free[off + j] || a.surf[off + j]));
+  sub_pad(g, flag.data(), 1, r.solid.data());
+  if (!r.fog) return;  // padding: solid, no fog
+  sub_pad(g, a.tau + off, 1, r.tau.data());
+  for (int64_t ch = 0; ch < C1; ++ch) sub_pad(g, a.Q + off * g.C + ch, g.C, r.q.data() + ch * PP);
+}
+
+template <typename T>
+void sub_plane_table(const Dims& g, const Args<T>& a, int64_t k, SubPlane<T>& r) {
+  const int64_t PP = (g.nu + 2 * g.M) * (g.nv + 2 * g.M);
+  T* e = r.em.data() + k * PP;
+  T* v = r.av.data() + k * PP;
+  if (!r.fog) {
+    std::fill(e, e + PP, T(0));
+    std::fill(v, v + PP, T(1));
+    return;
+  }
+  const T len = a.length_k[k];
+  const T* tp = r.tau.data();
+#pragma omp simd
+  for (int64_t j = 0; j < PP; ++j) e[j] = em1(-((tp[j] * (T(2) / T(g.M))) * len));
+#pragma omp simd
+  for (int64_t j = 0; j < PP; ++j) v[j] = avg((tp[j] * (T(2) / T(g.M))) * len, e[j]);
+}
+
+// The arrival plane i's record but its tables (``sub_arrival_table``).
+template <typename T>
+void sub_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>& r) {
+  const int64_t n = g.nu * g.nv, C1 = 1 + g.J, K = g.K;
+  r.qa.assign(size_t(C1 * n), T(0));
+  r.B.assign(size_t(n), T(0));
+  r.eo.resize(size_t(K * n));
+  r.a2.resize(size_t(K * n));
+  r.a1.resize(size_t(K * n));
+  r.sft.assign(size_t(n), T(0));
+  r.nrm.assign(size_t(3 * n), T(0));
+  r.st.assign(size_t(n), 0);
+  r.pass.assign(size_t(n), 0);
+  r.bits.assign(size_t(g.nb * n), 0);
+  r.p = sub_plane(g, i);
+  if (r.p < 0) return;  // padding after an open axis: nothing there
+  const int64_t off = r.p * n;
+  for (int64_t j = 0; j < n; ++j) {
+    for (int64_t c = 0; c < C1; ++c) r.qa[c * n + j] = a.Q[(off + j) * g.C + c];
+    r.B[j] = a.B[off + j];
+    const bool s = g.surfaces && a.surf[off + j] != 0;
+    r.st[j] = uint8_t(s);
+    r.sft[j] = T(s);
+    r.pass[j] = uint8_t(a.free[off + j] != 0 || s);
+  }
+  if (g.surfaces)
+    for (int64_t j = 0; j < n; ++j) {
+      for (int c = 0; c < 3; ++c) r.nrm[c * n + j] = a.normal[(off + j) * 3 + c];
+      for (int64_t b = 0; b < g.nb; ++b) r.bits[b * n + j] = a.bits[(off + j) * g.nb + b];
+    }
+}
+
+template <typename T>
+void sub_arrival_table(const Dims& g, const Args<T>& a, int64_t k, SubArrival<T>& r) {
+  const int64_t n = g.nu * g.nv;
+  T *e = r.eo.data() + k * n, *x2 = r.a2.data() + k * n, *x1 = r.a1.data() + k * n;
+  if (r.p < 0) {
+    std::fill(e, e + n, T(0));
+    std::fill(x2, x2 + n, T(1));
+    std::fill(x1, x1 + n, T(1));
+    return;
+  }
+  const T len = a.length_k[k];
+  const T* tau = a.tau + r.p * n;
+#pragma omp simd
+  for (int64_t j = 0; j < n; ++j) e[j] = em1(-(tau[j] * len / T(g.M)));
+#pragma omp simd
+  for (int64_t j = 0; j < n; ++j) {
+    const T t = tau[j] * len / T(g.M), x = e[j];
+    x2[j] = avg(T(2) * t, x * (x + T(2)));
+    x1[j] = avg(t, x);
+  }
+}
+
+// A barrier for the sweep's threads (a generation count; they spin, then yield: the waits are
+// short and come three times per plane).
+struct SpinBarrier {
+  std::atomic<int64_t> gen{0}, arrived{0};
+  int64_t n;
+  explicit SpinBarrier(int64_t count) : n(count) {}
+  void wait() {
+    const int64_t g0 = gen.load(std::memory_order_acquire);
+    if (arrived.fetch_add(1, std::memory_order_acq_rel) == n - 1) {
+      arrived.store(0, std::memory_order_relaxed);
+      gen.fetch_add(1, std::memory_order_acq_rel);
+      return;
+    }
+    for (int spins = 0; gen.load(std::memory_order_acquire) == g0; ++spins)
+      if (spins > 2000) std::this_thread::yield();
+  }
+};
+
+// One direction's segments arriving at every node of sweep plane i: the carry moved and
+// stepped through the crossings and the node's own halves (FOG), its deposits into the
+// thread's window ``acc`` (M planes i − M + 1 … i, 1 + NK channels and the weight, padded) and
+// E into ``irr``; without FOG the rays only move (a blocked arrival's and a restart's
+// radiosity, E).  ``rows``: five row buffers (nv each).
+template <typename T, bool FOG, bool SURF, bool FL, bool ANI>
+void sub_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* win,
+                   const SubArrival<T>& arr, int64_t d, const T* src, T* dst, T* acc, T* irr,
+                   T* rows) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, n = nu * nv, PV = nv + 2 * M;
+  const int64_t PP = (nu + 2 * M) * PV, NC = 1 + g.NK, D = g.D;
+  const int64_t k = a.kidx[d];
+  const T w = a.weight[d], invM = T(1) / T(M);
+  const T* tab = a.table + d * g.J;
+  const int64_t su = a.start[2 * d], sv = a.start[2 * d + 1];
+  const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+  const int bit = int(d & 7);
+  T *rr = rows, *vr = rows + nv, *qr = rows + 2 * nv, *xr = rows + 3 * nv, *ar = rows + 4 * nv;
+  // this direction's Λ channel weights: w, then w Ỹ_c(d) for the NK moments
+  T chan[64];
+  const int64_t nc = NC < 64 ? NC : 64;
+  chan[0] = w;
+  for (int64_t c = 1; c < nc; ++c) chan[c] = w * tab[c - 1];
+  for (int64_t u = 0; u < nu; ++u) {
+    const int64_t o = u * nv;
+    const T* rs = src + (d * (nu + 2 * M) + u + su) * PV + sv;
+    const T* s0 = win[0]->solid.data() + (u + su) * PV + sv;
+    const T* bb = arr.B.data() + o;
+    const uint8_t* stp = arr.st.data() + o;
+    const T* sft = arr.sft.data() + o;
+    const uint8_t* bl = arr.bits.data() + (d >> 3) * n + o;
+#pragma omp simd
+    for (int64_t v = 0; v < nv; ++v) {
+      rr[v] = rs[v];
+      vr[v] = T(1) - s0[v];
+    }
+    if (SURF) {
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        const bool blk = ((bl[v] >> bit) & 1) != 0;
+        rr[v] = blk ? bb[v] : rr[v];
+        vr[v] = blk ? T(1) : vr[v];
+      }
+    }
+    for (int64_t j = 1; j < M; ++j) {
+      const int64_t cu = a.sub[((j - 1) * D + d) * 2], cv = a.sub[((j - 1) * D + d) * 2 + 1];
+      const int64_t base = (u + cu) * PV + cv;
+      if (SURF) {  // crossing a solid node: a surface arrival's chain restarts with y's
+        // radiosity, any other's light is unknown until it arrives
+        const T* sp = win[j]->solid.data() + base;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) {
+          const bool sj = sp[v] > T(0);
+          rr[v] = (sj && stp[v]) ? bb[v] : rr[v];
+          vr[v] = sj ? sft[v] : vr[v];
+        }
+      }
+      if (!FOG) continue;
+      const T* e = win[j]->em.data() + k * PP + base;
+      const T* av = win[j]->av.data() + k * PP + base;
+      const T* q0 = win[j]->q.data() + base;
+      const T* q = q0;
+      if (ANI) {
+        std::memcpy(qr, q0, size_t(nv) * sizeof(T));
+        for (int64_t c = 0; c < g.J; ++c) {
+          const T tc = tab[c];
+          const T* qc = q0 + (1 + c) * PP;
+#pragma omp simd
+          for (int64_t v = 0; v < nv; ++v) qr[v] += tc * qc[v];
+        }
+        q = qr;
+      }
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        const T r = rr[v], qv = q[v];
+        const T rbar = qv + (r - qv) * av[v];
+        rr[v] = r + e[v] * (r - qv);
+        xr[v] = vr[v] * rbar;
+      }
+      if (!FL) continue;
+      T* ap = acc + ((j - 1) * (nc + 1)) * PP + base;
+      for (int64_t c = 0; c < nc; ++c) {
+        const T cw = chan[c];
+        T* ac = ap + c * PP;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) ac[v] += cw * xr[v] * invM;
+      }
+      T* aw = ap + nc * PP;
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) aw[v] += w * vr[v] * invM;
+    }
+    T* rd = dst + (d * (nu + 2 * M) + u + M) * PV + M;
+    const uint8_t* ps = arr.pass.data() + o;
+    const T *n0 = arr.nrm.data() + o, *n1 = n0 + n, *n2 = n1 + n;
+    T* ai = irr + o;
+    if (!FOG) {
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        const T r = rr[v];
+        if (SURF) {
+          const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+          ai[v] += r * std::max(-ldotn, T(0)) * w;
+        }
+        rd[v] = ps[v] ? r : T(0);
+      }
+      continue;
+    }
+    const T* q4 = arr.qa.data() + o;
+    if (ANI) {
+      std::memcpy(qr, q4, size_t(nv) * sizeof(T));
+      for (int64_t c = 0; c < g.J; ++c) {
+        const T tc = tab[c];
+        const T* qc = q4 + (1 + c) * n;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) qr[v] += tc * qc[v];
+      }
+      q4 = qr;
+    }
+    const T *e = arr.eo.data() + k * n + o, *x2 = arr.a2.data() + k * n + o,
+            *x1 = arr.a1.data() + k * n + o;
+#pragma omp simd
+    for (int64_t v = 0; v < nv; ++v) {
+      const T r = rr[v], qv = q4[v], x = e[v];
+      T r_arr = r + x * (r - qv);
+      T r_avg = qv + (r - qv) * x2[v];
+      if (SURF) {
+        const bool blk = ((bl[v] >> bit) & 1) != 0;
+        r_arr = blk ? bb[v] : r_arr;
+        r_avg = blk ? qv + (bb[v] - qv) * x1[v] : r_avg;
+        const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+        ai[v] += r_arr * std::max(-ldotn, T(0)) * w;
+      }
+      ar[v] = r_avg;
+      rd[v] = ps[v] ? r_arr + x * (r_arr - qv) : T(0);
+    }
+    if (!FL) continue;
+    T* ap = acc + ((M - 1) * (nc + 1)) * PP + (u + M) * PV + M;  // the arrival plane's own
+    for (int64_t c = 0; c < nc; ++c) {
+      const T cw = chan[c];
+      T* ac = ap + c * PP;
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) ac[v] += cw * ar[v] * invM;
+    }
+  }
+}
+
+template <typename T>
+using SubFn = void (*)(const Dims&, const Args<T>&, const SubPlane<T>* const*,
+                       const SubArrival<T>&, int64_t, const T*, T*, T*, T*, T*);
+
+template <typename T, bool ANI>
+SubFn<T> sub_pick_(bool fog, bool surf, bool fl) {
+  const int key = (fog ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
+  switch (key) {
+    case 0: case 1: return sub_direction<T, false, false, false, ANI>;
+    case 2: case 3: return sub_direction<T, false, true, false, ANI>;
+    case 4: return sub_direction<T, true, false, false, ANI>;
+    case 5: return sub_direction<T, true, false, true, ANI>;
+    case 6: return sub_direction<T, true, true, false, ANI>;
+    default: return sub_direction<T, true, true, true, ANI>;
+  }
+}
+
+// The sub-stepped sweep: Λ (nw, nu, nv[, 1 + NK]) over the sub-steps whose light is known, E
+// and the radiance leaving the last M planes, as ``_sweep_face_substep_loop`` returns them.
+// The planes are visited in sweep order (arrival i's rays left plane i − M: the carries of
+// the last M + 1 planes are kept, and each plane's record is built once, when it joins the
+// window of M planes the next arrivals cross).  Per plane, all threads in step: the new
+// record's tables shared by distinct |L|, then the directions, then the threads' windows
+// folded into Λ shared by (plane, channel).
+template <typename T>
+void substep_sweep(const Dims& g, const Args<T>& a) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, n = nu * nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  const int64_t PP = PU * PV, chain = g.D * PP, NC = 1 + g.NK, K = g.K, total = g.ns * M;
+  const int64_t planes = total + (g.per_w && g.att_in ? M : 0);  // a periodic axis: one more
+  // slab, whose crossings finish the last slab's Λ
+  const bool ani = g.J > 0;
+  const size_t nth = static_cast<size_t>(std::max<int64_t>(1, std::min<int64_t>(g.threads, g.D)));
+  std::vector<T> carry(static_cast<size_t>((M + 1) * chain));
+  auto slot = [&](int64_t c) { return carry.data() + (((c % (M + 1)) + M + 1) % (M + 1)) * chain; };
+  for (int64_t c = 0; c <= M; ++c) initial(g, a, 0, carry.data() + c * chain);  // bc borders
+  for (int64_t m = 0; m < M; ++m) initial(g, a, m, slot(m - M));  // before the first planes
+  // Λ, its moments and the known sub-steps' weight per face plane, channels first
+  std::vector<T> lam(static_cast<size_t>(g.nw * (NC + 1) * n), T(0));
+  std::fill(a.irr, a.irr + g.nw * n, T(0));
+  std::vector<SubPlane<T>> ring(static_cast<size_t>(M));  // plane c in ring[c mod M]
+  for (int64_t c = -M; c < 0; ++c) {
+    SubPlane<T>& r = ring[size_t(c + M)];
+    sub_plane_fill(g, a, c, r);
+    for (int64_t k = 0; k < K; ++k) sub_plane_table(g, a, k, r);
+  }
+  SubArrival<T> arr;
+  std::vector<const SubPlane<T>*> win(static_cast<size_t>(M));
+  const int64_t wsize = M * (NC + 1) * PP;
+  std::vector<std::vector<T>> accs(nth), irrs(nth), rows(nth);
+  for (size_t t = 0; t < nth; ++t) {
+    accs[t].resize(size_t(wsize));
+    irrs[t].resize(size_t(n));
+    rows[t].resize(size_t(5 * nv));
+  }
+  T wsum = T(0);
+  for (int64_t d = 0; d < g.D; ++d) wsum += a.weight[d];
+  SpinBarrier barrier(static_cast<int64_t>(nth));
+  std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
+  bool fog = false, fl = false, extra = false;
+  SubFn<T> fn = nullptr;
+
+  auto body = [&](size_t t) {
+    for (int64_t i = 0; i < planes; ++i) {
+      if (t == 0) {  // the plane's records and switches
+        const int64_t s = i / M;
+        extra = s == g.ns;
+        fog = extra ? true : (s >= g.s0 && s < g.s1);
+        fl = fog && g.fl_in;
+        fn = ani ? sub_pick_<T, true>(fog, g.surfaces, fl)
+                 : sub_pick_<T, false>(fog, g.surfaces, fl);
+        if (i >= 1) sub_plane_fill(g, a, i - 1, ring[size_t((i - 1) % M)]);
+        sub_arrival_fill(g, a, i, arr);
+        for (int64_t w = 0; w < M; ++w) win[size_t(w)] = &ring[size_t(((i - M + w) % M + M) % M)];
+        next_a = 0;
+        next_b = 0;
+        next_c = 0;
+      }
+      barrier.wait();
+      for (int64_t task = next_a++; task < 2 * K; task = next_a++) {
+        if (task < K) {
+          if (i >= 1) sub_plane_table(g, a, task, ring[size_t((i - 1) % M)]);
+        } else if (fog) {
+          sub_arrival_table(g, a, task - K, arr);
+        }
+      }
+      barrier.wait();
+      T* acc = accs[t].data();
+      T* irr = irrs[t].data();
+      if (fl) std::fill(acc, acc + wsize, T(0));
+      std::fill(irr, irr + n, T(0));
+      const T* src = slot(i - M);
+      T* dst = slot(i);
+      for (int64_t d = next_b++; d < g.D; d = next_b++) {
+        fn(g, a, win.data(), arr, d, src, dst, acc, irr, rows[t].data());
+        wrap_periodic(g, dst + d * PP);
+      }
+      barrier.wait();
+      // the threads' windows folded into Λ (plane i − M + w' for w' = 1 … M, per channel),
+      // and E
+      const int64_t tasks = fl ? M * (NC + 1) + 1 : 1;
+      for (int64_t task = next_c++; task < tasks; task = next_c++) {
+        if (task == tasks - 1) {
+          if (extra || !sub_kept(g, i)) continue;
+          T* ip = a.irr + source(g, i) * n;
+          for (size_t u = 0; u < nth; ++u) {
+            const T* it = irrs[u].data();
+#pragma omp simd
+            for (int64_t j = 0; j < n; ++j) ip[j] += it[j];
+          }
+          continue;
+        }
+        const int64_t wp = 1 + task / (NC + 1), ch = task % (NC + 1), c = i - M + wp;
+        if (!sub_kept(g, c) || (extra && wp == M)) continue;
+        T* lp = lam.data() + (source(g, c) * (NC + 1) + ch) * n;
+        for (size_t u = 0; u < nth; ++u) {
+          const T* ap = accs[u].data() + ((wp - 1) * (NC + 1) + ch) * PP;
+          for (int64_t pu = 0; pu < PU; ++pu) {
+            int64_t ru = pu - M;
+            if (g.per_u) ru = ((ru % nu) + nu) % nu;
+            else if (ru < 0 || ru >= nu) continue;
+            const T* row = ap + pu * PV;
+            T* lr = lp + ru * nv;
+#pragma omp simd
+            for (int64_t v = 0; v < nv; ++v) lr[v] += row[M + v];
+            if (g.per_v)
+              for (int64_t pv = 0; pv < M; ++pv) {
+                lr[((pv - M) % nv + nv) % nv] += row[pv];
+                lr[(nv + pv) % nv] += row[M + nv + pv];
+              }
+          }
+        }
+        if (wp == M && ch == NC)  // the node's own two halves: weight Σ_d w_d / M, known
+          for (int64_t j = 0; j < n; ++j) lp[j] += wsum / T(M);
+      }
+      barrier.wait();
+      if (t == 0 && i == total - 1)  // the radiance leaving the last M planes: exit[m, d]
+        for (int64_t m = 0; m < M; ++m) {
+          const T* last = slot(total - M + m);
+          for (int64_t d = 0; d < g.D; ++d)
+            for (int64_t u = 0; u < nu; ++u)
+              std::memcpy(a.exit + ((m * g.D + d) * nu + u) * nv,
+                          last + (d * PU + u + M) * PV + M, size_t(nv) * sizeof(T));
+        }
+    }
+  };
+  std::vector<std::thread> pool;
+  for (size_t t = 1; t < nth; ++t) pool.emplace_back(body, t);
+  body(0);
+  for (auto& th : pool) th.join();
+  // each node's Λ over the sub-steps whose light is known (Σ_d w_d over their weight)
+  for (int64_t p = 0; p < g.nw; ++p) {
+    const T* lp = lam.data() + p * (NC + 1) * n;
+    for (int64_t j = 0; j < n; ++j) {
+      const T ws = lp[NC * n + j];
+      const T scale = ws > T(0) ? wsum / ws : T(0);
+      T* out = a.lam + (p * n + j) * NC;
+      for (int64_t ch = 0; ch < NC; ++ch) out[ch] = lp[ch * n + j] * scale;
+    }
+  }
+}
+
 #if DIFFFOG_PART == 1
 template void sweep<float>(const Dims& g, const Args<float>& a);
+template void substep_sweep<float>(const Dims& g, const Args<float>& a);
 #elif DIFFFOG_PART == 2
 template void sweep<double>(const Dims& g, const Args<double>& a);
+template void substep_sweep<double>(const Dims& g, const Args<double>& a);
 #elif DIFFFOG_PART == 0
 extern template void sweep<float>(const Dims& g, const Args<float>& a);
 extern template void sweep<double>(const Dims& g, const Args<double>& a);
+extern template void substep_sweep<float>(const Dims& g, const Args<float>& a);
+extern template void substep_sweep<double>(const Dims& g, const Args<double>& a);
 #endif
 
 #if DIFFFOG_PART <= 0
@@ -718,11 +1199,48 @@ ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
   return ffi::Error::Success();
 }
 
+ffi::Error SweepSubstepImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
+                            ffi::AnyBuffer normal, ffi::AnyBuffer bits, ffi::AnyBuffer free,
+                            ffi::AnyBuffer surf, ffi::AnyBuffer bc, ffi::AnyBuffer length_k,
+                            ffi::AnyBuffer kidx, ffi::AnyBuffer weight, ffi::AnyBuffer unit_,
+                            ffi::AnyBuffer start, ffi::AnyBuffer sub, ffi::AnyBuffer table,
+                            ffi::Result<ffi::AnyBuffer> lam, ffi::Result<ffi::AnyBuffer> irr,
+                            ffi::Result<ffi::AnyBuffer> exit, int64_t M, int64_t nw,
+                            int64_t nu, int64_t nv, int64_t ns, int64_t D, int64_t K, int64_t nb,
+                            int64_t s0, int64_t s1, int64_t threads, int64_t surfaces,
+                            int64_t per_w, int64_t per_u, int64_t per_v, int64_t att_in,
+                            int64_t fl_in, int64_t C, int64_t J, int64_t NK) {
+  Dims g{M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, 1,
+         surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, fl_in != 0,
+         C, J, NK, false, false, 0, 0, 0, 0};
+  if (M < 2 || nw < 1 || nu < 1 || nv < 1 || ns * M < nw || D != (2 * M + 1) * (2 * M + 1) ||
+      C < 1 + J || NK > J || NK < 0 || NK + 1 > 64)
+    return ffi::Error::InvalidArgument("difffog_sweep_substep: inconsistent dimensions");
+  ffi::Result<ffi::AnyBuffer> none = exit;  // the step kernel's scratch and slope: unused
+  auto fill = [&](auto a) {
+    a.sub = static_cast<const int32_t*>(sub.untyped_data());
+    return a;
+  };
+  if (Q.element_type() == ffi::DataType::F32) {
+    substep_sweep<float>(g, fill(args<float>(Q, B, tau, normal, bits, free, surf, bc, length_k,
+                                             kidx, weight, unit_, start, table, table, lam, irr,
+                                             exit, none)));
+  } else if (Q.element_type() == ffi::DataType::F64) {
+    substep_sweep<double>(g, fill(args<double>(Q, B, tau, normal, bits, free, surf, bc,
+                                               length_k, kidx, weight, unit_, start, table,
+                                               table, lam, irr, exit, none)));
+  } else {
+    return ffi::Error::InvalidArgument("difffog_sweep_substep: float32 or float64 only");
+  }
+  return ffi::Error::Success();
+}
+
 #endif  // DIFFFOG_PART <= 0
 }  // namespace difffog_sweep
 
 #if DIFFFOG_PART <= 0
 using difffog_sweep::SweepFaceImpl;
+using difffog_sweep::SweepSubstepImpl;
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                               ffi::Ffi::Bind()
@@ -772,4 +1290,45 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Attr<int64_t>("sw")
                                   .Attr<int64_t>("su")
                                   .Attr<int64_t>("sv"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepSubstep, SweepSubstepImpl,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // Q (nw, nu, nv[, C])
+                                  .Arg<ffi::AnyBuffer>()  // B (nw, nu, nv)
+                                  .Arg<ffi::AnyBuffer>()  // τ_half_unit (the node's own)
+                                  .Arg<ffi::AnyBuffer>()  // normal (nw, nu, nv, 3)
+                                  .Arg<ffi::AnyBuffer>()  // blocked bytes (nw, nu, nv, nb)
+                                  .Arg<ffi::AnyBuffer>()  // free (nw, nu, nv) bool
+                                  .Arg<ffi::AnyBuffer>()  // surf (nw, nu, nv) bool
+                                  .Arg<ffi::AnyBuffer>()  // bc (D,)
+                                  .Arg<ffi::AnyBuffer>()  // distinct |L| (K,)
+                                  .Arg<ffi::AnyBuffer>()  // kidx (D,) int32
+                                  .Arg<ffi::AnyBuffer>()  // weight (D,)
+                                  .Arg<ffi::AnyBuffer>()  // unit (D, 3)
+                                  .Arg<ffi::AnyBuffer>()  // start (D, 2) int32
+                                  .Arg<ffi::AnyBuffer>()  // crossings' origins (M − 1, D, 2)
+                                  .Arg<ffi::AnyBuffer>()  // table (D, J) (or a dummy)
+                                  .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv[, 1 + NK])
+                                  .Ret<ffi::AnyBuffer>()  // E (nw, nu, nv)
+                                  .Ret<ffi::AnyBuffer>()  // exit (M, D, nu, nv)
+                                  .Attr<int64_t>("M")
+                                  .Attr<int64_t>("nw")
+                                  .Attr<int64_t>("nu")
+                                  .Attr<int64_t>("nv")
+                                  .Attr<int64_t>("ns")
+                                  .Attr<int64_t>("D")
+                                  .Attr<int64_t>("K")
+                                  .Attr<int64_t>("nb")
+                                  .Attr<int64_t>("s0")
+                                  .Attr<int64_t>("s1")
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("surfaces")
+                                  .Attr<int64_t>("per_w")
+                                  .Attr<int64_t>("per_u")
+                                  .Attr<int64_t>("per_v")
+                                  .Attr<int64_t>("att_in")
+                                  .Attr<int64_t>("fl_in")
+                                  .Attr<int64_t>("C")
+                                  .Attr<int64_t>("J")
+                                  .Attr<int64_t>("NK"));
 #endif  // DIFFFOG_PART <= 0
