@@ -148,6 +148,12 @@ def test_estimate_follows_the_scheme_the_solver_will_run(monkeypatch):
         n = math.prod(native_auto.shape)
         assert native_auto.seconds_per_iteration == pytest.approx(
             6 * 25 * n * CPU_NATIVE_GENERAL_S_PER_UPDATE, rel=1e-9)
+        # the sub-stepped scheme's native kernel: per node, direction and sub-step (M = 2)
+        from difffog._cost import CPU_NATIVE_SUBSTEP_S_PER_UPDATE
+
+        sub_n = df.estimate(thick, "sweep", resolution=32, M=2, scheme="substep")
+        assert sub_n.seconds_per_iteration == pytest.approx(
+            6 * 25 * math.prod(sub_n.shape) * 2 * CPU_NATIVE_SUBSTEP_S_PER_UPDATE, rel=1e-9)
     monkeypatch.setattr(_native, "expected", lambda: False)  # the XLA loop's figures below
     auto = df.estimate(thick, "sweep", resolution=32, M=2)
     step = df.estimate(thick, "sweep", resolution=32, M=2, scheme="step")

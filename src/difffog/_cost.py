@@ -123,6 +123,21 @@ SUBSTEP_BYTES_PER_NODE = 100.0
 #: lattices: 23 ns at N = 64, K = 6 (56 s, where it says 156 s; the fog's slabs and the
 #: loop's per-direction overhead do not grow with the vacuum margin's nodes)
 ONCE_S_PER_CROSSING = 6.5e-8
+#: the sub-stepped scheme's native sweep (``_native.sweep_substep``, stop 70), seconds per
+#: lattice node × direction × sub-step (M of them: M − 1 crossings and the node's own), and
+#: per angular moment more (each sub-step builds the direction's source from the moments and
+#: deposits into them).  Measured on this 2-core CPU, float32, one face sweep at N = 64,
+#: M = 3 (``bench_sweep.py --scheme substep``: fog-balls 0.20 s per iteration, 0.87 ns;
+#: single faces 0.58-0.82 ns with and without surfaces) and with moments (L = 2, M = 3 and
+#: L = 3, M = 6: 0.16-0.17 ns per moment more)
+CPU_NATIVE_SUBSTEP_S_PER_UPDATE = 0.87e-9
+CPU_NATIVE_SUBSTEP_S_PER_MOMENT = 0.17e-9
+#: the once-scattered sweep on the native kernel (its source the sun's channel alone, so the
+#: moments cost their deposits only): seconds per lattice node × direction × sub-step at
+#: L = 3 (16 channels deposited), cloud-plane, this 2-core CPU (bench_once.py, stop 70):
+#: 2.5 ns at N = 24, K = 4 (0.19 s) and N = 32, K = 6 (1.51 s), 2.8 ns at N = 24, K = 6
+#: (0.94 s; XLA's loop took 2.7, 18.0 and 34.4 s)
+ONCE_NATIVE_S_PER_SUBSTEP = 2.7e-9
 #: a reverse-mode gradient's adjoint Krylov solve works on the Jacobi step linearised once
 #: (``lx.linearise`` in ``KrylovSolver.init``; a fit's forward-mode tangents, since stop 42,
 #: apply it matrix-free and keep none of this), which keeps the sweeps' residuals: XLA
@@ -431,12 +446,15 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if backend != "gpu":
         rate, per_node = CPU_UPDATES_PER_S, CPU_SECONDS_PER_NODE
         native = False
-        if kernel == "loop" and not substep:
+        if kernel == "loop":
             from .forward.sweep import _native
 
             native = _native.expected()  # the native sweep (XLA's loop without it)
-        general = native and (K > 0 or linear)
-        if general:
+        general = native and (K > 0 or linear or substep)
+        if native and substep:
+            per_iter = 6 * D * n * M * (CPU_NATIVE_SUBSTEP_S_PER_UPDATE
+                                        + CPU_NATIVE_SUBSTEP_S_PER_MOMENT * K)
+        elif general:
             per_iter = 6 * D * n * (CPU_NATIVE_GENERAL_S_PER_UPDATE
                                     + CPU_NATIVE_S_PER_UPDATE_MOMENT * K)
         else:
@@ -452,7 +470,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if linear:
         mem["light solve"] += n * LINEAR_BYTES_PER_NODE
     if substep:  # (measured on a CPU; the GPU's batched program assumed to grow alike)
-        per_iter *= SUBSTEP_COST_LOOP if kernel == "loop" else SUBSTEP_COST_BATCHED
+        if not general:  # (the native kernel's figure above is its own)
+            per_iter *= SUBSTEP_COST_LOOP if kernel == "loop" else SUBSTEP_COST_BATCHED
         mem["light solve"] += int(n * SUBSTEP_BYTES_PER_NODE)
     from .geometry._hits import shadows_exactly
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
@@ -469,8 +488,13 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
                              gradient=gradient, phase_order=phase_order,
                              scheme="substep", tangents=tangents,
                              sweep_residuals=sweep_residuals, edge_samples=edge_samples)
-        once_s = (ONCE_S_PER_CROSSING * n * 6 * (2 * once + 1) ** 2 * (once - 1)
-                  * (1.0 + CPU_COST_PER_MOMENT * K) / (1.0 + CPU_COST_PER_MOMENT * 15))
+        from .forward.sweep import _native
+
+        if kernel == "loop" and backend != "gpu" and _native.expected():
+            once_s = ONCE_NATIVE_S_PER_SUBSTEP * n * 6 * (2 * once + 1) ** 2 * once
+        else:
+            once_s = ONCE_S_PER_CROSSING * n * 6 * (2 * once + 1) ** 2 * (once - 1)
+        once_s *= (1.0 + CPU_COST_PER_MOMENT * K) / (1.0 + CPU_COST_PER_MOMENT * 15)
         # its faces (not the cameras again, nor the sun's shadow rays: it has the solve's beam)
         setup += sub.setup_s - SETUP_S_PER_RAY * rays - (
             SETUP_S_PER_NODE_SHADOW * sub.nodes if shadows_exactly(scene) else 0)

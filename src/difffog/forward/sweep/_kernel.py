@@ -518,6 +518,12 @@ def world_native_applies(kernel: str, consts: SweepConsts, dt) -> bool:
     return kernel == "loop" and consts.sub is None and _native_applies(None, dt)
 
 
+def substep_native_applies(kernel: str, consts: SweepConsts, dt) -> bool:
+    """Whether the native kernel serves a sub-stepped face (``sweep_face``'s loop kernel on one
+    device: ``_native_substep_call``)."""
+    return kernel == "loop" and consts.sub is not None and _native_applies(None, dt)
+
+
 def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                      axis: int, sign: int, M: int, periodic: tuple[bool, bool, bool],
                      warmup: int, surfaces: bool, attenuate: bool = True, fluence: bool = True,

@@ -58,6 +58,7 @@ from ._kernel import (
     substep_offsets,
     substep_weight_scale,
     to_face,
+    substep_native_applies,
     world_native_applies,
 )
 
@@ -598,9 +599,13 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
     # only over its group's fog slabs, and on a cubic lattice the six faces' union of them is
     # most of the planes (cloud-plane, N = 32: a light solve 11.3 s in pairs against 13.3-14.5
     # s in one group of six; the first call 22 s with the loop's one-scan cond, 27-31 s before
-    # the restriction).
+    # the restriction).  Where the native kernel serves the sub-stepped scheme each face is its
+    # own custom call (face frame) over its own fog slabs: no stacked copies of a pair's
+    # sources and geometry (fog-balls, N = 64: an iteration 0.37 s in pairs, ... s alone).
     groups = g.face_groups(six=one and not (g.substep and pb.kernel == "loop"))
-    if not (one or nf == 2):
+    native_sub = one and all(substep_native_applies(pb.kernel, g.consts[f], q.dtype)
+                             for group in groups for f in group)
+    if not (one or nf == 2) or native_sub:
         groups = tuple((f,) for group in groups for f in group)
     world = one and all(world_native_applies(pb.kernel, g.consts[f], q.dtype)
                         for group in groups for f in group)
@@ -615,7 +620,10 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                     **{k: v for k, v in kw.items() if k != "kernel"})
                 lam, irr, exits[f] = lam + lf, irr + ef, ex
             continue
-        if one:
+        if native_sub:
+            lf, ef, ex = (x[None] for x in sweep_face(
+                *face_args(group[0]), periodic=periodic, vol_range=g.vol_range(group[0]), **kw))
+        elif one:
             sweep = functools.partial(
                 sweep_face, periodic=periodic,
                 vol_range=functools.reduce(_union, (g.vol_range(f) for f in group)), **kw)

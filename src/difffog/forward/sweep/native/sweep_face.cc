@@ -678,8 +678,11 @@ template <typename T>
 struct SubPlane {
   // one sweep plane as the crossings read it, padded (PP each): its solid flags, τ_half, per
   // distinct |L| the crossing's e^{-τ} − 1 and (1 − e^{-τ})/τ (τ = τ_half·2/M·|L|), the source
-  // channels (1 + J); ``fog``: whether the plane holds a face plane's fog (else τ = 0, no source)
+  // channels (1 + J); ``fog``: whether the plane holds a face plane's fog (else τ = 0, no source);
+  // ``live``: per channel, whether it is nonzero anywhere in the plane (a direction's source
+  // skips the others: the once-scattered sweep's channels are all 0 but the sun's)
   std::vector<T> solid, tau, em, av, q;
+  std::vector<uint8_t> live;
   bool fog = false;
 };
 
@@ -689,7 +692,7 @@ struct SubArrival {
   // sub-steps' e^{-τ} − 1, (1 − e^{-2τ})/2τ, (1 − e^{-τ})/τ (τ = τ_half·|L|/M), the SURFACE
   // flag as a number, the normal; bytes: SURFACE, pass, the blocking bytes (nb n)
   std::vector<T> qa, B, eo, a2, a1, sft, nrm;
-  std::vector<uint8_t> st, pass, bits;
+  std::vector<uint8_t> st, pass, bits, live;
   int64_t p = -1;
 };
 
@@ -712,6 +715,7 @@ void sub_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) 
   r.em.resize(size_t(g.K * PP));
   r.av.resize(size_t(g.K * PP));
   r.q.assign(size_t(C1 * PP), T(0));
+  r.live.assign(size_t(C1), 0);
   const int64_t p = sub_plane(g, c);
   r.fog = p >= 0;
   if (p == -1) return;  // before the first plane: the programs' zeros
@@ -722,7 +726,11 @@ void sub_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) 
   sub_pad(g, flag.data(), 1, r.solid.data());
   if (!r.fog) return;  // padding: solid, no fog
   sub_pad(g, a.tau + off, 1, r.tau.data());
-  for (int64_t ch = 0; ch < C1; ++ch) sub_pad(g, a.Q + off * g.C + ch, g.C, r.q.data() + ch * PP);
+  for (int64_t ch = 0; ch < C1; ++ch) {
+    T* qc = r.q.data() + ch * PP;
+    sub_pad(g, a.Q + off * g.C + ch, g.C, qc);
+    for (int64_t j = 0; j < PP && !r.live[size_t(ch)]; ++j) r.live[size_t(ch)] = qc[j] != T(0);
+  }
 }
 
 template <typename T>
@@ -757,11 +765,16 @@ void sub_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>&
   r.st.assign(size_t(n), 0);
   r.pass.assign(size_t(n), 0);
   r.bits.assign(size_t(g.nb * n), 0);
+  r.live.assign(size_t(C1), 0);
   r.p = sub_plane(g, i);
   if (r.p < 0) return;  // padding after an open axis: nothing there
   const int64_t off = r.p * n;
   for (int64_t j = 0; j < n; ++j) {
-    for (int64_t c = 0; c < C1; ++c) r.qa[c * n + j] = a.Q[(off + j) * g.C + c];
+    for (int64_t c = 0; c < C1; ++c) {
+      const T x = a.Q[(off + j) * g.C + c];
+      r.qa[c * n + j] = x;
+      r.live[size_t(c)] |= uint8_t(x != T(0));
+    }
     r.B[j] = a.B[off + j];
     const bool s = g.surfaces && a.surf[off + j] != 0;
     r.st[j] = uint8_t(s);
@@ -797,6 +810,10 @@ void sub_arrival_table(const Dims& g, const Args<T>& a, int64_t k, SubArrival<T>
   }
 }
 
+// the sub-stepped kernel's per-thread deposit rows of one tile, bytes (half of one core's L2 on
+// this project's CPU)
+constexpr int64_t SUB_TILE_BYTES = 256 * 1024;
+
 // A barrier for the sweep's threads (a generation count; they spin, then yield: the waits are
 // short and come three times per plane).
 struct SpinBarrier {
@@ -815,15 +832,15 @@ struct SpinBarrier {
   }
 };
 
-// One direction's segments arriving at every node of sweep plane i: the carry moved and
+// One direction's segments arriving at rows [u0, u1) of sweep plane i: the carry moved and
 // stepped through the crossings and the node's own halves (FOG), its deposits into the
 // thread's window ``acc`` (M planes i − M + 1 … i, 1 + NK channels and the weight, padded) and
 // E into ``irr``; without FOG the rays only move (a blocked arrival's and a restart's
 // radiosity, E).  ``rows``: five row buffers (nv each).
 template <typename T, bool FOG, bool SURF, bool FL, bool ANI>
 void sub_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* win,
-                   const SubArrival<T>& arr, int64_t d, const T* src, T* dst, T* acc, T* irr,
-                   T* rows) {
+                   const SubArrival<T>& arr, int64_t d, int64_t u0, int64_t u1, const T* src,
+                   T* dst, T* acc, T* irr, T* rows) {
   const int64_t M = g.M, nu = g.nu, nv = g.nv, n = nu * nv, PV = nv + 2 * M;
   const int64_t PP = (nu + 2 * M) * PV, NC = 1 + g.NK, D = g.D;
   const int64_t k = a.kidx[d];
@@ -838,7 +855,7 @@ void sub_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* wi
   const int64_t nc = NC < 64 ? NC : 64;
   chan[0] = w;
   for (int64_t c = 1; c < nc; ++c) chan[c] = w * tab[c - 1];
-  for (int64_t u = 0; u < nu; ++u) {
+  for (int64_t u = u0; u < u1; ++u) {
     const int64_t o = u * nv;
     const T* rs = src + (d * (nu + 2 * M) + u + su) * PV + sv;
     const T* s0 = win[0]->solid.data() + (u + su) * PV + sv;
@@ -879,7 +896,9 @@ void sub_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* wi
       const T* q = q0;
       if (ANI) {
         std::memcpy(qr, q0, size_t(nv) * sizeof(T));
+        const uint8_t* live = win[j]->live.data();
         for (int64_t c = 0; c < g.J; ++c) {
+          if (!live[1 + c]) continue;  // 0 everywhere in the plane
           const T tc = tab[c];
           const T* qc = q0 + (1 + c) * PP;
 #pragma omp simd
@@ -926,6 +945,7 @@ void sub_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* wi
     if (ANI) {
       std::memcpy(qr, q4, size_t(nv) * sizeof(T));
       for (int64_t c = 0; c < g.J; ++c) {
+        if (!arr.live[size_t(1 + c)]) continue;  // 0 everywhere in the plane
         const T tc = tab[c];
         const T* qc = q4 + (1 + c) * n;
 #pragma omp simd
@@ -963,7 +983,8 @@ void sub_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* wi
 
 template <typename T>
 using SubFn = void (*)(const Dims&, const Args<T>&, const SubPlane<T>* const*,
-                       const SubArrival<T>&, int64_t, const T*, T*, T*, T*, T*);
+                       const SubArrival<T>&, int64_t, int64_t, int64_t, const T*, T*, T*, T*,
+                       T*);
 
 template <typename T, bool ANI>
 SubFn<T> sub_pick_(bool fog, bool surf, bool fl) {
@@ -984,7 +1005,8 @@ SubFn<T> sub_pick_(bool fog, bool surf, bool fl) {
 // the last M + 1 planes are kept, and each plane's record is built once, when it joins the
 // window of M planes the next arrivals cross).  Per plane, all threads in step: the new
 // record's tables shared by distinct |L|, then the directions, then the threads' windows
-// folded into Λ shared by (plane, channel).
+// folded into Λ shared by (plane, channel).  The directions' work is shared by row tiles, each
+// thread sweeping every direction over its tile before the next.
 template <typename T>
 void substep_sweep(const Dims& g, const Args<T>& a) {
   const int64_t M = g.M, nu = g.nu, nv = g.nv, n = nu * nv, PU = nu + 2 * M, PV = nv + 2 * M;
@@ -1017,6 +1039,13 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
   }
   T wsum = T(0);
   for (int64_t d = 0; d < g.D; ++d) wsum += a.weight[d];
+  // rows per tile: a thread sweeps every direction over a tile before the next, so that its
+  // window's rows the tile's segments reach ((NC + 1) M (tile + 2M) PV values) stay in its
+  // cache: at least two tiles per thread
+  const int64_t row_bytes = (NC + 1) * M * PV * int64_t(sizeof(T));
+  const int64_t tile = std::max<int64_t>(1, std::min<int64_t>(
+      SUB_TILE_BYTES / row_bytes - 2 * M, (nu + 2 * int64_t(nth) - 1) / (2 * int64_t(nth))));
+  const int64_t tiles = (nu + tile - 1) / tile;
   SpinBarrier barrier(static_cast<int64_t>(nth));
   std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
   bool fog = false, fl = false, extra = false;
@@ -1053,16 +1082,21 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
       std::fill(irr, irr + n, T(0));
       const T* src = slot(i - M);
       T* dst = slot(i);
-      for (int64_t d = next_b++; d < g.D; d = next_b++) {
-        fn(g, a, win.data(), arr, d, src, dst, acc, irr, rows[t].data());
-        wrap_periodic(g, dst + d * PP);
+      for (int64_t task = next_b++; task < tiles; task = next_b++) {
+        const int64_t u0 = task * tile, u1 = std::min(nu, u0 + tile);
+        for (int64_t d = 0; d < g.D; ++d)
+          fn(g, a, win.data(), arr, d, u0, u1, src, dst, acc, irr, rows[t].data());
       }
       barrier.wait();
       // the threads' windows folded into Λ (plane i − M + w' for w' = 1 … M, per channel),
       // and E
-      const int64_t tasks = fl ? M * (NC + 1) + 1 : 1;
+      const int64_t folds = fl ? M * (NC + 1) : 0, tasks = folds + 1 + g.D;
       for (int64_t task = next_c++; task < tasks; task = next_c++) {
-        if (task == tasks - 1) {
+        if (task > folds) {  // the carry's border on periodic sides
+          wrap_periodic(g, dst + (task - folds - 1) * PP);
+          continue;
+        }
+        if (task == folds) {
           if (extra || !sub_kept(g, i)) continue;
           T* ip = a.irr + source(g, i) * n;
           for (size_t u = 0; u < nth; ++u) {
