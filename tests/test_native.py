@@ -206,6 +206,93 @@ def test_native_substep_equals_the_xla_loop(case, dtype, x64):
             assert float(jnp.max(got[0])) > 0.1  # the fluence was accumulated
 
 
+def _substep_case(case, dtype):
+    """``SUBSTEP_CASES[case]``'s random face: (args of the sweep, its geometry with the host's
+    weight scale per periodic combination, M, L's moment count, the source channels,
+    surfaces, vol, periodics)."""
+    import dataclasses
+
+    import equinox as eqx
+
+    from difffog.forward.sweep._harmonics import basis
+    from helpers import random_face_geometry
+
+    M, shape, L, sun, surfaces, vol, periodics = SUBSTEP_CASES[case]
+    rng = np.random.default_rng(case)
+    dt = jnp.dtype(dtype)
+    D = (2 * M + 1) ** 2
+    harm = basis(L, M).faces if L else None
+    consts = K.face_consts(direction_set(M), 0, harm=harm, substep=True)
+    if sun:
+        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random(D)))
+    nk = harm.shape[-1] if L else 0
+    nch = nk + int(sun)
+    Q = rng.random(shape + ((1 + nch,) if nch else ()))
+    if nch:
+        Q[..., 1:] *= 0.1
+    geo = random_face_geometry(rng, shape, D)
+    geo = dataclasses.replace(geo, normal=jnp.asarray(geo.normal, dt))
+    tau = 1.5 * rng.random(shape) * (rng.random(shape) > 0.2)  # some nodes without fog
+    args = (jnp.asarray(Q, dt), jnp.asarray(rng.random(shape), dt), jnp.asarray(tau, dt),
+            jnp.asarray(rng.random(D), dt), geo, consts)
+    scaled = [eqx.tree_at(lambda g: g.wscale, geo, jnp.asarray(K.substep_weight_scale(
+        geo.free, geo.surf, geo.blocked, consts.pq, consts.sub, consts.weight, M=M,
+        periodic=p, warmup=4 if p[0] else 0, surfaces=surfaces), dt),
+        is_leaf=lambda x: x is None) for p in periodics]
+    return args, scaled, M, nk, (1 + nch) if nch else 0, surfaces, vol, periodics
+
+
+@needs_compiler
+@pytest.mark.parametrize("case,dtype", [(0, "float64"), (1, "float64"), (2, "float32"),
+                                        (3, "float64"), (4, "float64")])
+def test_native_substep_transpose_equals_the_xla_loop(case, dtype, x64, native_state):
+    """The sub-stepped sweep's transpose (a gradient's adjoint light solve) from the native
+    kernel (``_native.sweep_substep_transposed``) against XLA's
+    (``_sweep_face_substep_transposed``) to rounding, Q̄ (every source channel) and B̄, on the
+    cases of the forward's test; and it is the native forward's transpose: ⟨R(Q, B), (Λ̄, Ē)⟩
+    = ⟨(Q, B), Rᵀ(Λ̄, Ē)⟩ with no boundary light."""
+    args, scaled, M, nk, nq, surfaces, vol, periodics = _substep_case(case, dtype)
+    saved = dict(_native._STATE)
+    assert _native.available(), _native.status()
+    rng = np.random.default_rng(10 + case)
+    shape = args[2].shape
+    dt = jnp.dtype(dtype)
+    lam_bar = jnp.asarray(rng.standard_normal(shape + ((1 + nk,) if nk else ())), dt)
+    irr_bar = jnp.asarray(rng.standard_normal(shape), dt)
+    rtol = 1e-13 if dtype == "float64" else 3e-5
+    for periodic, geo in zip(periodics, scaled):
+        kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=surfaces,
+                  fluence=vol[1], q_channels=nq, vol_range=vol[2], attenuate=vol[0])
+
+        def tr(lb, eb, kw=kw, geo=geo):
+            return K._sweep_face_substep_transposed(lb, eb, args[2], geo, args[5], **kw)
+
+        _native._STATE.clear()
+        _native._STATE.update(ok=False, why="off (test)")
+        ref = jax.jit(lambda lb, eb: tr(lb, eb))(lam_bar, irr_bar)  # XLA's loop
+        _native._STATE.clear()
+        _native._STATE.update(saved)
+        run = jax.jit(lambda lb, eb: tr(lb, eb))
+        assert _native.SUBSTEP_T_TARGET in run.lower(lam_bar, irr_bar).as_text()
+        got = run(lam_bar, irr_bar)
+        for r, g in zip(ref, got):
+            assert g.shape == r.shape and g.dtype == r.dtype
+            np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=rtol,
+                                       atol=rtol * float(jnp.max(jnp.abs(r))),
+                                       err_msg=f"{periodic}")
+        if vol[0] and vol[1]:  # (without fluence or fog only B̄ is not 0, with surfaces)
+            assert float(jnp.max(jnp.abs(got[0]))) > 0
+        assert float(jnp.max(jnp.abs(got[1]))) > 0 or not surfaces
+        if dtype == "float64":  # the adjoint identity with the native forward
+            fw = dict(M=M, periodic=periodic, warmup=kw["warmup"], surfaces=surfaces,
+                      fluence=vol[1], vol=vol)
+            lam, irr, _ = jax.jit(lambda q, b: K._native_substep_call(
+                q, b, args[2], jnp.zeros_like(args[3]), geo, args[5], **fw))(*args[:2])
+            lhs = float(jnp.sum(lam * lam_bar) + jnp.sum(irr * irr_bar))
+            rhs = float(jnp.sum(args[0] * got[0]) + jnp.sum(args[1] * got[1]))
+            assert abs(lhs - rhs) < 1e-11 * (abs(lhs) + 1.0), (lhs, rhs)
+
+
 @needs_compiler
 def test_the_substep_scheme_on_a_cpu_runs_the_native_kernel():
     """``sweep_face`` with the loop kernel and the sub-stepped scheme's constants calls the

@@ -1441,6 +1441,15 @@ def _sweep_face_substep_transposed(lam_bar, irr_bar, tau_half_unit, geo: FaceGeo
         lam_bar = lam_bar.astype(dt) * (scale[..., None] if nk else scale)
     else:
         lam_bar = jnp.zeros(lam_bar.shape, dt)
+    if _native_applies(None, dt):  # the native kernel's transpose (same values)
+        s0, s1, fog_on = _substep_fog_slabs((attenuate, fluence, vol_range), ns, M, per_w)
+        none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
+        q_bar, b_bar = _native.sweep_substep_transposed(
+            lam_bar, irr_bar.astype(dt), tau_half_unit, geo.normal if surfaces else none[0],
+            geo.blocked if surfaces else none[1], geo.free, geo.surf, length_k, kidx, weight,
+            unit, start, sub_start, M=M, ns=ns, segment=(s0, s1, fog_on), surfaces=surfaces,
+            periodic=periodic, table=table if aniso and nj else None, nk=nk)
+        return (q_bar[..., None] if aniso and not nj else q_bar), b_bar
     lb = full(lam_bar).reshape((ns, M, nu, nv) + ((nc,) if nk else ()))
     lb = jnp.moveaxis(lb, -1, 1) if nk else lb[:, None]  # (ns, nc, M, nu, nv)
     eb = full(irr_bar.astype(dt)).reshape((ns, M, nu, nv))

@@ -57,6 +57,8 @@ _GS_SOURCE = _SOURCE.with_name("gram_schmidt.cc")
 GS_TARGET = "difffog_gram_schmidt"
 #: the sub-stepped scheme's sweep (``sweep_substep``), in the sweep's source
 SUBSTEP_TARGET = "difffog_sweep_substep"
+#: and its transpose (``sweep_substep_transposed``: a gradient's adjoint)
+SUBSTEP_T_TARGET = "difffog_sweep_substep_t"
 _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-simd",
           "-fno-math-errno", "-fno-trapping-math", "-pthread"]
 #: the sweep's source is compiled as this many objects (``DIFFFOG_PART``: the FFI handler,
@@ -221,8 +223,11 @@ def available() -> bool:
             sub = f"{SUBSTEP_TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
             jax.ffi.register_ffi_target(sub, jax.ffi.pycapsule(handle.DifffogSweepSubstep),
                                         platform="cpu")
+            sub_t = f"{SUBSTEP_T_TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
+            jax.ffi.register_ffi_target(sub_t, jax.ffi.pycapsule(handle.DifffogSweepSubstepT),
+                                        platform="cpu")
             _STATE.update(ok=True, why=str(lib), handle=handle, target=target, gs_target=gs,
-                          substep_target=sub)
+                          substep_target=sub, substep_t_target=sub_t)
         except (OSError, subprocess.SubprocessError, AttributeError) as e:
             lines = (getattr(e, "stderr", "") or str(e)).strip().splitlines() or [type(e).__name__]
             first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
@@ -355,6 +360,41 @@ def sweep_substep(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weigh
         K=i64(length_k.shape[0]), nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()),
         surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
         att_in=i64(fog), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk)))
+
+
+def sweep_substep_transposed(lam_bar, irr_bar, tau, normal, bits, free, surf, length_k, kidx,
+                             weight, unit, start, sub_start, *, M: int, ns: int,
+                             segment: tuple[int, int, bool], surfaces: bool,
+                             periodic: tuple[bool, bool, bool], table=None, nk: int = 0):
+    """The transpose of ``sweep_substep``'s linear map (Q, B) → (Λ, E) at fixed τ and zero
+    boundary radiance (``substep_transposed`` in ``native/sweep_face.cc``,
+    ``_kernel._sweep_face_substep_transposed``'s values): Λ̄ (nw, nu, nv[, 1 + nk]), already
+    scaled by the geometry's weight scale, and Ē → Q̄ (nw, nu, nv[, 1 + J]) and B̄.
+    ``segment`` = (s0, s1, fog): the slabs [s0, s1) took the fog step."""
+    import jax
+    import jax.numpy as jnp
+
+    dt = lam_bar.dtype
+    nw, nu, nv = tau.shape[:3]
+    J = 0 if table is None else int(table.shape[1])
+    D = (2 * M + 1) ** 2
+    nb = int(bits.shape[-1]) if surfaces else 1
+    out = [jax.ShapeDtypeStruct((nw, nu, nv) + ((1 + J,) if J else ()), dt),
+           jax.ShapeDtypeStruct((nw, nu, nv), dt)]
+    s0, s1, fog = segment
+    per_w, per_u, per_v = periodic
+    call = jax.ffi.ffi_call(_STATE["substep_t_target"], out, vmap_method="sequential")
+    f = lambda x: jnp.asarray(x, dt)  # noqa: E731
+    i64 = np.int64
+    return tuple(call(
+        lam_bar, f(irr_bar), f(tau), f(normal), jnp.asarray(bits, jnp.uint8),
+        jnp.asarray(free, jnp.bool_), jnp.asarray(surf, jnp.bool_), f(length_k),
+        jnp.asarray(kidx, jnp.int32), f(weight), f(unit), jnp.asarray(start, jnp.int32),
+        jnp.asarray(sub_start, jnp.int32), f(jnp.zeros((1,)) if table is None else table),
+        M=i64(M), nw=i64(nw), nu=i64(nu), nv=i64(nv), ns=i64(ns), D=i64(D),
+        K=i64(length_k.shape[0]), nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()),
+        surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
+        att_in=i64(fog), J=i64(J), NK=i64(nk)))
 
 
 def gram_schmidt(V, a, live):

@@ -753,7 +753,8 @@ void sub_plane_table(const Dims& g, const Args<T>& a, int64_t k, SubPlane<T>& r)
 
 // The arrival plane i's record but its tables (``sub_arrival_table``).
 template <typename T>
-void sub_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>& r) {
+void sub_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>& r,
+                      bool sources = true) {
   const int64_t n = g.nu * g.nv, C1 = 1 + g.J, K = g.K;
   r.qa.assign(size_t(C1 * n), T(0));
   r.B.assign(size_t(n), T(0));
@@ -770,12 +771,12 @@ void sub_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>&
   if (r.p < 0) return;  // padding after an open axis: nothing there
   const int64_t off = r.p * n;
   for (int64_t j = 0; j < n; ++j) {
-    for (int64_t c = 0; c < C1; ++c) {
+    for (int64_t c = 0; c < (sources ? C1 : 0); ++c) {
       const T x = a.Q[(off + j) * g.C + c];
       r.qa[c * n + j] = x;
       r.live[size_t(c)] |= uint8_t(x != T(0));
     }
-    r.B[j] = a.B[off + j];
+    if (sources) r.B[j] = a.B[off + j];
     const bool s = g.surfaces && a.surf[off + j] != 0;
     r.st[j] = uint8_t(s);
     r.sft[j] = T(s);
@@ -1156,17 +1157,416 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
   }
 }
 
+// ---------------------------------------------------------------------------------------------
+// The transpose of the sub-stepped sweep's linear map (Q, B) → (Λ, E) at fixed τ and zero
+// boundary radiance (a gradient's adjoint light solve): ``_kernel.
+// _sweep_face_substep_transposed``'s values.  The planes in reverse sweep order: arrival i
+// takes the cotangent of its rays' radiance leaving it (written by arrival i + M at the window
+// it read, the periodic margins folded back), replays each direction's chain backwards (the
+// node's own halves, then the crossings from the last to the first: each takes its deposit's
+// cotangent from the crossed plane's Λ̄ and adds its source's cotangent into the thread's
+// window there) and writes the cotangent of the radiance it read into plane i − M's carry at
+// that window.  Λ̄ comes scaled by the geometry's weight scale (``FaceGeometry.wscale``).
+
+// arrival i's own data for the transpose: the forward's (``sub_arrival_fill``), and its Λ̄ / M
+// (NC channels) and Ē where the plane is returned (0 elsewhere)
+template <typename T>
+void subt_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>& r) {
+  sub_arrival_fill(g, a, i, r, false);
+  const int64_t n = g.nu * g.nv, NC = 1 + g.NK;
+  r.qa.assign(size_t(NC * n), T(0));  // (here: Λ̄ / M, channels first)
+  r.B.assign(size_t(n), T(0));        // (here: Ē)
+  if (!sub_kept(g, i)) return;
+  const int64_t off = source(g, i) * n;
+  for (int64_t j = 0; j < n; ++j) {
+    for (int64_t c = 0; c < NC; ++c) r.qa[c * n + j] = a.Q[(off + j) * NC + c] / T(g.M);
+    r.B[j] = a.B[off + j];
+  }
+}
+
+// plane c's record for the transpose: the forward's solid flags and crossing factors, and in
+// ``q`` its Λ̄ / M (NC channels, padded) where it is returned
+template <typename T>
+void subt_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) {
+  const int64_t M = g.M, n = g.nu * g.nv, NC = 1 + g.NK;
+  const int64_t PP = (g.nu + 2 * M) * (g.nv + 2 * M);
+  r.solid.assign(size_t(PP), T(0));
+  r.tau.assign(size_t(PP), T(0));
+  r.em.resize(size_t(g.K * PP));
+  r.av.resize(size_t(g.K * PP));
+  r.q.assign(size_t(NC * PP), T(0));
+  const int64_t p = sub_plane(g, c);
+  r.fog = p >= 0;
+  if (p == -1) return;
+  std::vector<T> flag(static_cast<size_t>(n), T(1));
+  const int64_t off = p * n;
+  if (p >= 0)
+    for (int64_t j = 0; j < n; ++j) flag[j] = T(!(a.free[off + j] || a.surf[off + j]));
+  sub_pad(g, flag.data(), 1, r.solid.data());
+  if (!r.fog) return;
+  sub_pad(g, a.tau + off, 1, r.tau.data());
+  if (!sub_kept(g, c)) return;  // no Λ̄ there
+  std::vector<T> lb(static_cast<size_t>(n));
+  for (int64_t ch = 0; ch < NC; ++ch) {
+    for (int64_t j = 0; j < n; ++j) lb[j] = a.Q[(off + j) * NC + ch] / T(M);
+    sub_pad(g, lb.data(), 1, r.q.data() + ch * PP);
+  }
+}
+
+// One direction's chains arriving at rows [u0, u1) of plane i, transposed: ``abar`` the
+// cotangent of the radiance leaving plane i (folded), ``prev`` plane i − M's (written at the
+// window the forward read); the sources' cotangents into the thread's window ``acc`` (M
+// planes i − M + 1 … i, 1 + J channels, padded), B̄ into ``bb``.  ``rows``: 2(M − 1) + 1 row
+// buffers.
+template <typename T, bool FOG, bool SURF>
+void subt_direction(const Dims& g, const Args<T>& a, const SubPlane<T>* const* win,
+                    const SubArrival<T>& arr, int64_t d, int64_t u0, int64_t u1, const T* abar,
+                    T* prev, T* acc, T* bb, T* rows) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, n = nu * nv, PV = nv + 2 * M;
+  const int64_t PP = (nu + 2 * M) * PV, NC = 1 + g.NK, C1 = 1 + g.J, D = g.D;
+  const int64_t k = a.kidx[d];
+  const T w = a.weight[d];
+  const T* tab = a.table + d * g.J;
+  const int64_t su = a.start[2 * d], sv = a.start[2 * d + 1];
+  const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+  const int bit = int(d & 7);
+  T chan[64];
+  chan[0] = w;
+  for (int64_t c = 1; c < NC; ++c) chan[c] = w * tab[c - 1];
+  T* rr = rows;                       // the radiance's cotangent along the row
+  T* vals = rows + nv;                // per crossing j = 1 … M − 1: its validity
+  T* rest = vals + (M - 1) * nv;      // and whether the chain restarts there
+  T* lw = rest + (M - 1) * nv;        // a crossing's Λ̄ summed over the channels
+  for (int64_t u = u0; u < u1; ++u) {
+    const int64_t o = u * nv;
+    const T* s0 = win[0]->solid.data() + (u + su) * PV + sv;
+    const uint8_t* stp = arr.st.data() + o;
+    const T* sft = arr.sft.data() + o;
+    const uint8_t* bl = arr.bits.data() + (d >> 3) * n + o;
+    // the chain forwards: its validity at each crossing, its restarts (geometry)
+    if (FOG || SURF) {
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        T val = T(1) - s0[v];
+        if (SURF) val = ((bl[v] >> bit) & 1) ? T(1) : val;
+        lw[v] = val;
+      }
+      for (int64_t j = 1; j < M; ++j) {
+        const int64_t cu = a.sub[((j - 1) * D + d) * 2], cv = a.sub[((j - 1) * D + d) * 2 + 1];
+        const T* sp = win[j]->solid.data() + (u + cu) * PV + cv;
+        T* vj = vals + (j - 1) * nv;
+        T* rj = rest + (j - 1) * nv;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) {
+          const bool sj = SURF && sp[v] > T(0);
+          rj[v] = (sj && stp[v]) ? T(1) : T(0);
+          lw[v] = sj ? sft[v] : lw[v];
+          vj[v] = lw[v];
+        }
+      }
+    }
+    // backwards: the node's own half sub-steps
+    const T* ro = abar + (d * (nu + 2 * M) + u + M) * PV + M;
+    const uint8_t* ps = arr.pass.data() + o;
+    const T *n0 = arr.nrm.data() + o, *n1 = n0 + n, *n2 = n1 + n;
+    const T* et = arr.B.data() + o;
+    T* bo = bb + o;
+    if (FOG) {
+      const T *e = arr.eo.data() + k * n + o, *x2 = arr.a2.data() + k * n + o,
+              *x1 = arr.a1.data() + k * n + o;
+      T* ap = acc + ((M - 1) * C1) * PP + (u + M) * PV + M;  // the arrival node's Q̄
+      // the own sub-steps' Λ̄ summed over the channels (lw), then the node's update, its Q̄
+      // kept in lw for the channels beyond the first
+      std::fill(lw, lw + nv, T(0));
+      for (int64_t c = 0; c < NC; ++c) {
+        const T cw = chan[c];
+        const T* lc = arr.qa.data() + c * n + o;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) lw[v] += cw * lc[v];
+      }
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        const T ravg = lw[v];
+        const T rt = ps[v] ? ro[v] : T(0), em = e[v], a2 = x2[v];
+        T r_arr = rt + em * rt, q4 = -em * rt, r;
+        if (SURF) {
+          const bool blk = ((bl[v] >> bit) & 1) != 0;
+          const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+          r_arr = r_arr + et[v] * std::max(-ldotn, T(0)) * w;
+          const T a1 = x1[v];
+          bo[v] += blk ? r_arr + a1 * ravg : T(0);
+          q4 = q4 + (blk ? (T(1) - a1) * ravg : -em * r_arr + (T(1) - a2) * ravg);
+          r = blk ? T(0) : r_arr + em * r_arr + a2 * ravg;
+        } else {
+          q4 = q4 - em * r_arr + (T(1) - a2) * ravg;
+          r = r_arr + em * r_arr + a2 * ravg;
+        }
+        rr[v] = r;
+        ap[v] += q4;
+        lw[v] = q4;
+      }
+      for (int64_t c = 0; c < g.J; ++c) {
+        const T tc = tab[c];
+        T* aq = ap + (1 + c) * PP;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) aq[v] += tc * lw[v];
+      }
+    } else {
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) {
+        T r = ps[v] ? ro[v] : T(0);
+        if (SURF) {
+          const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+          r = r + et[v] * std::max(-ldotn, T(0)) * w;
+        }
+        rr[v] = r;
+      }
+    }
+    // the crossings, the last first
+    for (int64_t j = M - 1; j >= 1; --j) {
+      const int64_t cu = a.sub[((j - 1) * D + d) * 2], cv = a.sub[((j - 1) * D + d) * 2 + 1];
+      const int64_t base = (u + cu) * PV + cv;
+      if (FOG) {
+        const T* e = win[j]->em.data() + k * PP + base;
+        const T* av = win[j]->av.data() + k * PP + base;
+        const T* vj = vals + (j - 1) * nv;
+        const T* lq = win[j]->q.data() + base;
+        std::fill(lw, lw + nv, T(0));
+        for (int64_t c = 0; c < NC; ++c) {
+          const T cw = chan[c];
+          const T* lc = lq + c * PP;
+#pragma omp simd
+          for (int64_t v = 0; v < nv; ++v) lw[v] += cw * lc[v];
+        }
+        T* ap = acc + ((j - 1) * C1) * PP + base;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) {
+          const T rho = vj[v] * lw[v], r = rr[v], x = e[v], y = av[v];
+          const T qj = (T(1) - y) * rho - x * r;
+          rr[v] = r + x * r + y * rho;
+          ap[v] += qj;
+          lw[v] = qj;
+        }
+        for (int64_t c = 0; c < g.J; ++c) {
+          const T tc = tab[c];
+          T* aq = ap + (1 + c) * PP;
+#pragma omp simd
+          for (int64_t v = 0; v < nv; ++v) aq[v] += tc * lw[v];
+        }
+      }
+      if (SURF) {
+        const T* rj = rest + (j - 1) * nv;
+#pragma omp simd
+        for (int64_t v = 0; v < nv; ++v) {
+          bo[v] += rj[v] > T(0) ? rr[v] : T(0);
+          rr[v] = rj[v] > T(0) ? T(0) : rr[v];
+        }
+      }
+    }
+    T* pd = prev + (d * (nu + 2 * M) + u + su) * PV + sv;
+#pragma omp simd
+    for (int64_t v = 0; v < nv; ++v) {
+      T r = rr[v];
+      if (SURF) {
+        const bool blk = ((bl[v] >> bit) & 1) != 0;
+        bo[v] += blk ? r : T(0);
+        r = blk ? T(0) : r;
+      }
+      pd[v] = r;
+    }
+  }
+}
+
+template <typename T>
+using SubTFn = void (*)(const Dims&, const Args<T>&, const SubPlane<T>* const*,
+                        const SubArrival<T>&, int64_t, int64_t, int64_t, const T*, T*, T*, T*,
+                        T*);
+
+template <typename T>
+SubTFn<T> subt_pick(bool fog, bool surf) {
+  if (fog) return surf ? subt_direction<T, true, true> : subt_direction<T, true, false>;
+  return surf ? subt_direction<T, false, true> : subt_direction<T, false, false>;
+}
+
+// Fold a padded plane's margins into its interior on the periodic sides (the transpose of
+// ``wrap_periodic``: a margin node's value is added to the interior node it copies).
+template <typename T>
+void fold_periodic(const Dims& g, T* pl) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  auto at = [&](int64_t i, int64_t n) { return ((i - M) % n + n) % n + M; };
+  if (g.per_u)
+    for (int64_t pu = 0; pu < PU; ++pu) {
+      if (pu >= M && pu < nu + M) continue;
+      T* dst = pl + at(pu, nu) * PV;
+      const T* src = pl + pu * PV;
+      for (int64_t pv = 0; pv < PV; ++pv) dst[pv] += src[pv];
+    }
+  if (g.per_v)
+    for (int64_t pu = M; pu < nu + M; ++pu) {
+      T* row = pl + pu * PV;
+      for (int64_t pv = 0; pv < PV; ++pv)
+        if (pv < M || pv >= nv + M) row[at(pv, nv)] += row[pv];
+    }
+}
+
+// The transposed sweep: Λ̄ (scaled: Q's slot, (nw, nu, nv[, NC])) and Ē (B's slot) → Q̄
+// (``lam``'s slot, (nw, nu, nv[, 1 + J])) and B̄ (``irr``'s slot).
+template <typename T>
+void substep_transposed(const Dims& g, const Args<T>& a) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, n = nu * nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  const int64_t PP = PU * PV, chain = g.D * PP, C1 = 1 + g.J, K = g.K, total = g.ns * M;
+  const int64_t planes = total + (g.per_w && g.att_in ? M : 0);
+  const size_t nth = static_cast<size_t>(std::max<int64_t>(1, std::min<int64_t>(g.threads, g.D)));
+  std::vector<T> carry(static_cast<size_t>((M + 1) * chain), T(0));
+  auto slot = [&](int64_t c) { return carry.data() + (((c % (M + 1)) + M + 1) % (M + 1)) * chain; };
+  std::vector<T> qbar(static_cast<size_t>(g.nw * C1 * n), T(0));  // channels first
+  std::fill(a.irr, a.irr + g.nw * n, T(0));
+  std::vector<SubPlane<T>> ring(static_cast<size_t>(M));  // plane c in ring[c mod M]
+  auto ring_at = [&](int64_t c) -> SubPlane<T>& { return ring[size_t(((c % M) + M) % M)]; };
+  for (int64_t c = planes - 1 - M; c < planes - 1; ++c) {
+    subt_plane_fill(g, a, c, ring_at(c));
+    for (int64_t k = 0; k < K; ++k) sub_plane_table(g, a, k, ring_at(c));
+  }
+  SubArrival<T> arr;
+  std::vector<const SubPlane<T>*> win(static_cast<size_t>(M));
+  const int64_t wsize = M * C1 * PP;
+  std::vector<std::vector<T>> accs(nth), bbs(nth), rows(nth);
+  for (size_t t = 0; t < nth; ++t) {
+    accs[t].resize(size_t(wsize));
+    bbs[t].resize(size_t(n));
+    rows[t].resize(size_t((2 * M + 1) * nv));
+  }
+  const int64_t row_bytes = C1 * M * PV * int64_t(sizeof(T));
+  const int64_t tile = std::max<int64_t>(1, std::min<int64_t>(
+      SUB_TILE_BYTES / row_bytes - 2 * M, (nu + 2 * int64_t(nth) - 1) / (2 * int64_t(nth))));
+  const int64_t tiles = (nu + tile - 1) / tile;
+  SpinBarrier barrier(static_cast<int64_t>(nth));
+  std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
+  bool fog = false;
+  SubTFn<T> fn = nullptr;
+
+  auto body = [&](size_t t) {
+    for (int64_t i = planes - 1; i >= 0; --i) {
+      if (t == 0) {
+        const int64_t s = i / M;
+        fog = s == g.ns ? true : (s >= g.s0 && s < g.s1);
+        fn = subt_pick<T>(fog, g.surfaces);
+        if (i < planes - 1) subt_plane_fill(g, a, i - M, ring_at(i - M));
+        subt_arrival_fill(g, a, i, arr);
+        for (int64_t w = 0; w < M; ++w) win[size_t(w)] = &ring_at(i - M + w);
+        next_a = 0;
+        next_b = 0;
+        next_c = 0;
+      }
+      barrier.wait();
+      // the new record's tables, the arrival's own, the cotangent leaving plane i folded, plane
+      // i − M's cleared
+      const int64_t ta = 2 * K + 2 * g.D;
+      for (int64_t task = next_a++; task < ta; task = next_a++) {
+        if (task < K) {
+          if (i < planes - 1) sub_plane_table(g, a, task, ring_at(i - M));
+        } else if (task < 2 * K) {
+          if (fog) sub_arrival_table(g, a, task - K, arr);
+        } else if (task < 2 * K + g.D) {
+          fold_periodic(g, slot(i) + (task - 2 * K) * PP);
+        } else {
+          T* pl = slot(i - M) + (task - 2 * K - g.D) * PP;
+          std::fill(pl, pl + PP, T(0));
+        }
+      }
+      barrier.wait();
+      T* acc = accs[t].data();
+      T* bb = bbs[t].data();
+      if (fog) std::fill(acc, acc + wsize, T(0));
+      std::fill(bb, bb + n, T(0));
+      const T* abar = slot(i);
+      T* prev = slot(i - M);
+      for (int64_t task = next_b++; task < tiles; task = next_b++) {
+        const int64_t u0 = task * tile, u1 = std::min(nu, u0 + tile);
+        for (int64_t d = 0; d < g.D; ++d)
+          fn(g, a, win.data(), arr, d, u0, u1, abar, prev, acc, bb, rows[t].data());
+      }
+      barrier.wait();
+      // the threads' windows folded into Q̄ (plane i − M + w', w' = 1 … M, per channel), B̄
+      const int64_t folds = fog ? M * C1 : 0, tasks = folds + 1;
+      for (int64_t task = next_c++; task < tasks; task = next_c++) {
+        if (task == folds) {
+          const int64_t p = sub_plane(g, i);
+          if (p < 0) continue;
+          T* bp = a.irr + p * n;
+          for (size_t u = 0; u < nth; ++u) {
+            const T* it = bbs[u].data();
+#pragma omp simd
+            for (int64_t j = 0; j < n; ++j) bp[j] += it[j];
+          }
+          continue;
+        }
+        const int64_t wp = 1 + task / C1, ch = task % C1, c = i - M + wp;
+        const int64_t p = sub_plane(g, c);
+        if (p < 0) continue;  // before the first plane, padding
+        T* lp = qbar.data() + (p * C1 + ch) * n;
+        for (size_t u = 0; u < nth; ++u) {
+          const T* ap = accs[u].data() + ((wp - 1) * C1 + ch) * PP;
+          for (int64_t pu = 0; pu < PU; ++pu) {
+            int64_t ru = pu - M;
+            if (g.per_u) ru = ((ru % nu) + nu) % nu;
+            else if (ru < 0 || ru >= nu) continue;
+            const T* row = ap + pu * PV;
+            T* lr = lp + ru * nv;
+#pragma omp simd
+            for (int64_t v = 0; v < nv; ++v) lr[v] += row[M + v];
+            if (g.per_v)
+              for (int64_t pv = 0; pv < M; ++pv) {
+                lr[((pv - M) % nv + nv) % nv] += row[pv];
+                lr[(nv + pv) % nv] += row[M + nv + pv];
+              }
+          }
+        }
+      }
+      barrier.wait();
+    }
+  };
+  std::vector<std::thread> pool;
+  for (size_t t = 1; t < nth; ++t) pool.emplace_back(body, t);
+  body(0);
+  for (auto& th : pool) th.join();
+  // a periodic sweep axis: the initial carry was each direction's source of the first slab
+  if (g.per_w)
+    for (int64_t m = 0; m < M; ++m) {
+      T* r0 = slot(m - M);
+      const int64_t p = source(g, m);
+      for (int64_t d = 0; d < g.D; ++d) {
+        T* pl = r0 + d * PP;
+        fold_periodic(g, pl);
+        const T* tab = a.table + d * g.J;
+        for (int64_t u = 0; u < nu; ++u)
+          for (int64_t v = 0; v < nv; ++v) {
+            const T x = pl[(u + M) * PV + M + v];
+            qbar[(p * C1) * n + u * nv + v] += x;
+            for (int64_t c = 0; c < g.J; ++c) qbar[(p * C1 + 1 + c) * n + u * nv + v] += tab[c] * x;
+          }
+      }
+    }
+  for (int64_t p = 0; p < g.nw; ++p)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t c = 0; c < C1; ++c) a.lam[(p * n + j) * C1 + c] = qbar[(p * C1 + c) * n + j];
+}
+
 #if DIFFFOG_PART == 1
 template void sweep<float>(const Dims& g, const Args<float>& a);
 template void substep_sweep<float>(const Dims& g, const Args<float>& a);
+template void substep_transposed<float>(const Dims& g, const Args<float>& a);
 #elif DIFFFOG_PART == 2
 template void sweep<double>(const Dims& g, const Args<double>& a);
 template void substep_sweep<double>(const Dims& g, const Args<double>& a);
+template void substep_transposed<double>(const Dims& g, const Args<double>& a);
 #elif DIFFFOG_PART == 0
 extern template void sweep<float>(const Dims& g, const Args<float>& a);
 extern template void sweep<double>(const Dims& g, const Args<double>& a);
 extern template void substep_sweep<float>(const Dims& g, const Args<float>& a);
 extern template void substep_sweep<double>(const Dims& g, const Args<double>& a);
+extern template void substep_transposed<float>(const Dims& g, const Args<float>& a);
+extern template void substep_transposed<double>(const Dims& g, const Args<double>& a);
 #endif
 
 #if DIFFFOG_PART <= 0
@@ -1269,12 +1669,48 @@ ffi::Error SweepSubstepImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer t
   return ffi::Error::Success();
 }
 
+ffi::Error SweepSubstepTransposedImpl(
+    ffi::AnyBuffer lam_bar, ffi::AnyBuffer irr_bar, ffi::AnyBuffer tau, ffi::AnyBuffer normal,
+    ffi::AnyBuffer bits, ffi::AnyBuffer free, ffi::AnyBuffer surf, ffi::AnyBuffer length_k,
+    ffi::AnyBuffer kidx, ffi::AnyBuffer weight, ffi::AnyBuffer unit_, ffi::AnyBuffer start,
+    ffi::AnyBuffer sub, ffi::AnyBuffer table, ffi::Result<ffi::AnyBuffer> q_bar,
+    ffi::Result<ffi::AnyBuffer> b_bar, int64_t M, int64_t nw, int64_t nu, int64_t nv,
+    int64_t ns, int64_t D, int64_t K, int64_t nb, int64_t s0, int64_t s1, int64_t threads,
+    int64_t surfaces, int64_t per_w, int64_t per_u, int64_t per_v, int64_t att_in, int64_t J,
+    int64_t NK) {
+  Dims g{M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, 1,
+         surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, true,
+         1 + NK, J, NK, false, false, 0, 0, 0, 0};
+  if (M < 2 || nw < 1 || nu < 1 || nv < 1 || ns * M < nw || D != (2 * M + 1) * (2 * M + 1) ||
+      NK > J || NK < 0 || NK + 1 > 64)
+    return ffi::Error::InvalidArgument("difffog_sweep_substep_t: inconsistent dimensions");
+  auto fill = [&](auto a) {
+    a.sub = static_cast<const int32_t*>(sub.untyped_data());
+    return a;
+  };
+  // Λ̄ in Q's slot, Ē in B's, Q̄ and B̄ in Λ's and E's (the unused slots: the table)
+  if (lam_bar.element_type() == ffi::DataType::F32) {
+    substep_transposed<float>(g, fill(args<float>(lam_bar, irr_bar, tau, normal, bits, free, surf,
+                                                  table, length_k, kidx, weight, unit_, start,
+                                                  table, table, q_bar, b_bar, q_bar, q_bar)));
+  } else if (lam_bar.element_type() == ffi::DataType::F64) {
+    substep_transposed<double>(g, fill(args<double>(lam_bar, irr_bar, tau, normal, bits, free,
+                                                    surf, table, length_k, kidx, weight, unit_,
+                                                    start, table, table, q_bar, b_bar, q_bar,
+                                                    q_bar)));
+  } else {
+    return ffi::Error::InvalidArgument("difffog_sweep_substep_t: float32 or float64 only");
+  }
+  return ffi::Error::Success();
+}
+
 #endif  // DIFFFOG_PART <= 0
 }  // namespace difffog_sweep
 
 #if DIFFFOG_PART <= 0
 using difffog_sweep::SweepFaceImpl;
 using difffog_sweep::SweepSubstepImpl;
+using difffog_sweep::SweepSubstepTransposedImpl;
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                               ffi::Ffi::Bind()
@@ -1363,6 +1799,43 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepSubstep, SweepSubstepImpl,
                                   .Attr<int64_t>("att_in")
                                   .Attr<int64_t>("fl_in")
                                   .Attr<int64_t>("C")
+                                  .Attr<int64_t>("J")
+                                  .Attr<int64_t>("NK"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepSubstepT, SweepSubstepTransposedImpl,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::AnyBuffer>()  // Λ̄ (nw, nu, nv[, 1 + NK]), scaled
+                                  .Arg<ffi::AnyBuffer>()  // Ē (nw, nu, nv)
+                                  .Arg<ffi::AnyBuffer>()  // τ_half_unit
+                                  .Arg<ffi::AnyBuffer>()  // normal (nw, nu, nv, 3)
+                                  .Arg<ffi::AnyBuffer>()  // blocked bytes (nw, nu, nv, nb)
+                                  .Arg<ffi::AnyBuffer>()  // free (nw, nu, nv) bool
+                                  .Arg<ffi::AnyBuffer>()  // surf (nw, nu, nv) bool
+                                  .Arg<ffi::AnyBuffer>()  // distinct |L| (K,)
+                                  .Arg<ffi::AnyBuffer>()  // kidx (D,) int32
+                                  .Arg<ffi::AnyBuffer>()  // weight (D,)
+                                  .Arg<ffi::AnyBuffer>()  // unit (D, 3)
+                                  .Arg<ffi::AnyBuffer>()  // start (D, 2) int32
+                                  .Arg<ffi::AnyBuffer>()  // crossings' origins (M − 1, D, 2)
+                                  .Arg<ffi::AnyBuffer>()  // table (D, J) (or a dummy)
+                                  .Ret<ffi::AnyBuffer>()  // Q̄ (nw, nu, nv[, 1 + J])
+                                  .Ret<ffi::AnyBuffer>()  // B̄ (nw, nu, nv)
+                                  .Attr<int64_t>("M")
+                                  .Attr<int64_t>("nw")
+                                  .Attr<int64_t>("nu")
+                                  .Attr<int64_t>("nv")
+                                  .Attr<int64_t>("ns")
+                                  .Attr<int64_t>("D")
+                                  .Attr<int64_t>("K")
+                                  .Attr<int64_t>("nb")
+                                  .Attr<int64_t>("s0")
+                                  .Attr<int64_t>("s1")
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("surfaces")
+                                  .Attr<int64_t>("per_w")
+                                  .Attr<int64_t>("per_u")
+                                  .Attr<int64_t>("per_v")
+                                  .Attr<int64_t>("att_in")
                                   .Attr<int64_t>("J")
                                   .Attr<int64_t>("NK"));
 #endif  // DIFFFOG_PART <= 0
