@@ -60,6 +60,26 @@ def test_once_M_applies_where_the_sun_scatters_anisotropically():
     assert geom.once is None
 
 
+def test_the_thick_step_warning_is_about_the_solve_s_steps():
+    """The warning on an optically thick lattice step measures the light solve's step σ_t·h·M
+    (M = 2 here), not the once-scattered sweep's K, which only widens the lattice's margin
+    (and whose sweep is sub-stepped): the same depth with and without it (stop 69 read it
+    with K, twice too thick here)."""
+    import re
+
+    import jax.numpy as jnp
+
+    scene = load_scene("cloud-plane")
+    depths = []
+    for once in (None, 4):
+        model = df.forward_model(scene, "sweep", accuracy=None, resolution=12, M=2,
+                                 once_M=once)
+        msg = model.step_warning(model.params(jnp.float32))
+        assert msg is not None and "M = 2" in msg
+        depths.append(float(re.search(r"σ_t·h·M = ([0-9.]+)", msg).group(1)))
+    assert depths[0] == pytest.approx(depths[1], rel=1e-6), depths
+
+
 # R, T error against adding-doubling (benchmarks/slab_anisotropic.py), 60° a = 0.99 τ = 1:
 # at N = 32, M = 3 R +4.3% without once_M, +0.8% with once_M = 6 (T +0.1%); at N = 16, M = 2
 # R +9.2% without, +2.5% with once_M = 4 (T +0.4%): the default suite's case (the M = 3 one

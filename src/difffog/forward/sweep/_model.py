@@ -863,8 +863,10 @@ class SweepModel(AbstractForwardModel):
         lat = self.lattice
         try:
             peak = lat.peak_density if params.density is None else float(jnp.max(params.density))
+            # (the solve's M: the lattice's is the once-scattered sweep's K where that is
+            # larger, for its margin, and that sweep is sub-stepped)
             depth = step_depth(params.scattering, params.absorption, params.g,
-                               self.geometry.order, peak, lat.h, lat.M)
+                               self.geometry.order, peak, lat.h, self.geometry.M)
         except (TypeError, jax.errors.ConcretizationTypeError):  # traced or batched: no check
             return None
         if depth <= THICK_STEP:
