@@ -13,7 +13,9 @@ form: each direction's source built from the node's channels, Λ's moments summe
 Since stop 70 it also serves the sub-stepped scheme (``sweep_substep``: the planes in sweep
 order, each plane's crossing factors built once while it lies within reach of the next
 arrivals, the directions shared among the cores, each depositing into its own window of
-Λ, folded afterwards).  A device mesh's halo, another backend and every derivative stay JAX
+Λ, folded afterwards), and that scheme's transpose (``sweep_substep_transposed``: a
+gradient's adjoint light solve, the planes in reverse).  A device mesh's halo, another backend
+and the other derivatives (the sweeps' JVPs, the step and linear schemes' transposes) stay JAX
 programs.
 
 ``native/gram_schmidt.cc``, in the same library, orthogonalizes each GMRES step against the
