@@ -167,29 +167,8 @@ def test_native_substep_equals_the_xla_loop(case, dtype, x64):
     lost inside shapes), open and periodic sides (the deposits folded back, a periodic sweep
     axis's extra slab), anisotropic sources with the sun's channel, fog in some slabs only,
     no fluence, no fog step, a plane thinner than M."""
-    import dataclasses
-
-    from difffog.forward.sweep._harmonics import basis
-    from helpers import random_face_geometry
-
-    M, shape, L, sun, surfaces, vol, periodics = SUBSTEP_CASES[case]
     assert _native.available(), _native.status()
-    rng = np.random.default_rng(case)
-    dt = jnp.dtype(dtype)
-    D = (2 * M + 1) ** 2
-    harm = basis(L, M).faces if L else None
-    consts = K.face_consts(direction_set(M), 0, harm=harm, substep=True)
-    if sun:
-        consts = dataclasses.replace(consts, sun_phase=jnp.asarray(rng.random(D)))
-    nch = (harm.shape[-1] if L else 0) + int(sun)
-    Q = rng.random(shape + ((1 + nch,) if nch else ()))
-    if nch:
-        Q[..., 1:] *= 0.1
-    geo = random_face_geometry(rng, shape, D)
-    geo = dataclasses.replace(geo, normal=jnp.asarray(geo.normal, dt))
-    tau = 1.5 * rng.random(shape) * (rng.random(shape) > 0.2)  # some nodes without fog
-    args = (jnp.asarray(Q, dt), jnp.asarray(rng.random(shape), dt), jnp.asarray(tau, dt),
-            jnp.asarray(rng.random(D), dt), geo, consts)
+    args, _, M, _, _, surfaces, vol, periodics = _substep_case(case, dtype)
     rtol = 1e-13 if dtype == "float64" else 3e-6
     for periodic in periodics:
         kw = dict(M=M, periodic=periodic, warmup=4 if periodic[0] else 0, surfaces=surfaces,

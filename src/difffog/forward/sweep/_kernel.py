@@ -447,27 +447,36 @@ def _native_applies(halo, dt) -> bool:
     return halo is None and _native.serves(dt)
 
 
+def _native_common(Q, tau_half_unit, geo: FaceGeometry, consts: SweepConsts, M: int,
+                   periodic_w: bool, warmup: int, surfaces: bool):
+    """What both native kernels' calls derive alike: (ns, length_k, kidx, normal, blocked,
+    table or None, nk), the geometry's normal and blocking bytes dummies without surfaces."""
+    dt = Q.dtype
+    _, ns = _slabber(tau_half_unit.shape[0], M, periodic_w, warmup)
+    length_k, kidx = _distinct_lengths(consts, M, dt)
+    table, nk = _source_table(consts, dt) if Q.ndim == 4 else (None, 0)
+    return (ns, length_k, kidx,
+            geo.normal if surfaces else jnp.zeros((1,), dt),
+            geo.blocked if surfaces else jnp.zeros((1,), jnp.uint8),
+            table if table is not None and table.shape[1] else None, nk)
+
+
 def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
                  periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
                  vol=(True, True, None), frame: tuple[int, int] | None = None):
     """``_sweep_face_loop``'s values from the native kernel (``_native.sweep_face``); with
     ``frame`` = (axis, sign), Q and B in the world frame and Λ, E returned in it
     (``sweep_face_world``)."""
-    nw = tau_half_unit.shape[0]
     dt = Q.dtype
-    aniso = Q.ndim == 4
-    _, ns = _slabber(nw, M, periodic[0], warmup)
-    length_k, kidx = _distinct_lengths(consts, M, dt)
+    ns, length_k, kidx, normal, blocked, table, nk = _native_common(
+        Q, tau_half_unit, geo, consts, M, periodic[0], warmup, surfaces)
     s0, s1, fog_on = _fog_slabs(vol, ns, M, periodic[0])
-    none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
-    table, nk = _source_table(consts, dt) if aniso else (None, 0)
     return _native.sweep_face(
-        Q, B, tau_half_unit, geo.normal if surfaces else none[0],
-        geo.blocked if surfaces else none[1], geo.free, geo.surf if surfaces else geo.free,
+        Q, B, tau_half_unit, normal, blocked, geo.free, geo.surf if surfaces else geo.free,
         bc.astype(dt), length_k, kidx, consts.weight.astype(dt), consts.unit.astype(dt),
         M - jnp.asarray(consts.pq, jnp.int32), M=M, ns=ns,
         segment=(s0, s1, fog_on, vol[1]), surfaces=surfaces, periodic=periodic,
-        table=table if aniso and table.shape[1] else None, nk=nk,
+        table=table, nk=nk,
         slope=consts.slope.astype(dt) if consts.slope is not None else None, frame=frame)
 
 
@@ -478,21 +487,16 @@ def _native_substep_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: Swe
     (``_native.sweep_substep``)."""
     if consts.slope is not None:
         raise SolverError("the sub-stepped scheme has no linear-source variant")
-    nw = tau_half_unit.shape[0]
     dt = Q.dtype
-    aniso = Q.ndim == 4
-    _, ns = _slabber(nw, M, periodic[0], warmup)
-    length_k, kidx = _distinct_lengths(consts, M, dt)
+    ns, length_k, kidx, normal, blocked, table, nk = _native_common(
+        Q, tau_half_unit, geo, consts, M, periodic[0], warmup, surfaces)
     s0, s1, fog_on = _substep_fog_slabs(vol, ns, M, periodic[0])
-    none = jnp.zeros((1,), dt), jnp.zeros((1,), jnp.uint8)
-    table, nk = _source_table(consts, dt) if aniso else (None, 0)
     return _native.sweep_substep(
-        Q, B, tau_half_unit, geo.normal if surfaces else none[0],
-        geo.blocked if surfaces else none[1], geo.free, geo.surf, bc.astype(dt), length_k, kidx, consts.weight.astype(dt),
-        consts.unit.astype(dt), M - jnp.asarray(consts.pq, jnp.int32),
-        M - jnp.asarray(consts.sub, jnp.int32), M=M, ns=ns,
-        segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic,
-        table=table if aniso and table.shape[1] else None, nk=nk)
+        Q, B, tau_half_unit, normal, blocked, geo.free, geo.surf, bc.astype(dt), length_k,
+        kidx, consts.weight.astype(dt), consts.unit.astype(dt),
+        M - jnp.asarray(consts.pq, jnp.int32), M - jnp.asarray(consts.sub, jnp.int32), M=M,
+        ns=ns, segment=(s0, s1, fog_on, fluence), surfaces=surfaces, periodic=periodic,
+        table=table, nk=nk)
 
 
 def _fog_slabs(vol, ns: int, M: int, periodic_w: bool) -> tuple[int, int, bool]:
