@@ -65,7 +65,8 @@ _FLAGS = ["-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fopenmp-si
           "-fno-math-errno", "-fno-trapping-math", "-pthread"]
 #: the sweep's source is compiled as this many objects (``DIFFFOG_PART``: the FFI handler,
 #: float, double), at once with the Gram–Schmidt's, then linked: the three 9.3 s on this
-#: project's 2-core CPU against 15.4–18.2 s as one; with the Gram–Schmidt's 9.5–11.8 s
+#: project's 2-core CPU against 15.4–18.2 s as one; with the Gram–Schmidt's 9.5–11.8 s, and
+#: since stop 70 (the sub-stepped kernels in the float and double objects) 13.3 s
 PARTS = 3
 #: builds not loaded for this many days are deleted when another is built (one per source,
 #: compiler, jaxlib or CPU change, ~100 KB each; a machine that still uses one rebuilds it)
