@@ -217,20 +217,17 @@ def available() -> bool:
 
             lib = _build()
             handle = ctypes.cdll.LoadLibrary(str(lib))
-            target = f"{TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
-            jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(handle.DifffogSweepFace),
-                                        platform="cpu")
-            gs = f"{GS_TARGET}_{hashlib.sha256(_GS_SOURCE.read_bytes()).hexdigest()[:12]}"
-            jax.ffi.register_ffi_target(gs, jax.ffi.pycapsule(handle.DifffogGramSchmidt),
-                                        platform="cpu")
-            sub = f"{SUBSTEP_TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
-            jax.ffi.register_ffi_target(sub, jax.ffi.pycapsule(handle.DifffogSweepSubstep),
-                                        platform="cpu")
-            sub_t = f"{SUBSTEP_T_TARGET}_{hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:12]}"
-            jax.ffi.register_ffi_target(sub_t, jax.ffi.pycapsule(handle.DifffogSweepSubstepT),
-                                        platform="cpu")
-            _STATE.update(ok=True, why=str(lib), handle=handle, target=target, gs_target=gs,
-                          substep_target=sub, substep_t_target=sub_t)
+            names = {}  # each custom call named by its source's hash (see TARGET)
+            for key, prefix, source, symbol in (
+                    ("target", TARGET, _SOURCE, "DifffogSweepFace"),
+                    ("gs_target", GS_TARGET, _GS_SOURCE, "DifffogGramSchmidt"),
+                    ("substep_target", SUBSTEP_TARGET, _SOURCE, "DifffogSweepSubstep"),
+                    ("substep_t_target", SUBSTEP_T_TARGET, _SOURCE, "DifffogSweepSubstepT")):
+                names[key] = f"{prefix}_{hashlib.sha256(source.read_bytes()).hexdigest()[:12]}"
+                jax.ffi.register_ffi_target(names[key],
+                                            jax.ffi.pycapsule(getattr(handle, symbol)),
+                                            platform="cpu")
+            _STATE.update(ok=True, why=str(lib), handle=handle, **names)
         except (OSError, subprocess.SubprocessError, AttributeError) as e:
             lines = (getattr(e, "stderr", "") or str(e)).strip().splitlines() or [type(e).__name__]
             first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
