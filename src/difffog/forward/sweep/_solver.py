@@ -1178,17 +1178,22 @@ class SweepSolver(eqx.Module):
     def resolved_adjoint(self, pb: "_Problem") -> str:
         """The adjoint route ``adjoint`` stands for on ``pb`` ("auto": "transposed" where the
         face sweeps run the CPU's loop program, ``transposable`` holds and the phase is
-        isotropic, else "linearised")."""
+        isotropic or the sub-stepped scheme's native kernel serves, else "linearised")."""
         if self.adjoint == "transposed" and not transposable(pb):
             raise SceneError("SweepSolver: adjoint=\"transposed\" has the step and sub-stepped "
                              "schemes on one device only; use adjoint=\"auto\"")
         if self.adjoint != "auto" or self.tangents != "matrix-free":
             return "linearised" if self.tangents != "matrix-free" else self.adjoint
-        # with moments the loop's per-direction sums over them (K = 15 at L = 3) cost more than
-        # the batched program's contractions: cloud-plane N = 24, L = 3, a value and gradient
-        # 5.71 s transposed against 4.14 s linearised (isotropic: 1.72 against 3.17 s)
+        # with moments the XLA loop's per-direction sums over them (K = 15 at L = 3) cost more
+        # than the batched program's contractions: cloud-plane N = 24, L = 3, a value and
+        # gradient 5.71 s transposed against 4.14 s linearised (isotropic: 1.72 against 3.17
+        # s); the sub-stepped scheme's native transpose (stop 70) does them in its pass: 6.58
+        # against 14.72 s there (``bench_adjoint_route.py --scheme substep --cases
+        # cloud-plane:24:3``)
         iso = not pb.geom.channels
-        return ("transposed" if pb.kernel == "loop" and transposable(pb) and iso
+        native = pb.geom.substep and substep_native_applies(pb.kernel, pb.geom.consts[0],
+                                                            pb.sigma_t.dtype)
+        return ("transposed" if pb.kernel == "loop" and transposable(pb) and (iso or native)
                 else "linearised")
 
     def resolved_kernel(self) -> str:
