@@ -705,17 +705,20 @@ void sub_pad(const Dims& g, const T* vals, int64_t stride, T* out) {  // (nu, nv
   wrap_periodic(g, out);
 }
 
-// Sweep plane c's record but its tables (``sub_plane_table``).
+// Sweep plane c's record but its tables (``sub_plane_table``); with ``lam_bar`` (the
+// transpose) ``q`` holds the plane's Λ̄ / M (Q's slot, 1 + NK channels) where it is returned,
+// else its source channels (1 + J) and which of them are live.
 template <typename T>
-void sub_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) {
-  const int64_t M = g.M, n = g.nu * g.nv, C1 = 1 + g.J;
+void sub_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r,
+                    bool lam_bar = false) {
+  const int64_t M = g.M, n = g.nu * g.nv, CQ = lam_bar ? 1 + g.NK : 1 + g.J;
   const int64_t PP = (g.nu + 2 * M) * (g.nv + 2 * M);
   r.solid.assign(size_t(PP), T(0));
   r.tau.assign(size_t(PP), T(0));
   r.em.resize(size_t(g.K * PP));
   r.av.resize(size_t(g.K * PP));
-  r.q.assign(size_t(C1 * PP), T(0));
-  r.live.assign(size_t(C1), 0);
+  r.q.assign(size_t(CQ * PP), T(0));
+  r.live.assign(size_t(CQ), 0);
   const int64_t p = sub_plane(g, c);
   r.fog = p >= 0;
   if (p == -1) return;  // before the first plane: the programs' zeros
@@ -726,7 +729,16 @@ void sub_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) 
   sub_pad(g, flag.data(), 1, r.solid.data());
   if (!r.fog) return;  // padding: solid, no fog
   sub_pad(g, a.tau + off, 1, r.tau.data());
-  for (int64_t ch = 0; ch < C1; ++ch) {
+  if (lam_bar) {
+    if (!sub_kept(g, c)) return;  // no Λ̄ there
+    std::vector<T> lb(static_cast<size_t>(n));
+    for (int64_t ch = 0; ch < CQ; ++ch) {
+      for (int64_t j = 0; j < n; ++j) lb[j] = a.Q[(off + j) * CQ + ch] / T(M);
+      sub_pad(g, lb.data(), 1, r.q.data() + ch * PP);
+    }
+    return;
+  }
+  for (int64_t ch = 0; ch < CQ; ++ch) {
     T* qc = r.q.data() + ch * PP;
     sub_pad(g, a.Q + off * g.C + ch, g.C, qc);
     for (int64_t j = 0; j < PP && !r.live[size_t(ch)]; ++j) r.live[size_t(ch)] = qc[j] != T(0);
@@ -814,6 +826,51 @@ void sub_arrival_table(const Dims& g, const Args<T>& a, int64_t k, SubArrival<T>
 // the sub-stepped kernel's per-thread deposit rows of one tile, bytes (half of one core's L2 on
 // this project's CPU)
 constexpr int64_t SUB_TILE_BYTES = 256 * 1024;
+
+// Rows per tile of the sub-stepped kernels: a thread sweeps every direction over a tile before
+// the next, so that its window's rows the tile's segments reach (``channels`` M (tile + 2M) PV
+// values) stay in its cache; at least two tiles per thread.
+template <typename T>
+int64_t sub_tile(const Dims& g, int64_t channels, int64_t nth) {
+  const int64_t row_bytes = channels * g.M * (g.nv + 2 * g.M) * int64_t(sizeof(T));
+  return std::max<int64_t>(1, std::min<int64_t>(SUB_TILE_BYTES / row_bytes - 2 * g.M,
+                                                (g.nu + 2 * nth - 1) / (2 * nth)));
+}
+
+// Add window plane ``wp`` (1 … M), channel ``ch`` of every thread's padded window (``channels``
+// per plane) into ``dst`` (nu, nv): the margins wrapped on periodic sides, dropped elsewhere.
+template <typename T>
+void sub_fold(const Dims& g, const std::vector<std::vector<T>>& accs, int64_t channels,
+              int64_t wp, int64_t ch, T* dst) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M, PP = PU * PV;
+  for (const auto& acc : accs) {
+    const T* ap = acc.data() + ((wp - 1) * channels + ch) * PP;
+    for (int64_t pu = 0; pu < PU; ++pu) {
+      int64_t ru = pu - M;
+      if (g.per_u) ru = ((ru % nu) + nu) % nu;
+      else if (ru < 0 || ru >= nu) continue;
+      const T* row = ap + pu * PV;
+      T* lr = dst + ru * nv;
+#pragma omp simd
+      for (int64_t v = 0; v < nv; ++v) lr[v] += row[M + v];
+      if (g.per_v)
+        for (int64_t pv = 0; pv < M; ++pv) {
+          lr[((pv - M) % nv + nv) % nv] += row[pv];
+          lr[(nv + pv) % nv] += row[M + nv + pv];
+        }
+    }
+  }
+}
+
+// Add every thread's (n,) array into ``dst``.
+template <typename T>
+void sub_sum(const std::vector<std::vector<T>>& parts, int64_t n, T* dst) {
+  for (const auto& part : parts) {
+    const T* x = part.data();
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) dst[j] += x[j];
+  }
+}
 
 // A barrier for the sweep's threads (a generation count; they spin, then yield: the waits are
 // short and come three times per plane).
@@ -1040,12 +1097,7 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
   }
   T wsum = T(0);
   for (int64_t d = 0; d < g.D; ++d) wsum += a.weight[d];
-  // rows per tile: a thread sweeps every direction over a tile before the next, so that its
-  // window's rows the tile's segments reach ((NC + 1) M (tile + 2M) PV values) stay in its
-  // cache: at least two tiles per thread
-  const int64_t row_bytes = (NC + 1) * M * PV * int64_t(sizeof(T));
-  const int64_t tile = std::max<int64_t>(1, std::min<int64_t>(
-      SUB_TILE_BYTES / row_bytes - 2 * M, (nu + 2 * int64_t(nth) - 1) / (2 * int64_t(nth))));
+  const int64_t tile = sub_tile<T>(g, NC + 1, int64_t(nth));
   const int64_t tiles = (nu + tile - 1) / tile;
   SpinBarrier barrier(static_cast<int64_t>(nth));
   std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
@@ -1098,35 +1150,13 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
           continue;
         }
         if (task == folds) {
-          if (extra || !sub_kept(g, i)) continue;
-          T* ip = a.irr + source(g, i) * n;
-          for (size_t u = 0; u < nth; ++u) {
-            const T* it = irrs[u].data();
-#pragma omp simd
-            for (int64_t j = 0; j < n; ++j) ip[j] += it[j];
-          }
+          if (!extra && sub_kept(g, i)) sub_sum(irrs, n, a.irr + source(g, i) * n);
           continue;
         }
         const int64_t wp = 1 + task / (NC + 1), ch = task % (NC + 1), c = i - M + wp;
         if (!sub_kept(g, c) || (extra && wp == M)) continue;
         T* lp = lam.data() + (source(g, c) * (NC + 1) + ch) * n;
-        for (size_t u = 0; u < nth; ++u) {
-          const T* ap = accs[u].data() + ((wp - 1) * (NC + 1) + ch) * PP;
-          for (int64_t pu = 0; pu < PU; ++pu) {
-            int64_t ru = pu - M;
-            if (g.per_u) ru = ((ru % nu) + nu) % nu;
-            else if (ru < 0 || ru >= nu) continue;
-            const T* row = ap + pu * PV;
-            T* lr = lp + ru * nv;
-#pragma omp simd
-            for (int64_t v = 0; v < nv; ++v) lr[v] += row[M + v];
-            if (g.per_v)
-              for (int64_t pv = 0; pv < M; ++pv) {
-                lr[((pv - M) % nv + nv) % nv] += row[pv];
-                lr[(nv + pv) % nv] += row[M + nv + pv];
-              }
-          }
-        }
+        sub_fold(g, accs, NC + 1, wp, ch, lp);
         if (wp == M && ch == NC)  // the node's own two halves: weight Σ_d w_d / M, known
           for (int64_t j = 0; j < n; ++j) lp[j] += wsum / T(M);
       }
@@ -1181,35 +1211,6 @@ void subt_arrival_fill(const Dims& g, const Args<T>& a, int64_t i, SubArrival<T>
   for (int64_t j = 0; j < n; ++j) {
     for (int64_t c = 0; c < NC; ++c) r.qa[c * n + j] = a.Q[(off + j) * NC + c] / T(g.M);
     r.B[j] = a.B[off + j];
-  }
-}
-
-// plane c's record for the transpose: the forward's solid flags and crossing factors, and in
-// ``q`` its Λ̄ / M (NC channels, padded) where it is returned
-template <typename T>
-void subt_plane_fill(const Dims& g, const Args<T>& a, int64_t c, SubPlane<T>& r) {
-  const int64_t M = g.M, n = g.nu * g.nv, NC = 1 + g.NK;
-  const int64_t PP = (g.nu + 2 * M) * (g.nv + 2 * M);
-  r.solid.assign(size_t(PP), T(0));
-  r.tau.assign(size_t(PP), T(0));
-  r.em.resize(size_t(g.K * PP));
-  r.av.resize(size_t(g.K * PP));
-  r.q.assign(size_t(NC * PP), T(0));
-  const int64_t p = sub_plane(g, c);
-  r.fog = p >= 0;
-  if (p == -1) return;
-  std::vector<T> flag(static_cast<size_t>(n), T(1));
-  const int64_t off = p * n;
-  if (p >= 0)
-    for (int64_t j = 0; j < n; ++j) flag[j] = T(!(a.free[off + j] || a.surf[off + j]));
-  sub_pad(g, flag.data(), 1, r.solid.data());
-  if (!r.fog) return;
-  sub_pad(g, a.tau + off, 1, r.tau.data());
-  if (!sub_kept(g, c)) return;  // no Λ̄ there
-  std::vector<T> lb(static_cast<size_t>(n));
-  for (int64_t ch = 0; ch < NC; ++ch) {
-    for (int64_t j = 0; j < n; ++j) lb[j] = a.Q[(off + j) * NC + ch] / T(M);
-    sub_pad(g, lb.data(), 1, r.q.data() + ch * PP);
   }
 }
 
@@ -1424,7 +1425,7 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
   std::vector<SubPlane<T>> ring(static_cast<size_t>(M));  // plane c in ring[c mod M]
   auto ring_at = [&](int64_t c) -> SubPlane<T>& { return ring[size_t(((c % M) + M) % M)]; };
   for (int64_t c = planes - 1 - M; c < planes - 1; ++c) {
-    subt_plane_fill(g, a, c, ring_at(c));
+    sub_plane_fill(g, a, c, ring_at(c), true);
     for (int64_t k = 0; k < K; ++k) sub_plane_table(g, a, k, ring_at(c));
   }
   SubArrival<T> arr;
@@ -1436,9 +1437,7 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
     bbs[t].resize(size_t(n));
     rows[t].resize(size_t((2 * M + 1) * nv));
   }
-  const int64_t row_bytes = C1 * M * PV * int64_t(sizeof(T));
-  const int64_t tile = std::max<int64_t>(1, std::min<int64_t>(
-      SUB_TILE_BYTES / row_bytes - 2 * M, (nu + 2 * int64_t(nth) - 1) / (2 * int64_t(nth))));
+  const int64_t tile = sub_tile<T>(g, C1, int64_t(nth));
   const int64_t tiles = (nu + tile - 1) / tile;
   SpinBarrier barrier(static_cast<int64_t>(nth));
   std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
@@ -1451,7 +1450,7 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
         const int64_t s = i / M;
         fog = s == g.ns ? true : (s >= g.s0 && s < g.s1);
         fn = subt_pick<T>(fog, g.surfaces);
-        if (i < planes - 1) subt_plane_fill(g, a, i - M, ring_at(i - M));
+        if (i < planes - 1) sub_plane_fill(g, a, i - M, ring_at(i - M), true);
         subt_arrival_fill(g, a, i, arr);
         for (int64_t w = 0; w < M; ++w) win[size_t(w)] = &ring_at(i - M + w);
         next_a = 0;
@@ -1492,36 +1491,12 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
       for (int64_t task = next_c++; task < tasks; task = next_c++) {
         if (task == folds) {
           const int64_t p = sub_plane(g, i);
-          if (p < 0) continue;
-          T* bp = a.irr + p * n;
-          for (size_t u = 0; u < nth; ++u) {
-            const T* it = bbs[u].data();
-#pragma omp simd
-            for (int64_t j = 0; j < n; ++j) bp[j] += it[j];
-          }
+          if (p >= 0) sub_sum(bbs, n, a.irr + p * n);
           continue;
         }
-        const int64_t wp = 1 + task / C1, ch = task % C1, c = i - M + wp;
-        const int64_t p = sub_plane(g, c);
-        if (p < 0) continue;  // before the first plane, padding
-        T* lp = qbar.data() + (p * C1 + ch) * n;
-        for (size_t u = 0; u < nth; ++u) {
-          const T* ap = accs[u].data() + ((wp - 1) * C1 + ch) * PP;
-          for (int64_t pu = 0; pu < PU; ++pu) {
-            int64_t ru = pu - M;
-            if (g.per_u) ru = ((ru % nu) + nu) % nu;
-            else if (ru < 0 || ru >= nu) continue;
-            const T* row = ap + pu * PV;
-            T* lr = lp + ru * nv;
-#pragma omp simd
-            for (int64_t v = 0; v < nv; ++v) lr[v] += row[M + v];
-            if (g.per_v)
-              for (int64_t pv = 0; pv < M; ++pv) {
-                lr[((pv - M) % nv + nv) % nv] += row[pv];
-                lr[(nv + pv) % nv] += row[M + nv + pv];
-              }
-          }
-        }
+        const int64_t wp = 1 + task / C1, ch = task % C1, p = sub_plane(g, i - M + wp);
+        if (p >= 0)  // (not before the first plane, nor padding)
+          sub_fold(g, accs, C1, wp, ch, qbar.data() + (p * C1 + ch) * n);
       }
       barrier.wait();
     }
