@@ -443,13 +443,13 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         bodies = 6 * slabs * max(1, -(-nu // 16)) * D
         per_iter = bodies * GPU_SECONDS_PER_BODY
     general = False  # the native kernel's general form: its own figure (no factors below)
+    native = False  # the native sweep (XLA's loop without it)
+    if backend != "gpu" and kernel == "loop":
+        from .forward.sweep import _native
+
+        native = _native.expected()
     if backend != "gpu":
         rate, per_node = CPU_UPDATES_PER_S, CPU_SECONDS_PER_NODE
-        native = False
-        if kernel == "loop":
-            from .forward.sweep import _native
-
-            native = _native.expected()  # the native sweep (XLA's loop without it)
         general = native and (K > 0 or linear or substep)
         if native and substep:
             per_iter = 6 * D * n * M * (CPU_NATIVE_SUBSTEP_S_PER_UPDATE
@@ -488,9 +488,7 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
                              gradient=gradient, phase_order=phase_order,
                              scheme="substep", tangents=tangents,
                              sweep_residuals=sweep_residuals, edge_samples=edge_samples)
-        from .forward.sweep import _native
-
-        if kernel == "loop" and backend != "gpu" and _native.expected():
+        if native:
             once_s = ONCE_NATIVE_S_PER_SUBSTEP * n * 6 * (2 * once + 1) ** 2 * once
         else:
             once_s = ONCE_S_PER_CROSSING * n * 6 * (2 * once + 1) ** 2 * (once - 1)
