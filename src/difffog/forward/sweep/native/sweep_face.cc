@@ -1,12 +1,13 @@
 // One face sweep as a CPU kernel: the values of ``_kernel._sweep_face_loop`` (the same inputs
 // and arithmetic; the isotropic step scheme's fluence sums regrouped by distinct |L|, equal to
 // rounding), written where XLA's loops cannot go: the planes visited one residue chain at a
-// time so that the carried radiance stays in the last-level cache, and per row tile the (p, q)
-// shift, the fog step and the sums of one direction in one vectorised pass, the e^{-τ|L|}
-// factors once per node and distinct |L|, the surfaces' blocking and irradiance only where
-// there are surfaces, the tiles of each plane shared among threads.  ``unit`` serves the
-// isotropic step scheme; ``unit_general`` the linear scheme and anisotropic fog (a source per
-// direction from the node's channels, Λ's angular moments).
+// time, and per row tile the (p, q) shift, the fog step and the sums of one direction in one
+// vectorised pass, the e^{-τ|L|} factors once per node and distinct |L|, the surfaces'
+// blocking and irradiance only where there are surfaces.  ``sweep_blocked`` serves the
+// isotropic step scheme (blocks of directions, each swept through the whole face, shared among
+// threads); ``unit_general`` the linear scheme and anisotropic fog (a source per direction from
+// the node's channels, Λ's angular moments; all directions per plane, the tiles of each plane
+// shared among threads).
 //
 // Built by ``_native.py`` with the machine's C++ compiler on first use, against jaxlib's XLA
 // FFI headers; registered as the custom call "difffog_sweep_face_<hash>" (CPU).  Derivatives
@@ -18,6 +19,8 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <cstdlib>
+#include <memory>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -54,7 +57,7 @@ struct Dims {
   // the general form (anisotropic fog, the linear scheme): Q has C = 1 + J (+ 3) channels per
   // node, the isotropic source, J that direction d weights by table[d] (the NK moments first),
   // and with the linear scheme the slope h∇Q; Λ has 1 + NK channels.  C = 1, !lin: the
-  // isotropic step scheme (``unit``).
+  // isotropic step scheme (``sweep_blocked``).
   int64_t C, J, NK;
   bool lin;
   // Q, B, Λ and E in the world frame (``world``): face node (w, u, v) is world node
@@ -102,17 +105,6 @@ inline bool kept(const Dims& g, int64_t i) {
   return g.per_w ? i >= total - g.nw : i < g.nw;
 }
 
-// The tile's factor em = e^{-τ} − 1 per node and distinct |L| (τ the half-segment's depth).
-template <typename T>
-void tables(const T* tau, const T* length_k, int64_t K, int64_t n, T* em) {
-  for (int64_t k = 0; k < K; ++k) {
-    const T len = length_k[k];
-    T* e = em + k * n;
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) e[i] = em1(-(tau[i] * len));
-  }
-}
-
 // A tile's per-node data in the layouts its passes read: pass[j] (a ray goes on from fog nodes
 // and, with surfaces, shells), and with surfaces the face frame's normal (nw, nu, nv, 3) and
 // blocking bytes (nw, nu, nv, nb) made planar (3 n, nb n), and where ``special`` is given the
@@ -141,195 +133,6 @@ inline T avg(T t, T x) {
   return small ? series : -x / (small ? T(1) : t);
 }
 
-// One unit: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0), every direction:
-// src and dst are the chain's carries (D, PU, PV) before and after the plane.
-//
-// The direction loop runs over whole rows, one 64-byte vector at a time (per direction the
-// rows read and written are each one contiguous block).  Two things keep it short:
-// - Λ is Σ_d w_d R̄_d with R̄_d = Q + (R_d − Q)·a2_k, or Q + (B − Q)·a1_k after a blocked
-//   arrival (a2_k = (1 − e^{−2τ_k})/(2τ_k), a1_k = (1 − e^{−τ_k})/τ_k for the direction's
-//   distinct |L|), so the loop only sums S_k += w_d (R_d − Q) per |L| (and C_k += w_d over the
-//   blocked ones) and Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k] once per node afterwards:
-//   the same sum, regrouped;
-// - only a vector that holds a node where surfaces matter (a SURFACE node, a set blocking bit
-//   or a normal: the shell around the shapes) takes the form with surfaces: a blocked arrival
-//   (the surface's radiosity B instead of the ray), E by cos; the others the fog-only form
-//   (a fog node's blocking bits and normal are 0, where the two forms agree).
-template <typename T, bool ATT, bool SURF, bool FL>
-void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int64_t p,
-          int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>& flags) {
-  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
-  const int64_t rows = u1 - u0, n = rows * nv;
-  const int64_t off = (p * nu + u0) * nv;
-  // Q and B of the tile's nodes: in place (face frame) or gathered (world frame; scratch)
-  const T* Q = g.world ? nullptr : a.Q + off;
-  const T* B = g.world ? nullptr : a.B + off;
-  const T* tau = a.tau + off;
-  const int64_t K = ATT ? g.K : 0;
-  const int64_t KC = SURF ? K : 0;  // the blocked weights C_k
-  // scratch: factors em (K n), sums S (K n), C (K n with surfaces), Λ and E (2 n), normal (3 n
-  // with surfaces); words as wide as T (so that every array a loop reads has T's lanes, and
-  // the loops vectorise one vector at a time, not four): pass (n), blocking bits (NW n, bit d
-  // of node j in word (d / WB) n + j, with surfaces); bytes: pass, special (2 n), blocking
-  // bits (nb n)
-  using W = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;
-  constexpr int64_t WB = 8 * int64_t(sizeof(W));
-  const int64_t NW = SURF ? (g.D + WB - 1) / WB : 0;
-  const int64_t nbytes = 2 * n + (SURF ? g.nb * n : 0);
-  const int64_t NQ = g.world ? 2 : 0;  // the gathered Q and B
-  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0) + 1 + NW + NQ) * n +
-                     (nbytes + sizeof(T) - 1) / sizeof(T)));
-  T* em = work.data();
-  T* S = em + K * n;
-  T* C = S + K * n;
-  T* accl = C + KC * n;
-  T* acci = accl + n;
-  T* nrm = acci + n;
-  if (g.world) {
-    T* qw = nrm + (SURF ? 3 * n : 0);
-    gather(g, a.Q, p, u0, rows, qw);
-    gather(g, a.B, p, u0, rows, qw + n);
-    Q = qw;
-    B = qw + n;
-  }
-  W* passw = reinterpret_cast<W*>(nrm + (SURF ? 3 * n : 0) + NQ * n);
-  W* bitw = passw + n;
-  uint8_t* pass = reinterpret_cast<uint8_t*>(bitw + NW * n);
-  uint8_t* special = pass + n;
-  uint8_t* bits = special + n;
-  if (ATT) tables<T>(tau, a.length_k, K, n, em);
-  std::fill(S, S + (K + KC) * n, T(0));
-  std::fill(accl, accl + 2 * n, T(0));
-  node_data<T, SURF>(g, a, off, n, pass, nrm, bits, special);
-  for (int64_t j = 0; j < n; ++j) passw[j] = W(pass[j]);
-  std::fill(bitw, bitw + NW * n, W(0));
-  for (int64_t b = 0; b < (SURF ? g.nb : 0); ++b) {
-    const uint8_t* src_b = bits + b * n;
-    W* dst_w = bitw + (8 * b / WB) * n;
-    const int sh = int((8 * b) % WB);
-    for (int64_t j = 0; j < n; ++j) dst_w[j] |= W(src_b[j]) << sh;
-  }
-  // each row as whole vectors (64 bytes) and a remainder; a vector that holds a node where
-  // surfaces matter (a SURFACE node, a set blocking bit or a normal: the shell around the
-  // shapes) takes the form with surfaces, the others the fog-only form (the same for a fog
-  // node, whose blocking bits and normal are 0).  ``flags``: per row, one per vector.
-  constexpr int64_t VW = 64 / int64_t(sizeof(T));
-  const int64_t nvec = nv / VW, nch = nvec + 1;  // + the remainder's flag
-  flags.assign(size_t(rows * nch), 0);
-  if (SURF)
-    for (int64_t r = 0; r < rows; ++r)
-      for (int64_t v = 0; v < nv; ++v) flags[size_t(r * nch + v / VW)] |= special[r * nv + v];
-  T wsum = T(0);
-  for (int64_t d = 0; d < g.D; ++d) {
-    const int64_t k = ATT ? a.kidx[d] : 0;
-    const T w = a.weight[d];
-    wsum += w;
-    const int64_t su = a.start[2 * d], sv = a.start[2 * d + 1];
-    const T* sd = src + (d * PU + u0 + su) * PV + sv;  // the plane's rows, shifted by (p, q)
-    T* dd = dst + (d * PU + u0 + M) * PV + M;
-    const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
-    const W* bd = bitw + (d / WB) * n;
-    const int bit = int(d % WB);
-    for (int64_t r = 0; r < rows; ++r) {
-      const T* rs = sd + r * PV;
-      T* rd = dd + r * PV;
-      const int64_t o = r * nv;
-      const T* e = em + k * n + o;
-      const T* q = Q + o;
-      const W* ps = passw + o;
-      T* sk = S + k * n + o;
-      T* al = accl + o;
-      const T* bb = B + o;
-      const W* bl = bd + o;
-      const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
-      T* ck = C + k * n + o;
-      T* ai = acci + o;
-      const int32_t* flag = flags.data() + r * nch;
-      auto fog = [&](int64_t v) __attribute__((always_inline)) {
-        const T r_mid = rs[v], qt = q[v];
-        T r_out = r_mid;
-        if (ATT) {
-          const T x = e[v];
-          const T r_arr = r_mid + x * (r_mid - qt);
-          if (FL) sk[v] += w * (r_mid - qt);
-          r_out = r_arr + x * (r_arr - qt);
-        } else if (FL) {
-          al[v] += r_mid * w;
-        }
-        rd[v] = ps[v] ? r_out : T(0);
-      };
-      // with surfaces: a blocked arrival is the surface's radiosity B (only the departure half
-      // lies in the fog: its R̄ goes through C_k, not S_k), E sums the arriving radiance by cos
-      auto surf = [&](int64_t v) __attribute__((always_inline)) {
-        const T r_mid = rs[v], qt = q[v], bt = bb[v];
-        const bool blocked = ((bl[v] >> bit) & 1) != 0;
-        T r_arr = r_mid, x = T(0);
-        if (ATT) {
-          x = e[v];
-          r_arr = r_mid + x * (r_mid - qt);
-        }
-        r_arr = blocked ? bt : r_arr;
-        if (ATT && FL) {
-          sk[v] += blocked ? T(0) : w * (r_mid - qt);
-          ck[v] += blocked ? w : T(0);
-        } else if (FL) {  // no fog step: R̄ is the arriving radiance
-          al[v] += w * (blocked ? bt : r_mid);
-        }
-        const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
-        ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
-        const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
-        rd[v] = ps[v] ? r_through : T(0);
-      };
-      for (int64_t c = 0; c < nvec; ++c) {
-        const int64_t v0 = c * VW;
-        if (SURF && flag[c]) {
-#pragma omp simd
-          for (int64_t l = 0; l < VW; ++l) surf(v0 + l);
-        } else {
-#pragma omp simd
-          for (int64_t l = 0; l < VW; ++l) fog(v0 + l);
-        }
-      }
-      if (SURF && flag[nvec]) {
-        for (int64_t v = nvec * VW; v < nv; ++v) surf(v);
-      } else {
-        for (int64_t v = nvec * VW; v < nv; ++v) fog(v);
-      }
-    }
-  }
-  if (!kept(g, i)) return;
-  if (ATT && FL) {  // Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k]
-    for (int64_t j = 0; j < n; ++j) accl[j] = Q[j] * wsum;
-    for (int64_t k = 0; k < K; ++k) {
-      const T len = a.length_k[k];
-      const T* e = em + k * n;
-      const T* sk = S + k * n;
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j) {
-        const T x = e[j];
-        accl[j] += avg(T(2) * (tau[j] * len), x * (x + T(2))) * sk[j];
-      }
-      if (!SURF) continue;
-      const T* ck = C + k * n;
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j)
-        accl[j] += ck[j] != T(0) ? avg(tau[j] * len, e[j]) * (B[j] - Q[j]) * ck[j] : T(0);
-    }
-  }
-  if (!g.world) {
-    std::memcpy(a.lam + off, accl, size_t(n) * sizeof(T));
-    std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
-    return;
-  }
-  for (int64_t r = 0; r < rows; ++r)
-    for (int64_t v = 0; v < nv; ++v) {
-      const int64_t w = node_at(g, p, u0 + r, v);
-      a.lam[w] = accl[r * nv + v];
-      a.irr[w] = acci[r * nv + v];
-    }
-}
-
-
 // φ = (1 − e^{-t})/t and ψ = (1 − φ)/t (``_numerics.linear_source_terms``: their Taylor series
 // below t = 0.5, where the closed forms cancel; x = e^{-t} − 1).
 template <typename T>
@@ -352,7 +155,9 @@ inline void phi_psi(T t, T x, T& phi, T& psi) {
   }
 }
 
-// The general form of ``unit`` (same rows and carries): a direction's source from the
+// One unit of the general form: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0),
+// every direction (src and dst: the chain's carries (D, PU, PV) before and after the plane);
+// the isotropic step scheme's forms (``block_tile``) with a direction's source from the
 // node's channels, Q_0 + Σ_j table[d, j] Q_j; with the linear scheme (LIN) the source linear
 // along the segment (slope s = L·h∇Q: R at the node r_mid + em·a + ω s, leaving it R + em·b +
 // ω s, mean q + φ(a + b)/2 − ψ s/2, a = r_mid − q + s/2, b = R − q, ω = τψ/2:
@@ -506,21 +311,6 @@ template <typename T>
 using UnitFn = void (*)(const Dims&, const Args<T>&, const T*, T*, int64_t, int64_t, int64_t,
                         int64_t, std::vector<T>&, std::vector<int32_t>&);
 
-template <typename T>
-UnitFn<T> pick(bool att, bool surf, bool fl) {
-  const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
-  switch (key) {
-    case 0: return unit<T, false, false, false>;
-    case 1: return unit<T, false, false, true>;
-    case 2: return unit<T, false, true, false>;
-    case 3: return unit<T, false, true, true>;
-    case 4: return unit<T, true, false, false>;
-    case 5: return unit<T, true, false, true>;
-    case 6: return unit<T, true, true, false>;
-    default: return unit<T, true, true, true>;
-  }
-}
-
 template <typename T, bool LIN>
 UnitFn<T> pick_general_(bool att, bool surf, bool fl) {
   const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
@@ -572,33 +362,464 @@ void wrap_periodic(const Dims& g, T* pl) {
 // source (the equilibrium guess for horizontal rays that never leave the domain), else the
 // boundary radiance bc[d]; bc[d] on the open sides' border, wrapped on periodic ones.
 template <typename T>
-void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
+void initial_direction(const Dims& g, const Args<T>& a, int64_t m, int64_t d, T* pl) {
   const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
   const int64_t C = g.C;
   const int64_t p0 = g.per_w ? source(g, m) : -1;
-  for (int64_t d = 0; d < g.D; ++d) {
-    T* pl = buf + d * PU * PV;
-    std::fill(pl, pl + PU * PV, a.bc[d]);
-    if (p0 >= 0) {  // direction d's source: Q_0 + Σ_j table[d, j] Q_j
-      const T* tab = a.table + d * g.J;
-      for (int64_t u = 0; u < g.nu; ++u)
-        for (int64_t v = 0; v < g.nv; ++v) {
-          const T* qn = a.Q + node_at(g, p0, u, v) * C;
-          T q = qn[0];
-          for (int64_t c = 0; c < g.J; ++c) q += tab[c] * qn[1 + c];
-          pl[(u + M) * PV + M + v] = q;
-        }
-      wrap_periodic(g, pl);
+  std::fill(pl, pl + PU * PV, a.bc[d]);
+  if (p0 < 0) return;
+  const T* tab = a.table + d * g.J;  // direction d's source: Q_0 + Σ_j table[d, j] Q_j
+  for (int64_t u = 0; u < g.nu; ++u)
+    for (int64_t v = 0; v < g.nv; ++v) {
+      const T* qn = a.Q + node_at(g, p0, u, v) * C;
+      T q = qn[0];
+      for (int64_t c = 0; c < g.J; ++c) q += tab[c] * qn[1 + c];
+      pl[(u + M) * PV + M + v] = q;
     }
+  wrap_periodic(g, pl);
+}
+
+template <typename T>
+void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
+  const int64_t PU = g.nu + 2 * g.M, PV = g.nv + 2 * g.M;
+  for (int64_t d = 0; d < g.D; ++d) initial_direction(g, a, m, d, buf + d * PU * PV);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The isotropic step scheme by direction blocks.
+// The directions, ordered by |L|, are cut into a few blocks; each block is swept alone through
+// every plane of every chain, its carries (two planes per direction) kept from plane to plane,
+// and a plane's node data (τ, Q, the pass flags, Λ and E) read once per block rather than
+// once per direction; e^{-τ|L|} − 1 once per block and |L|.  The blocks are shared among the
+// threads, each summing Λ and E into its own face-sized arrays, added at the end.  Swept all
+// together per row tile (as ``unit_general`` does), the D directions' carries (18 MB at
+// N = 128, M = 5) went through the last-level cache at every plane, and their loads and stores
+// took half of the sweep's time (a profile of fog-balls); by blocks, per plane and tile each
+// direction's rows are read and written while the tile's node data stay in L1.
+
+// a block's two carries per direction at most (the block size against the passes over the
+// node data; measured: fog without surfaces, N = 128, M = 5, 0.52 / 0.47 / 0.45 s per
+// iteration with 16 / 8 / 4 blocks)
+constexpr int64_t BLOCK_CARRY_BYTES = 5 * 1024 * 1024;
+constexpr int64_t BLOCK_MAX = 32;  // directions per block
+// a row tile's per-node scratch (five arrays, and its Q and τ): within one core's L1
+constexpr int64_t BLOCK_TILE_BYTES = 16 * 1024;
+
+// Face planes [p0, p1) of a one-channel array between the world frame (``node_at``) and the
+// face frame ((p·nu + u)·nv + v): world → face (``to_face``) or back.  The loops run in blocks
+// of 16 along v and along whichever of p and u is the world's smallest stride (when v is not),
+// so that both sides are read and written by whole cache lines (a plain loop over v read one
+// line per node there).
+template <typename T>
+void permute(const Dims& g, int64_t p0, int64_t p1, bool to_face, const T* from, T* to) {
+  const int64_t nu = g.nu, nv = g.nv;
+  const int64_t aw = std::llabs(g.sw), au = std::llabs(g.su), av = std::llabs(g.sv);
+  auto move = [&](int64_t p, int64_t u, int64_t v) __attribute__((always_inline)) {
+    const int64_t f = (p * nu + u) * nv + v, w = node_at(g, p, u, v);
+    if (to_face) to[f] = from[w];
+    else to[w] = from[f];
+  };
+  constexpr int64_t BS = 16;
+  if (av <= au && av <= aw) {
+    for (int64_t p = p0; p < p1; ++p)
+      for (int64_t u = 0; u < nu; ++u)
+        for (int64_t v = 0; v < nv; ++v) move(p, u, v);
+  } else if (au <= aw) {
+    for (int64_t p = p0; p < p1; ++p)
+      for (int64_t ub = 0; ub < nu; ub += BS)
+        for (int64_t vb = 0; vb < nv; vb += BS)
+          for (int64_t v = vb; v < std::min(nv, vb + BS); ++v)
+            for (int64_t u = ub; u < std::min(nu, ub + BS); ++u) move(p, u, v);
+  } else {
+    for (int64_t pb = p0; pb < p1; pb += BS)
+      for (int64_t u = 0; u < nu; ++u)
+        for (int64_t vb = 0; vb < nv; vb += BS)
+          for (int64_t v = vb; v < std::min(nv, vb + BS); ++v)
+            for (int64_t p = pb; p < std::min(p1, pb + BS); ++p) move(p, u, v);
   }
 }
 
-// The sweep, one residue m of the planes at a time: a ray leaving plane sM + m arrives at
-// (s + 1)M + m, so the M residues are independent chains, and one chain's carry (D planes,
-// two buffers of 9 MB at N = 128, M = 5) stays in the last-level cache from plane to plane,
-// where the whole slab's (46 MB) went to memory and back at every step.
+// The surfaces' data of the 64-byte vectors where they matter (a node that is a SURFACE node,
+// has a normal or is blocked for some direction), one record each, built once per sweep: per
+// lane the normal and the blocking bytes, planar (3 × VW and nb × VW: bit d % 8 of byte d / 8
+// says whether direction d is blocked there), whether a node has a normal or is a SURFACE node
+// (E is summed there) and the OR of the lanes' bytes.  ``index``: per vector of each face row
+// (the whole ones and the remainder: nch = nv / VW + 1 per row) its record, or -1: the part
+// (the thread that built it) · 2^PART_SHIFT + its number there.
+template <typename T>
+struct SurfPart {
+  std::vector<T> normal;      // (records, 3, VW)
+  std::vector<uint8_t> bits;  // (records, nb, VW)
+  std::vector<uint8_t> any;   // (records, nb)
+  std::vector<uint8_t> touch;  // (records,)
+};
+
+constexpr int PART_SHIFT = 40;
+
+template <typename T>
+struct SurfVecs {
+  static constexpr int64_t VW = 64 / int64_t(sizeof(T));
+  int64_t nch = 0;
+  std::vector<int64_t> index;
+  std::vector<SurfPart<T>> parts;
+};
+
+// Face rows [r0, r1)' records: part ``t`` of ``all`` (and its index for those rows).
+template <typename T>
+void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64_t t,
+                  SurfVecs<T>& all) {
+  constexpr int64_t VW = SurfVecs<T>::VW;
+  const int64_t nv = g.nv, nch = all.nch, nb = g.nb;
+  SurfPart<T>& part = all.parts[size_t(t)];
+  const size_t guess = size_t((r1 - r0) * nch / 4 + 1);  // records: a quarter of the vectors
+  part.normal.reserve(guess * 3 * VW);
+  part.bits.reserve(guess * nb * VW);
+  part.any.reserve(guess * nb);
+  part.touch.reserve(guess);
+  for (int64_t r = r0; r < r1; ++r)
+    for (int64_t c = 0; c < nch; ++c) {
+      const int64_t v0 = c * VW, nl = std::min(nv, (c + 1) * VW) - v0, j0 = r * nv + v0;
+      if (nl <= 0) {
+        all.index[size_t(r * nch + c)] = -1;
+        continue;
+      }
+      // whether any lane matters (branch-free loops over the vector's contiguous data)
+      const T* nn = a.normal + 3 * j0;
+      const uint8_t* bj = a.bits + nb * j0;
+      const uint8_t* sj = a.surf + j0;
+      uint8_t blocked = 0, surf = 0;
+      T nrm_any = T(0);
+      for (int64_t x = 0; x < nb * nl; ++x) blocked |= bj[x];
+      for (int64_t x = 0; x < nl; ++x) surf |= sj[x];
+      for (int64_t x = 0; x < 3 * nl; ++x) nrm_any += std::fabs(nn[x]);
+      const bool touch = surf != 0 || nrm_any != T(0);
+      if (!touch && !blocked) {
+        all.index[size_t(r * nch + c)] = -1;
+        continue;
+      }
+      const size_t rec = part.touch.size();
+      all.index[size_t(r * nch + c)] = (t << PART_SHIFT) + int64_t(rec);
+      part.touch.push_back(uint8_t(touch));
+      part.normal.resize((rec + 1) * size_t(3 * VW), T(0));
+      part.bits.resize((rec + 1) * size_t(nb * VW), 0);
+      part.any.resize((rec + 1) * size_t(nb), 0);
+      T* nrm = part.normal.data() + rec * 3 * VW;
+      uint8_t* w = part.bits.data() + rec * nb * VW;
+      uint8_t* any = part.any.data() + rec * nb;
+      for (int64_t l = 0; l < nl; ++l)
+        for (int x = 0; x < 3; ++x) nrm[x * VW + l] = nn[3 * l + x];
+      if (!blocked) continue;
+      for (int64_t l = 0; l < nl; ++l)
+        for (int64_t k = 0; k < nb; ++k) {
+          w[k * VW + l] = bj[l * nb + k];
+          any[k] |= bj[l * nb + k];
+        }
+    }
+}
+
+// Rows [u0, u1) of face plane p for the block's nd directions ``dirs`` (ordered by |L|): their
+// carries src[b] → dst[b] (PU, PV), and where the plane is kept Λ and E added to lam and irr
+// (face frame).  A vector takes the surface form for direction b where one of its nodes has a
+// normal, is a SURFACE node or is blocked for b, else the fog-only form (the same for a fog
+// node, whose blocking bits and normal are 0).
+template <typename T, bool ATT, bool SURF, bool FL>
+void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const int32_t* dirs,
+                int64_t nd, T* const* src, T* const* dst, int64_t p, int64_t u0, int64_t u1,
+                bool keep, const SurfVecs<T>& sv, T* lam, T* irr,
+                std::vector<T>& work) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PV = nv + 2 * M;
+  const int64_t rows = u1 - u0, n = rows * nv, off = (p * nu + u0) * nv;
+  const T* Q = Qf + off;
+  const T* B = Bf + off;
+  const T* tau = a.tau + off;
+  using W = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;  // T's lanes
+  // scratch: e, S (Σ w (R − Q), or Σ w R̄ without fog), C (the blocked weights) of one |L|,
+  // E, and the pass flag in words as wide as T
+  work.resize(size_t(5 * n));
+  T* e = work.data();
+  T* S = e + n;
+  T* Cw = S + n;
+  T* Ea = Cw + n;
+  W* passw = reinterpret_cast<W*>(Ea + n);
+  if (SURF) std::fill(Ea, Ea + n, T(0));
+  for (int64_t j = 0; j < n; ++j)
+    passw[j] = W((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
+  constexpr int64_t VW = SurfVecs<T>::VW;
+  const int64_t nvec = nv / VW, nch = nvec + 1;
+  const int64_t* vidx = SURF ? sv.index.data() + (p * nu + u0) * nch : nullptr;
+  T* lo = lam + off;
+  T* io = irr + off;
+  for (int64_t b0 = 0; b0 < nd;) {  // the run of directions with one |L|
+    int64_t b1 = b0 + 1;
+    while (b1 < nd && a.kidx[dirs[b1]] == a.kidx[dirs[b0]]) ++b1;
+    const T len = ATT ? a.length_k[a.kidx[dirs[b0]]] : T(0);
+    if (ATT) {
+#pragma omp simd
+      for (int64_t j = 0; j < n; ++j) e[j] = em1(-(tau[j] * len));
+    }
+    std::fill(S, S + (SURF ? 2 : 1) * n, T(0));
+    T wsum = T(0);
+    for (int64_t b = b0; b < b1; ++b) {
+      const int64_t d = dirs[b];
+      const T w = a.weight[d];
+      wsum += w;
+      const int64_t su = a.start[2 * d], sv_ = a.start[2 * d + 1];
+      const T* sd = src[b] + (u0 + su) * PV + sv_;  // the plane's rows, shifted by (p, q)
+      T* dd = dst[b] + (u0 + M) * PV + M;
+      const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+      const int64_t kw = d >> 3, kb = d & 7;  // its blocking bit
+      for (int64_t r = 0; r < rows; ++r) {
+        const T* rs = sd + r * PV;
+        T* rd = dd + r * PV;
+        const int64_t o = r * nv;
+        const T* ex = e + o;
+        const T* q = Q + o;
+        const W* ps = passw + o;
+        T* sk = S + o;
+        const T* bb = B + o;
+        T* ck = Cw + o;
+        T* ai = Ea + o;
+        const T *n0 = nullptr, *n1 = nullptr, *n2 = nullptr;  // the record's lanes
+        const uint8_t* bl = nullptr;
+        auto fog = [&](int64_t v) __attribute__((always_inline)) {
+          const T r_mid = rs[v], qt = q[v];
+          T r_out = r_mid;
+          if (ATT) {
+            const T x = ex[v];
+            const T r_arr = r_mid + x * (r_mid - qt);
+            if (FL) sk[v] += w * (r_mid - qt);
+            r_out = r_arr + x * (r_arr - qt);
+          } else if (FL) {
+            sk[v] += r_mid * w;
+          }
+          rd[v] = ps[v] ? r_out : T(0);
+        };
+        // with surfaces: a blocked arrival is the surface's radiosity B (only the departure
+        // half lies in the fog: its R̄ goes through C, not S), E sums the arriving radiance
+        auto surf = [&](int64_t v, int64_t l) __attribute__((always_inline)) {
+          const T r_mid = rs[v], qt = q[v], bt = bb[v];
+          const bool blocked = ((bl[l] >> kb) & 1) != 0;
+          T r_arr = r_mid, x = T(0);
+          if (ATT) {
+            x = ex[v];
+            r_arr = r_mid + x * (r_mid - qt);
+          }
+          r_arr = blocked ? bt : r_arr;
+          if (ATT && FL) {
+            sk[v] += blocked ? T(0) : w * (r_mid - qt);
+            ck[v] += blocked ? w : T(0);
+          } else if (FL) {  // no fog step: R̄ is the arriving radiance
+            sk[v] += w * (blocked ? bt : r_mid);
+          }
+          const T ldotn = n0[l] * ux + n1[l] * uy + n2[l] * uz;
+          ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
+          const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
+          rd[v] = ps[v] ? r_through : T(0);
+        };
+        // whether vector c takes the surface form for this direction (and its record)
+        auto special = [&](int64_t c) __attribute__((always_inline)) {
+          if (!SURF) return false;
+          const int64_t ri = vidx[r * nch + c];
+          if (ri < 0) return false;
+          const SurfPart<T>& pt = sv.parts[size_t(ri >> PART_SHIFT)];
+          const size_t x = size_t(ri & ((int64_t(1) << PART_SHIFT) - 1));
+          if (!pt.touch[x] && !((pt.any[x * size_t(g.nb) + size_t(kw)] >> kb) & 1)) return false;
+          n0 = pt.normal.data() + x * 3 * VW;
+          n1 = n0 + VW;
+          n2 = n1 + VW;
+          bl = pt.bits.data() + (x * size_t(g.nb) + size_t(kw)) * VW;
+          return true;
+        };
+        for (int64_t c = 0; c < nvec; ++c) {
+          const int64_t v0 = c * VW;
+          if (special(c)) {
+#pragma omp simd
+            for (int64_t l = 0; l < VW; ++l) surf(v0 + l, l);
+          } else {
+#pragma omp simd
+            for (int64_t l = 0; l < VW; ++l) fog(v0 + l);
+          }
+        }
+        if (special(nvec)) {
+          for (int64_t v = nvec * VW; v < nv; ++v) surf(v, v - nvec * VW);
+        } else {
+          for (int64_t v = nvec * VW; v < nv; ++v) fog(v);
+        }
+      }
+    }
+    // Λ = Σ_d w_d R̄_d with R̄_d = Q + (R_d − Q)·a2 (a2 = (1 − e^{−2τ})/(2τ) for the run's
+    // |L|), or Q + (B − Q)·a1 after a blocked arrival (a1 = (1 − e^{−τ})/τ): the loop summed
+    // S = Σ w (R − Q) and C = Σ w over the blocked ones
+    if (keep && ATT && FL) {
+#pragma omp simd
+      for (int64_t j = 0; j < n; ++j) {
+        const T x = e[j];
+        lo[j] += Q[j] * wsum + avg(T(2) * (tau[j] * len), x * (x + T(2))) * S[j];
+      }
+      if (SURF) {
+#pragma omp simd
+        for (int64_t j = 0; j < n; ++j)
+          lo[j] += Cw[j] != T(0) ? avg(tau[j] * len, e[j]) * (B[j] - Q[j]) * Cw[j] : T(0);
+      }
+    } else if (keep && FL) {
+      for (int64_t j = 0; j < n; ++j) lo[j] += S[j];
+    }
+    b0 = b1;
+  }
+  if (keep && SURF)
+    for (int64_t j = 0; j < n; ++j) io[j] += Ea[j];
+}
+
+template <typename T>
+using BlockFn = void (*)(const Dims&, const Args<T>&, const T*, const T*, const int32_t*, int64_t,
+                         T* const*, T* const*, int64_t, int64_t, int64_t, bool,
+                         const SurfVecs<T>&, T*, T*, std::vector<T>&);
+
+template <typename T>
+BlockFn<T> pick_block(bool att, bool surf, bool fl) {
+  const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
+  switch (key) {
+    case 0: return block_tile<T, false, false, false>;
+    case 1: return block_tile<T, false, false, true>;
+    case 2: return block_tile<T, false, true, false>;
+    case 3: return block_tile<T, false, true, true>;
+    case 4: return block_tile<T, true, false, false>;
+    case 5: return block_tile<T, true, false, true>;
+    case 6: return block_tile<T, true, true, false>;
+    default: return block_tile<T, true, true, true>;
+  }
+}
+
+template <typename T>
+void sweep_blocked(const Dims& g, const Args<T>& a) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  const int64_t plane = PU * PV, nface = g.nw * nu * nv;
+  // the directions by |L| (kidx), cut into blocks within the carries' budget, as many blocks
+  // as a multiple of the threads, of nearly equal size
+  std::vector<int32_t> order(static_cast<size_t>(g.D));
+  for (int64_t d = 0; d < g.D; ++d) order[size_t(d)] = int32_t(d);
+  std::stable_sort(order.begin(), order.end(),
+                   [&](int32_t x, int32_t y) { return a.kidx[x] < a.kidx[y]; });
+  const int64_t cap = std::max<int64_t>(
+      1, std::min<int64_t>(BLOCK_MAX, BLOCK_CARRY_BYTES / (2 * plane * int64_t(sizeof(T)))));
+  const int64_t want = std::max<int64_t>(1, std::min<int64_t>(g.threads, g.D));
+  int64_t nblocks = (g.D + cap - 1) / cap;
+  nblocks = std::min<int64_t>(g.D, (nblocks + want - 1) / want * want);
+  const int64_t nth = std::min<int64_t>(want, nblocks);
+  const int64_t tile = std::max<int64_t>(
+      1, std::min<int64_t>(nu, BLOCK_TILE_BYTES / (6 * nv * int64_t(sizeof(T)))));
+  auto run = [&](auto&& body) {
+    std::vector<std::thread> pool;
+    for (int64_t t = 1; t < nth; ++t) pool.emplace_back(body, t);
+    body(int64_t(0));
+    for (auto& th : pool) th.join();
+  };
+  // the face frame's Q and B (gathered from the world frame), the surfaces' records
+  std::unique_ptr<T[]> qb(g.world ? new T[size_t(2 * nface)] : nullptr);
+  const T* Qf = g.world ? qb.get() : a.Q;
+  const T* Bf = g.world ? qb.get() + nface : a.B;
+  SurfVecs<T> sv;
+  if (g.surfaces) {
+    sv.nch = nv / SurfVecs<T>::VW + 1;
+    sv.index.resize(size_t(g.nw * nu * sv.nch));
+    sv.parts.resize(size_t(nth));
+  }
+  run([&](int64_t t) {
+    const int64_t p0 = g.nw * t / nth, p1 = g.nw * (t + 1) / nth;
+    if (g.surfaces) surf_records(g, a, p0 * nu, p1 * nu, t, sv);
+    if (g.world) {
+      permute(g, p0, p1, true, a.Q, qb.get());
+      permute(g, p0, p1, true, a.B, qb.get() + nface);
+    }
+  });
+  // Λ and E per thread, face frame (thread 0's in place, unless the world frame's)
+  std::vector<std::vector<T>> acc(static_cast<size_t>(nth));
+  std::atomic<int64_t> next{0};
+  run([&](int64_t t) {
+    T* lam = nullptr;
+    T* irr = nullptr;
+    auto own = [&]() {
+      if (t == 0 && !g.world) {
+        lam = a.lam;
+        irr = a.irr;
+        std::fill(lam, lam + nface, T(0));
+        std::fill(irr, irr + nface, T(0));
+      } else {
+        acc[size_t(t)].assign(size_t(2 * nface), T(0));
+        lam = acc[size_t(t)].data();
+        irr = lam + nface;
+      }
+    };
+    if (t == 0) own();
+    std::vector<T> work;
+    T* src[BLOCK_MAX];
+    T* dst[BLOCK_MAX];
+    for (int64_t j = next++; j < nblocks; j = next++) {
+      if (!lam) own();
+      const int64_t first = g.D * j / nblocks;
+      const int32_t* dirs = order.data() + first;
+      const int64_t nb = g.D * (j + 1) / nblocks - first;
+      for (int64_t m = 0; m < M; ++m) {
+        for (int64_t b = 0; b < nb; ++b) {  // the block's carries: its directions' in scratch
+          src[b] = a.scratch + 2 * (first + b) * plane;
+          dst[b] = src[b] + plane;
+          initial_direction(g, a, m, dirs[b], src[b]);
+          std::memcpy(dst[b], src[b], size_t(plane) * sizeof(T));
+        }
+        for (int64_t s = 0; s < g.ns; ++s) {
+          const int64_t i = s * M + m, p = source(g, i);
+          if (p < 0) {  // padding after an open axis's last plane: nothing goes on
+            for (int64_t b = 0; b < nb; ++b)
+              for (int64_t u = 0; u < nu; ++u) std::fill_n(dst[b] + (u + M) * PV + M, nv, T(0));
+          } else {
+            const bool in = s >= g.s0 && s < g.s1;
+            const BlockFn<T> fn = pick_block<T>(in && g.att_in, g.surfaces, in && g.fl_in);
+            const bool keep = kept(g, i);
+            for (int64_t u0 = 0; u0 < nu; u0 += tile)
+              fn(g, a, Qf, Bf, dirs, nb, src, dst, p, u0, std::min(u0 + tile, nu), keep,
+                 sv, lam, irr, work);
+            for (int64_t b = 0; b < nb; ++b) wrap_periodic(g, dst[b]);
+          }
+          for (int64_t b = 0; b < nb; ++b) std::swap(src[b], dst[b]);
+        }
+        // the radiance leaving the chain's last plane: exit[m, d] (M, D, nu, nv)
+        for (int64_t b = 0; b < nb; ++b)
+          for (int64_t u = 0; u < nu; ++u)
+            std::memcpy(a.exit + ((m * g.D + dirs[b]) * nu + u) * nv,
+                        src[b] + (u + M) * PV + M, size_t(nv) * sizeof(T));
+      }
+    }
+  });
+  // the threads' sums (face frame): into thread 0's, then into the world frame
+  T* lam0 = g.world ? acc[0].data() : a.lam;
+  T* irr0 = g.world ? acc[0].data() + nface : a.irr;
+  run([&](int64_t t) {
+    const int64_t j0 = nface * t / nth, j1 = nface * (t + 1) / nth;
+    for (size_t x = 1; x < acc.size(); ++x) {
+      if (acc[x].empty()) continue;
+      const T* l = acc[x].data();
+#pragma omp simd
+      for (int64_t j = j0; j < j1; ++j) {
+        lam0[j] += l[j];
+        irr0[j] += l[nface + j];
+      }
+    }
+    if (g.world) {
+      const int64_t p0 = g.nw * t / nth, p1 = g.nw * (t + 1) / nth;
+      permute(g, p0, p1, false, lam0, a.lam);
+      permute(g, p0, p1, false, irr0, a.irr);
+    }
+  });
+}
+
+// The sweep (the general form's here; the isotropic step scheme's by blocks), one residue m
+// of the planes at a time: a ray leaving plane sM + m arrives at (s + 1)M + m, so the M
+// residues are independent chains, and one chain's carry (D planes, two buffers of 9 MB at
+// N = 128, M = 5) stays in the last-level cache from plane to plane, where the whole slab's
+// (46 MB) went to memory and back at every step.
 template <typename T>
 void sweep(const Dims& g, const Args<T>& a) {
+  if (g.C == 1 && !g.lin) return sweep_blocked(g, a);  // the isotropic step scheme
   const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
   const int64_t chain = g.D * PU * PV;
   T* bufs[2] = {a.scratch, a.scratch + chain};
@@ -621,8 +842,7 @@ void sweep(const Dims& g, const Args<T>& a) {
       }
       const bool in = s >= g.s0 && s < g.s1;
       const bool att = in && g.att_in, fl = in && g.fl_in;
-      const UnitFn<T> fn = (g.C > 1 || g.lin) ? pick_general<T>(att, g.surfaces, fl, g.lin)
-                                              : pick<T>(att, g.surfaces, fl);
+      const UnitFn<T> fn = pick_general<T>(att, g.surfaces, fl, g.lin);
       std::atomic<int64_t> next{0};
       auto worker = [&](int64_t t) {
         for (int64_t j = next++; j < tiles; j = next++) {
