@@ -108,6 +108,55 @@ def test_native_face_sweep_equals_the_xla_loop(M, surfaces, periodic, vol, dtype
     assert float(jnp.max(got[0] if vol[1] else got[1])) > 0  # something was summed
 
 
+def _mixed_face(M, shape, dt, seed=1):
+    """``_face``'s inputs with the surfaces where a lattice has them: SURFACE nodes (with
+    normals) in a band of columns and a few rows, blocking bits in a shell around them and
+    nowhere else, the rest fog without normals, so that a row has whole 64-byte vectors of fog
+    only, of surfaces, and of blocking only, and a remainder."""
+    rng = np.random.default_rng(seed)
+    D = (2 * M + 1) ** 2
+    nw, nu, nv = shape
+    v = np.arange(nv)[None, None, :]
+    u = np.arange(nu)[None, :, None]
+    surf = np.broadcast_to((v >= 22) & (v < 26) | (u == nu - 1), shape).copy()
+    shell = np.broadcast_to((v >= 17) & (v < 31) | (u >= nu - 3), shape) & ~surf
+    free = ~surf & (rng.random(shape) > 0.05)
+    normal = np.where(surf[..., None], rng.normal(size=shape + (3,)), 0.0)
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-30)
+    bits = rng.integers(0, 256, shape + ((D + 7) // 8,), dtype=np.uint8)
+    bits *= (shell & (rng.random(shape) > 0.3))[..., None].astype(np.uint8)
+    geo = K.FaceGeometry(free=jnp.asarray(free), surf=jnp.asarray(surf),
+                         normal=jnp.asarray(normal, dt), blocked=jnp.asarray(bits))
+    tau = rng.random(shape) * 2.0 * ~surf
+    arrays = [jnp.asarray(a, dt) for a in (rng.random(shape), rng.random(shape), tau)]
+    return (*arrays, jnp.asarray(rng.random(D), dt), geo,
+            K.face_consts(direction_set(M), 1))
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+@pytest.mark.parametrize("M,periodic", [(2, (False, False, True)), (3, (True, False, False))])
+def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic, dtype, x64,
+                                                                     native_off):
+    """The isotropic step scheme's kernel (directions in blocks, each swept through the face;
+    the surfaces' data per 64-byte vector) on rows of whole vectors: fog-only vectors, vectors
+    with SURFACE nodes, vectors blocked for some directions only, and a remainder, against
+    XLA's loop."""
+    dt = jnp.dtype(dtype)
+    args = _mixed_face(M, (7, 6, 53), dt)
+    kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=True, vol=(True, True, None))
+    ref = _sweep(args, **kw)
+    _native._STATE.clear()
+    assert _native.available(), _native.status()
+    got = _sweep(args, **kw)
+    rtol = 1e-13 if dtype == "float64" else 2e-6
+    for r, g in zip(ref, got):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=rtol,
+                                   atol=rtol * float(jnp.max(jnp.abs(r))))
+    lam, irr = np.asarray(got[0]), np.asarray(got[1])
+    assert lam.max() > 0 and irr.max() > 0 and (irr[:, :-1, :17] == 0).all()  # E at normals
+
+
 @needs_compiler
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 @pytest.mark.parametrize("linear,order,sun", [(True, 0, False), (False, 1, True),

@@ -4,12 +4,14 @@
 directions); XLA runs each direction's body as separate kernels, ~1.5 ns per node and
 direction on this 2-core CPU whatever the tile (issue 20: 12% of the copy roofline).
 ``native/sweep_face.cc`` does the same arithmetic with the planes visited one residue chain at
-a time (a ray from plane sM + m arrives at (s + 1)M + m: one chain's carry stays in the
-last-level cache), one vectorised pass per direction and row tile, and the tiles of each plane
-shared among the CPU's cores.  It serves the values of the step scheme (the default for fog
-whose lattice steps are optically thin) and of the linear scheme (thick steps), isotropic or
-with a Henyey–Greenstein fog's angular moments and the sun's phase channel (the general
-form: each direction's source built from the node's channels, Λ's moments summed), on a CPU.
+a time (a ray from plane sM + m arrives at (s + 1)M + m) and one vectorised pass per direction
+and row tile.  It serves the values of the step scheme (the default for fog whose lattice steps
+are optically thin: since stop 71 by blocks of directions, each block swept alone through the
+whole face with its node data read once per block, the blocks shared among the CPU's cores) and
+of the linear scheme (thick steps), isotropic or with a Henyey–Greenstein fog's angular moments
+and the sun's phase channel (the general form: each direction's source built from the node's
+channels, Λ's moments summed; one chain's carry kept in the last-level cache, the tiles of each
+plane shared among the cores), on a CPU.
 Since stop 70 it also serves the sub-stepped scheme (``sweep_substep``: the planes in sweep
 order, each plane's crossing factors built once while it lies within reach of the next
 arrivals, the directions shared among the cores, each depositing into its own window of
@@ -297,10 +299,11 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
     K = int(length_k.shape[0])
     nb = int(bits.shape[-1]) if surfaces else 1
     item = np.dtype(dt).itemsize
-    # rows per tile: tall, so that each direction's rows stream from memory as one block, with
-    # the tile's per-node data in L2 (K factors and 2K sums, Q, B, τ, Λ, E, a normal, bytes:
-    # 3K + 12 values; the general form: C channels, 4K factors, 1 + nk sums, 8 more)
-    per_node = (3 * K + 12) if C == 1 and not linear else (C + 4 * K + 1 + nk + 8)
+    # the general form's rows per tile: tall, so that each direction's rows stream from memory
+    # as one block, with the tile's per-node data in L2 (C channels, 4K factors, 1 + nk sums,
+    # Q, B, τ, Λ, E, a normal, bytes: 8 more); the isotropic step scheme's blocks choose their
+    # own (``sweep_face.cc``: BLOCK_TILE_BYTES, in L1)
+    per_node = C + 4 * K + 1 + nk + 8
     tile = int(max(1, min(nu, TILE_BYTES // (per_node * nv * item))))
     lam_shape = out_shape + ((1 + nk,) if nk else ())
     out = [jax.ShapeDtypeStruct(lam_shape, dt), jax.ShapeDtypeStruct(out_shape, dt)] + [
