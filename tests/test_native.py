@@ -138,12 +138,14 @@ def _mixed_face(M, shape, dt, seed=1):
 @pytest.mark.parametrize("M,periodic", [(2, (False, False, True)), (3, (True, False, False))])
 def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic, dtype, x64,
                                                                      native_off):
-    """The isotropic step scheme's kernel (directions in blocks, each swept through the face;
-    the surfaces' data per 64-byte vector) on rows of whole vectors: fog-only vectors, vectors
-    with SURFACE nodes, vectors blocked for some directions only, and a remainder, against
-    XLA's loop."""
+    """The isotropic step scheme's kernel on a large face (directions in blocks, each swept
+    through the face; the surfaces' data per 64-byte vector) on rows of whole vectors:
+    fog-only vectors, vectors with SURFACE nodes, vectors blocked for some directions only,
+    and a remainder, against XLA's loop.  (The small faces above go plane by plane.)"""
     dt = jnp.dtype(dtype)
-    args = _mixed_face(M, (7, 6, 53), dt)
+    shape = (16, 100, 53) if M == 2 else (16, 51, 53)  # ≥ 2²¹ updates: by blocks
+    assert (2 * M + 1) ** 2 * np.prod(shape) >= 2 ** 21
+    args = _mixed_face(M, shape, dt)
     kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=True, vol=(True, True, None))
     ref = _sweep(args, **kw)
     _native._STATE.clear()
@@ -155,6 +157,29 @@ def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic
                                    atol=rtol * float(jnp.max(jnp.abs(r))))
     lam, irr = np.asarray(got[0]), np.asarray(got[1])
     assert lam.max() > 0 and irr.max() > 0 and (irr[:, :-1, :17] == 0).all()  # E at normals
+
+
+@needs_compiler
+def test_native_sweeps_give_the_same_bits_at_every_call(x64):
+    """The kernels share their work among threads, each thread summing into its own arrays:
+    each thread's share is fixed (the step scheme's blocks of directions, the sub-stepped
+    scheme's row tiles), so a sweep repeated gives the same bits.  (Shares taken as threads
+    came free summed Λ in an order that changed from call to call: a fit's Jacobian computed
+    twice differed in its last bits.)"""
+    assert _native.available(), _native.status()
+    args = _mixed_face(3, (16, 51, 53), jnp.dtype("float32"))  # by blocks (≥ 2²¹ updates)
+    kw = dict(M=3, periodic=(False, False, False), warmup=7, surfaces=True,
+              vol=(True, True, None))
+    step = jax.jit(lambda *a: K._sweep_face_loop(*a, **kw))
+    sargs, _, M, _, _, surfaces, vol, periodics = _substep_case(2, "float32")
+    skw = dict(M=M, periodic=periodics[0], warmup=0, surfaces=surfaces, fluence=vol[1],
+               vol=vol)
+    sub = jax.jit(lambda *a: K._native_substep_call(*a, **skw))
+    for f, a in ((step, args), (sub, sargs)):
+        first = [np.asarray(x) for x in f(*a)]
+        for _ in range(5):
+            for x, y in zip(first, f(*a)):
+                assert np.array_equal(x, np.asarray(y))
 
 
 @needs_compiler

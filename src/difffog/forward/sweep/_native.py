@@ -6,12 +6,13 @@ direction on this 2-core CPU whatever the tile (issue 20: 12% of the copy roofli
 ``native/sweep_face.cc`` does the same arithmetic with the planes visited one residue chain at
 a time (a ray from plane sM + m arrives at (s + 1)M + m) and one vectorised pass per direction
 and row tile.  It serves the values of the step scheme (the default for fog whose lattice steps
-are optically thin: since stop 71 by blocks of directions, each block swept alone through the
-whole face with its node data read once per block, the blocks shared among the CPU's cores) and
+are optically thin: since stop 71, on a face of at least 2²¹ node-and-direction updates, by
+blocks of directions, each block swept alone through the whole face with its node data read
+once per block, the blocks shared among the CPU's cores) and
 of the linear scheme (thick steps), isotropic or with a Henyey–Greenstein fog's angular moments
 and the sun's phase channel (the general form: each direction's source built from the node's
-channels, Λ's moments summed; one chain's carry kept in the last-level cache, the tiles of each
-plane shared among the cores), on a CPU.
+channels, Λ's moments summed), on a CPU; the rest with one chain's carry kept in the last-level
+cache, the tiles of each plane shared among the cores.
 Since stop 70 it also serves the sub-stepped scheme (``sweep_substep``: the planes in sweep
 order, each plane's crossing factors built once while it lies within reach of the next
 arrivals, the directions shared among the cores, each depositing into its own window of
@@ -299,11 +300,12 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
     K = int(length_k.shape[0])
     nb = int(bits.shape[-1]) if surfaces else 1
     item = np.dtype(dt).itemsize
-    # the general form's rows per tile: tall, so that each direction's rows stream from memory
-    # as one block, with the tile's per-node data in L2 (C channels, 4K factors, 1 + nk sums,
-    # Q, B, τ, Λ, E, a normal, bytes: 8 more); the isotropic step scheme's blocks choose their
-    # own (``sweep_face.cc``: BLOCK_TILE_BYTES, in L1)
-    per_node = C + 4 * K + 1 + nk + 8
+    # rows per tile: tall, so that each direction's rows stream from memory as one block, with
+    # the tile's per-node data in L2 (K factors and 2K sums, Q, B, τ, Λ, E, a normal, bytes:
+    # 3K + 12 values; the general form: C channels, 4K factors, 1 + nk sums, 8 more); the
+    # isotropic step scheme's blocks of directions on a large face choose their own
+    # (``sweep_face.cc``: BLOCK_TILE_BYTES, in L1)
+    per_node = (3 * K + 12) if C == 1 and not linear else (C + 4 * K + 1 + nk + 8)
     tile = int(max(1, min(nu, TILE_BYTES // (per_node * nv * item))))
     lam_shape = out_shape + ((1 + nk,) if nk else ())
     out = [jax.ShapeDtypeStruct(lam_shape, dt), jax.ShapeDtypeStruct(out_shape, dt)] + [

@@ -4,10 +4,11 @@
 // time, and per row tile the (p, q) shift, the fog step and the sums of one direction in one
 // vectorised pass, the e^{-τ|L|} factors once per node and distinct |L|, the surfaces'
 // blocking and irradiance only where there are surfaces.  ``sweep_blocked`` serves the
-// isotropic step scheme (blocks of directions, each swept through the whole face, shared among
-// threads); ``unit_general`` the linear scheme and anisotropic fog (a source per direction from
-// the node's channels, Λ's angular moments; all directions per plane, the tiles of each plane
-// shared among threads).
+// isotropic step scheme on large faces (blocks of directions, each swept through the whole
+// face, shared among threads), ``unit`` on small ones; ``unit_general`` the linear scheme and
+// anisotropic fog (a source per direction from the node's channels, Λ's angular moments).
+// ``unit`` and ``unit_general`` take all directions per plane, the tiles of each plane shared
+// among threads.
 //
 // Built by ``_native.py`` with the machine's C++ compiler on first use, against jaxlib's XLA
 // FFI headers; registered as the custom call "difffog_sweep_face_<hash>" (CPU).  Derivatives
@@ -57,7 +58,7 @@ struct Dims {
   // the general form (anisotropic fog, the linear scheme): Q has C = 1 + J (+ 3) channels per
   // node, the isotropic source, J that direction d weights by table[d] (the NK moments first),
   // and with the linear scheme the slope h∇Q; Λ has 1 + NK channels.  C = 1, !lin: the
-  // isotropic step scheme (``sweep_blocked``).
+  // isotropic step scheme (``sweep_blocked``, ``unit``).
   int64_t C, J, NK;
   bool lin;
   // Q, B, Λ and E in the world frame (``world``): face node (w, u, v) is world node
@@ -105,6 +106,17 @@ inline bool kept(const Dims& g, int64_t i) {
   return g.per_w ? i >= total - g.nw : i < g.nw;
 }
 
+// The tile's factor em = e^{-τ} − 1 per node and distinct |L| (τ the half-segment's depth).
+template <typename T>
+void tables(const T* tau, const T* length_k, int64_t K, int64_t n, T* em) {
+  for (int64_t k = 0; k < K; ++k) {
+    const T len = length_k[k];
+    T* e = em + k * n;
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) e[i] = em1(-(tau[i] * len));
+  }
+}
+
 // A tile's per-node data in the layouts its passes read: pass[j] (a ray goes on from fog nodes
 // and, with surfaces, shells), and with surfaces the face frame's normal (nw, nu, nv, 3) and
 // blocking bytes (nw, nu, nv, nb) made planar (3 n, nb n), and where ``special`` is given the
@@ -133,6 +145,195 @@ inline T avg(T t, T x) {
   return small ? series : -x / (small ? T(1) : t);
 }
 
+// One unit: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0), every direction:
+// src and dst are the chain's carries (D, PU, PV) before and after the plane.
+//
+// The direction loop runs over whole rows, one 64-byte vector at a time (per direction the
+// rows read and written are each one contiguous block).  Two things keep it short:
+// - Λ is Σ_d w_d R̄_d with R̄_d = Q + (R_d − Q)·a2_k, or Q + (B − Q)·a1_k after a blocked
+//   arrival (a2_k = (1 − e^{−2τ_k})/(2τ_k), a1_k = (1 − e^{−τ_k})/τ_k for the direction's
+//   distinct |L|), so the loop only sums S_k += w_d (R_d − Q) per |L| (and C_k += w_d over the
+//   blocked ones) and Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k] once per node afterwards:
+//   the same sum, regrouped;
+// - only a vector that holds a node where surfaces matter (a SURFACE node, a set blocking bit
+//   or a normal: the shell around the shapes) takes the form with surfaces: a blocked arrival
+//   (the surface's radiosity B instead of the ray), E by cos; the others the fog-only form
+//   (a fog node's blocking bits and normal are 0, where the two forms agree).
+template <typename T, bool ATT, bool SURF, bool FL>
+void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int64_t p,
+          int64_t u0, int64_t u1, std::vector<T>& work, std::vector<int32_t>& flags) {
+  const int64_t M = g.M, nu = g.nu, nv = g.nv, PU = nu + 2 * M, PV = nv + 2 * M;
+  const int64_t rows = u1 - u0, n = rows * nv;
+  const int64_t off = (p * nu + u0) * nv;
+  // Q and B of the tile's nodes: in place (face frame) or gathered (world frame; scratch)
+  const T* Q = g.world ? nullptr : a.Q + off;
+  const T* B = g.world ? nullptr : a.B + off;
+  const T* tau = a.tau + off;
+  const int64_t K = ATT ? g.K : 0;
+  const int64_t KC = SURF ? K : 0;  // the blocked weights C_k
+  // scratch: factors em (K n), sums S (K n), C (K n with surfaces), Λ and E (2 n), normal (3 n
+  // with surfaces); words as wide as T (so that every array a loop reads has T's lanes, and
+  // the loops vectorise one vector at a time, not four): pass (n), blocking bits (NW n, bit d
+  // of node j in word (d / WB) n + j, with surfaces); bytes: pass, special (2 n), blocking
+  // bits (nb n)
+  using W = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;
+  constexpr int64_t WB = 8 * int64_t(sizeof(W));
+  const int64_t NW = SURF ? (g.D + WB - 1) / WB : 0;
+  const int64_t nbytes = 2 * n + (SURF ? g.nb * n : 0);
+  const int64_t NQ = g.world ? 2 : 0;  // the gathered Q and B
+  work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0) + 1 + NW + NQ) * n +
+                     (nbytes + sizeof(T) - 1) / sizeof(T)));
+  T* em = work.data();
+  T* S = em + K * n;
+  T* C = S + K * n;
+  T* accl = C + KC * n;
+  T* acci = accl + n;
+  T* nrm = acci + n;
+  if (g.world) {
+    T* qw = nrm + (SURF ? 3 * n : 0);
+    gather(g, a.Q, p, u0, rows, qw);
+    gather(g, a.B, p, u0, rows, qw + n);
+    Q = qw;
+    B = qw + n;
+  }
+  W* passw = reinterpret_cast<W*>(nrm + (SURF ? 3 * n : 0) + NQ * n);
+  W* bitw = passw + n;
+  uint8_t* pass = reinterpret_cast<uint8_t*>(bitw + NW * n);
+  uint8_t* special = pass + n;
+  uint8_t* bits = special + n;
+  if (ATT) tables<T>(tau, a.length_k, K, n, em);
+  std::fill(S, S + (K + KC) * n, T(0));
+  std::fill(accl, accl + 2 * n, T(0));
+  node_data<T, SURF>(g, a, off, n, pass, nrm, bits, special);
+  for (int64_t j = 0; j < n; ++j) passw[j] = W(pass[j]);
+  std::fill(bitw, bitw + NW * n, W(0));
+  for (int64_t b = 0; b < (SURF ? g.nb : 0); ++b) {
+    const uint8_t* src_b = bits + b * n;
+    W* dst_w = bitw + (8 * b / WB) * n;
+    const int sh = int((8 * b) % WB);
+    for (int64_t j = 0; j < n; ++j) dst_w[j] |= W(src_b[j]) << sh;
+  }
+  // each row as whole vectors (64 bytes) and a remainder; a vector that holds a node where
+  // surfaces matter (a SURFACE node, a set blocking bit or a normal: the shell around the
+  // shapes) takes the form with surfaces, the others the fog-only form (the same for a fog
+  // node, whose blocking bits and normal are 0).  ``flags``: per row, one per vector.
+  constexpr int64_t VW = 64 / int64_t(sizeof(T));
+  const int64_t nvec = nv / VW, nch = nvec + 1;  // + the remainder's flag
+  flags.assign(size_t(rows * nch), 0);
+  if (SURF)
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t v = 0; v < nv; ++v) flags[size_t(r * nch + v / VW)] |= special[r * nv + v];
+  T wsum = T(0);
+  for (int64_t d = 0; d < g.D; ++d) {
+    const int64_t k = ATT ? a.kidx[d] : 0;
+    const T w = a.weight[d];
+    wsum += w;
+    const int64_t su = a.start[2 * d], sv = a.start[2 * d + 1];
+    const T* sd = src + (d * PU + u0 + su) * PV + sv;  // the plane's rows, shifted by (p, q)
+    T* dd = dst + (d * PU + u0 + M) * PV + M;
+    const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
+    const W* bd = bitw + (d / WB) * n;
+    const int bit = int(d % WB);
+    for (int64_t r = 0; r < rows; ++r) {
+      const T* rs = sd + r * PV;
+      T* rd = dd + r * PV;
+      const int64_t o = r * nv;
+      const T* e = em + k * n + o;
+      const T* q = Q + o;
+      const W* ps = passw + o;
+      T* sk = S + k * n + o;
+      T* al = accl + o;
+      const T* bb = B + o;
+      const W* bl = bd + o;
+      const T *n0 = nrm + o, *n1 = nrm + n + o, *n2 = nrm + 2 * n + o;
+      T* ck = C + k * n + o;
+      T* ai = acci + o;
+      const int32_t* flag = flags.data() + r * nch;
+      auto fog = [&](int64_t v) __attribute__((always_inline)) {
+        const T r_mid = rs[v], qt = q[v];
+        T r_out = r_mid;
+        if (ATT) {
+          const T x = e[v];
+          const T r_arr = r_mid + x * (r_mid - qt);
+          if (FL) sk[v] += w * (r_mid - qt);
+          r_out = r_arr + x * (r_arr - qt);
+        } else if (FL) {
+          al[v] += r_mid * w;
+        }
+        rd[v] = ps[v] ? r_out : T(0);
+      };
+      // with surfaces: a blocked arrival is the surface's radiosity B (only the departure half
+      // lies in the fog: its R̄ goes through C_k, not S_k), E sums the arriving radiance by cos
+      auto surf = [&](int64_t v) __attribute__((always_inline)) {
+        const T r_mid = rs[v], qt = q[v], bt = bb[v];
+        const bool blocked = ((bl[v] >> bit) & 1) != 0;
+        T r_arr = r_mid, x = T(0);
+        if (ATT) {
+          x = e[v];
+          r_arr = r_mid + x * (r_mid - qt);
+        }
+        r_arr = blocked ? bt : r_arr;
+        if (ATT && FL) {
+          sk[v] += blocked ? T(0) : w * (r_mid - qt);
+          ck[v] += blocked ? w : T(0);
+        } else if (FL) {  // no fog step: R̄ is the arriving radiance
+          al[v] += w * (blocked ? bt : r_mid);
+        }
+        const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
+        ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
+        const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
+        rd[v] = ps[v] ? r_through : T(0);
+      };
+      for (int64_t c = 0; c < nvec; ++c) {
+        const int64_t v0 = c * VW;
+        if (SURF && flag[c]) {
+#pragma omp simd
+          for (int64_t l = 0; l < VW; ++l) surf(v0 + l);
+        } else {
+#pragma omp simd
+          for (int64_t l = 0; l < VW; ++l) fog(v0 + l);
+        }
+      }
+      if (SURF && flag[nvec]) {
+        for (int64_t v = nvec * VW; v < nv; ++v) surf(v);
+      } else {
+        for (int64_t v = nvec * VW; v < nv; ++v) fog(v);
+      }
+    }
+  }
+  if (!kept(g, i)) return;
+  if (ATT && FL) {  // Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k]
+    for (int64_t j = 0; j < n; ++j) accl[j] = Q[j] * wsum;
+    for (int64_t k = 0; k < K; ++k) {
+      const T len = a.length_k[k];
+      const T* e = em + k * n;
+      const T* sk = S + k * n;
+#pragma omp simd
+      for (int64_t j = 0; j < n; ++j) {
+        const T x = e[j];
+        accl[j] += avg(T(2) * (tau[j] * len), x * (x + T(2))) * sk[j];
+      }
+      if (!SURF) continue;
+      const T* ck = C + k * n;
+#pragma omp simd
+      for (int64_t j = 0; j < n; ++j)
+        accl[j] += ck[j] != T(0) ? avg(tau[j] * len, e[j]) * (B[j] - Q[j]) * ck[j] : T(0);
+    }
+  }
+  if (!g.world) {
+    std::memcpy(a.lam + off, accl, size_t(n) * sizeof(T));
+    std::memcpy(a.irr + off, acci, size_t(n) * sizeof(T));
+    return;
+  }
+  for (int64_t r = 0; r < rows; ++r)
+    for (int64_t v = 0; v < nv; ++v) {
+      const int64_t w = node_at(g, p, u0 + r, v);
+      a.lam[w] = accl[r * nv + v];
+      a.irr[w] = acci[r * nv + v];
+    }
+}
+
+
 // φ = (1 − e^{-t})/t and ψ = (1 − φ)/t (``_numerics.linear_source_terms``: their Taylor series
 // below t = 0.5, where the closed forms cancel; x = e^{-t} − 1).
 template <typename T>
@@ -155,9 +356,7 @@ inline void phi_psi(T t, T x, T& phi, T& psi) {
   }
 }
 
-// One unit of the general form: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0),
-// every direction (src and dst: the chain's carries (D, PU, PV) before and after the plane);
-// the isotropic step scheme's forms (``block_tile``) with a direction's source from the
+// The general form of ``unit`` (same rows and carries): a direction's source from the
 // node's channels, Q_0 + Σ_j table[d, j] Q_j; with the linear scheme (LIN) the source linear
 // along the segment (slope s = L·h∇Q: R at the node r_mid + em·a + ω s, leaving it R + em·b +
 // ω s, mean q + φ(a + b)/2 − ψ s/2, a = r_mid − q + s/2, b = R − q, ω = τψ/2:
@@ -311,6 +510,21 @@ template <typename T>
 using UnitFn = void (*)(const Dims&, const Args<T>&, const T*, T*, int64_t, int64_t, int64_t,
                         int64_t, std::vector<T>&, std::vector<int32_t>&);
 
+template <typename T>
+UnitFn<T> pick(bool att, bool surf, bool fl) {
+  const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
+  switch (key) {
+    case 0: return unit<T, false, false, false>;
+    case 1: return unit<T, false, false, true>;
+    case 2: return unit<T, false, true, false>;
+    case 3: return unit<T, false, true, true>;
+    case 4: return unit<T, true, false, false>;
+    case 5: return unit<T, true, false, true>;
+    case 6: return unit<T, true, true, false>;
+    default: return unit<T, true, true, true>;
+  }
+}
+
 template <typename T, bool LIN>
 UnitFn<T> pick_general_(bool att, bool surf, bool fl) {
   const int key = (att ? 4 : 0) | (surf ? 2 : 0) | (fl ? 1 : 0);
@@ -391,17 +605,22 @@ void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
 // every plane of every chain, its carries (two planes per direction) kept from plane to plane,
 // and a plane's node data (τ, Q, the pass flags, Λ and E) read once per block rather than
 // once per direction; e^{-τ|L|} − 1 once per block and |L|.  The blocks are shared among the
-// threads, each summing Λ and E into its own face-sized arrays, added at the end.  Swept all
-// together per row tile (as ``unit_general`` does), the D directions' carries (18 MB at
-// N = 128, M = 5) went through the last-level cache at every plane, and their loads and stores
-// took half of the sweep's time (a profile of fog-balls); by blocks, per plane and tile each
-// direction's rows are read and written while the tile's node data stay in L1.
+// threads (a fixed share each), each summing Λ and E into its own face-sized arrays, added
+// at the end.  Swept all together per row tile (as ``unit`` does), the D directions' carries
+// (18 MB at N = 128, M = 5) went through the last-level cache at every plane, and their loads
+// and stores took half of the sweep's time (a profile of fog-balls); by blocks, per plane and
+// tile each direction's rows are read and written while the tile's node data stay in L1.
 
 // a block's two carries per direction at most (the block size against the passes over the
 // node data; measured: fog without surfaces, N = 128, M = 5, 0.52 / 0.47 / 0.45 s per
 // iteration with 16 / 8 / 4 blocks)
 constexpr int64_t BLOCK_CARRY_BYTES = 5 * 1024 * 1024;
 constexpr int64_t BLOCK_MAX = 32;  // directions per block
+// a face with fewer node-and-direction updates goes plane by plane (``unit``): by blocks its
+// call's fixed costs (the records, the threads' arrays, three thread starts) made the small
+// lattices' iteration 1.3-2× slower (fog-balls N = 16-24), from N ≈ 32 the blocks are as fast
+// or faster
+constexpr int64_t BLOCKED_MIN_UPDATES = int64_t(1) << 21;
 // a row tile's per-node scratch (five arrays, and its Q and τ): within one core's L1
 constexpr int64_t BLOCK_TILE_BYTES = 16 * 1024;
 
@@ -732,9 +951,11 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
       permute(g, p0, p1, true, a.B, qb.get() + nface);
     }
   });
-  // Λ and E per thread, face frame (thread 0's in place, unless the world frame's)
+  // Λ and E per thread, face frame (thread 0's in place, unless the world frame's); block j
+  // on thread j mod nth, so that Λ is summed in the same order at every call (blocks taken
+  // as threads came free summed it in an order that changed from call to call, and with it
+  // the light's last bits: a Jacobian computed twice differed)
   std::vector<std::vector<T>> acc(static_cast<size_t>(nth));
-  std::atomic<int64_t> next{0};
   run([&](int64_t t) {
     T* lam = nullptr;
     T* irr = nullptr;
@@ -754,7 +975,7 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
     std::vector<T> work;
     T* src[BLOCK_MAX];
     T* dst[BLOCK_MAX];
-    for (int64_t j = next++; j < nblocks; j = next++) {
+    for (int64_t j = t; j < nblocks; j += nth) {
       if (!lam) own();
       const int64_t first = g.D * j / nblocks;
       const int32_t* dirs = order.data() + first;
@@ -812,14 +1033,16 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
   });
 }
 
-// The sweep (the general form's here; the isotropic step scheme's by blocks), one residue m
+// The sweep (the isotropic step scheme's on a large face by blocks instead), one residue m
 // of the planes at a time: a ray leaving plane sM + m arrives at (s + 1)M + m, so the M
 // residues are independent chains, and one chain's carry (D planes, two buffers of 9 MB at
 // N = 128, M = 5) stays in the last-level cache from plane to plane, where the whole slab's
 // (46 MB) went to memory and back at every step.
 template <typename T>
 void sweep(const Dims& g, const Args<T>& a) {
-  if (g.C == 1 && !g.lin) return sweep_blocked(g, a);  // the isotropic step scheme
+  // the isotropic step scheme: by blocks of directions where the face is large enough
+  if (g.C == 1 && !g.lin && g.D * g.nw * g.nu * g.nv >= BLOCKED_MIN_UPDATES)
+    return sweep_blocked(g, a);
   const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
   const int64_t chain = g.D * PU * PV;
   T* bufs[2] = {a.scratch, a.scratch + chain};
@@ -842,7 +1065,8 @@ void sweep(const Dims& g, const Args<T>& a) {
       }
       const bool in = s >= g.s0 && s < g.s1;
       const bool att = in && g.att_in, fl = in && g.fl_in;
-      const UnitFn<T> fn = pick_general<T>(att, g.surfaces, fl, g.lin);
+      const UnitFn<T> fn = (g.C > 1 || g.lin) ? pick_general<T>(att, g.surfaces, fl, g.lin)
+                                              : pick<T>(att, g.surfaces, fl);
       std::atomic<int64_t> next{0};
       auto worker = [&](int64_t t) {
         for (int64_t j = next++; j < tiles; j = next++) {
@@ -1320,7 +1544,7 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
   const int64_t tile = sub_tile<T>(g, NC + 1, int64_t(nth));
   const int64_t tiles = (nu + tile - 1) / tile;
   SpinBarrier barrier(static_cast<int64_t>(nth));
-  std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
+  std::atomic<int64_t> next_a{0}, next_c{0};
   bool fog = false, fl = false, extra = false;
   SubFn<T> fn = nullptr;
 
@@ -1337,7 +1561,6 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
         sub_arrival_fill(g, a, i, arr);
         for (int64_t w = 0; w < M; ++w) win[size_t(w)] = &ring[size_t(((i - M + w) % M + M) % M)];
         next_a = 0;
-        next_b = 0;
         next_c = 0;
       }
       barrier.wait();
@@ -1355,7 +1578,10 @@ void substep_sweep(const Dims& g, const Args<T>& a) {
       std::fill(irr, irr + n, T(0));
       const T* src = slot(i - M);
       T* dst = slot(i);
-      for (int64_t task = next_b++; task < tiles; task = next_b++) {
+      // tile j on thread j mod nth: a node's deposits come from the tiles within M rows, so
+      // a thread taking the next free tile would split them among the threads' windows
+      // differently from call to call, and their sum's last bits with it
+      for (int64_t task = int64_t(t); task < tiles; task += int64_t(nth)) {
         const int64_t u0 = task * tile, u1 = std::min(nu, u0 + tile);
         for (int64_t d = 0; d < g.D; ++d)
           fn(g, a, win.data(), arr, d, u0, u1, src, dst, acc, irr, rows[t].data());
@@ -1660,7 +1886,7 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
   const int64_t tile = sub_tile<T>(g, C1, int64_t(nth));
   const int64_t tiles = (nu + tile - 1) / tile;
   SpinBarrier barrier(static_cast<int64_t>(nth));
-  std::atomic<int64_t> next_a{0}, next_b{0}, next_c{0};
+  std::atomic<int64_t> next_a{0}, next_c{0};
   bool fog = false;
   SubTFn<T> fn = nullptr;
 
@@ -1674,7 +1900,6 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
         subt_arrival_fill(g, a, i, arr);
         for (int64_t w = 0; w < M; ++w) win[size_t(w)] = &ring_at(i - M + w);
         next_a = 0;
-        next_b = 0;
         next_c = 0;
       }
       barrier.wait();
@@ -1700,7 +1925,7 @@ void substep_transposed(const Dims& g, const Args<T>& a) {
       std::fill(bb, bb + n, T(0));
       const T* abar = slot(i);
       T* prev = slot(i - M);
-      for (int64_t task = next_b++; task < tiles; task = next_b++) {
+      for (int64_t task = int64_t(t); task < tiles; task += int64_t(nth)) {  // (as the sweep)
         const int64_t u0 = task * tile, u1 = std::min(nu, u0 + tile);
         for (int64_t d = 0; d < g.D; ++d)
           fn(g, a, win.data(), arr, d, u0, u1, abar, prev, acc, bb, rows[t].data());
