@@ -145,6 +145,42 @@ inline T avg(T t, T x) {
   return small ? series : -x / (small ? T(1) : t);
 }
 
+// The step scheme's update of one ray at one node (``unit``, ``block_tile``): the arriving
+// radiance r_mid (the carry, shifted), the node's Q (qt) and e^{-τ|L|} − 1 (x, with ATT); it
+// returns the ray leaving (0 where it does not go on) and with FL sums the fluence's s
+// (Σ w (R − Q) with a fog step, Σ w R̄ without).  The fog-only form:
+template <typename T, bool ATT, bool FL>
+inline __attribute__((always_inline)) T step_fog(T r_mid, T qt, T x, T w, bool pass, T& s) {
+  T r_out = r_mid;
+  if (ATT) {
+    const T r_arr = r_mid + x * (r_mid - qt);
+    if (FL) s += w * (r_mid - qt);
+    r_out = r_arr + x * (r_arr - qt);
+  } else if (FL) {
+    s += r_mid * w;
+  }
+  return pass ? r_out : T(0);
+}
+
+// and with surfaces: a blocked arrival is the surface's radiosity bt (only the departure half
+// lies in the fog: its R̄ goes through c, the blocked ones' weights, not s), E sums the
+// arriving radiance by cos (cosw = max(−L·n, 0)·w).
+template <typename T, bool ATT, bool FL>
+inline __attribute__((always_inline)) T step_surf(T r_mid, T qt, T bt, T x, bool blocked,
+                                                  T cosw, T w, bool pass, T& s, T& c, T& E) {
+  T r_arr = ATT ? r_mid + x * (r_mid - qt) : r_mid;
+  r_arr = blocked ? bt : r_arr;
+  if (ATT && FL) {
+    s += blocked ? T(0) : w * (r_mid - qt);
+    c += blocked ? w : T(0);
+  } else if (FL) {  // no fog step: R̄ is the arriving radiance
+    s += w * (blocked ? bt : r_mid);
+  }
+  E += r_arr * cosw;
+  const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
+  return pass ? r_through : T(0);
+}
+
 // One unit: rows [u0, u1) of sweep plane i (face plane p = source(i) >= 0), every direction:
 // src and dst are the chain's carries (D, PU, PV) before and after the plane.
 //
@@ -250,39 +286,14 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
       T* ai = acci + o;
       const int32_t* flag = flags.data() + r * nch;
       auto fog = [&](int64_t v) __attribute__((always_inline)) {
-        const T r_mid = rs[v], qt = q[v];
-        T r_out = r_mid;
-        if (ATT) {
-          const T x = e[v];
-          const T r_arr = r_mid + x * (r_mid - qt);
-          if (FL) sk[v] += w * (r_mid - qt);
-          r_out = r_arr + x * (r_arr - qt);
-        } else if (FL) {
-          al[v] += r_mid * w;
-        }
-        rd[v] = ps[v] ? r_out : T(0);
+        rd[v] = step_fog<T, ATT, FL>(rs[v], q[v], ATT ? e[v] : T(0), w, ps[v] != 0,
+                                     ATT ? sk[v] : al[v]);
       };
-      // with surfaces: a blocked arrival is the surface's radiosity B (only the departure half
-      // lies in the fog: its R̄ goes through C_k, not S_k), E sums the arriving radiance by cos
       auto surf = [&](int64_t v) __attribute__((always_inline)) {
-        const T r_mid = rs[v], qt = q[v], bt = bb[v];
-        const bool blocked = ((bl[v] >> bit) & 1) != 0;
-        T r_arr = r_mid, x = T(0);
-        if (ATT) {
-          x = e[v];
-          r_arr = r_mid + x * (r_mid - qt);
-        }
-        r_arr = blocked ? bt : r_arr;
-        if (ATT && FL) {
-          sk[v] += blocked ? T(0) : w * (r_mid - qt);
-          ck[v] += blocked ? w : T(0);
-        } else if (FL) {  // no fog step: R̄ is the arriving radiance
-          al[v] += w * (blocked ? bt : r_mid);
-        }
-        const T ldotn = n0[v] * ux + n1[v] * uy + n2[v] * uz;
-        ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
-        const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
-        rd[v] = ps[v] ? r_through : T(0);
+        const T cosw = std::max(-(n0[v] * ux + n1[v] * uy + n2[v] * uz), T(0)) * w;
+        rd[v] = step_surf<T, ATT, FL>(rs[v], q[v], bb[v], ATT ? e[v] : T(0),
+                                      ((bl[v] >> bit) & 1) != 0, cosw, w, ps[v] != 0,
+                                      ATT ? sk[v] : al[v], ck[v], ai[v]);
       };
       for (int64_t c = 0; c < nvec; ++c) {
         const int64_t v0 = c * VW;
@@ -801,39 +812,13 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
         const T *n0 = nullptr, *n1 = nullptr, *n2 = nullptr;  // the record's lanes
         const uint8_t* bl = nullptr;
         auto fog = [&](int64_t v) __attribute__((always_inline)) {
-          const T r_mid = rs[v], qt = q[v];
-          T r_out = r_mid;
-          if (ATT) {
-            const T x = ex[v];
-            const T r_arr = r_mid + x * (r_mid - qt);
-            if (FL) sk[v] += w * (r_mid - qt);
-            r_out = r_arr + x * (r_arr - qt);
-          } else if (FL) {
-            sk[v] += r_mid * w;
-          }
-          rd[v] = ps[v] ? r_out : T(0);
+          rd[v] = step_fog<T, ATT, FL>(rs[v], q[v], ATT ? ex[v] : T(0), w, ps[v] != 0, sk[v]);
         };
-        // with surfaces: a blocked arrival is the surface's radiosity B (only the departure
-        // half lies in the fog: its R̄ goes through C, not S), E sums the arriving radiance
-        auto surf = [&](int64_t v, int64_t l) __attribute__((always_inline)) {
-          const T r_mid = rs[v], qt = q[v], bt = bb[v];
-          const bool blocked = ((bl[l] >> kb) & 1) != 0;
-          T r_arr = r_mid, x = T(0);
-          if (ATT) {
-            x = ex[v];
-            r_arr = r_mid + x * (r_mid - qt);
-          }
-          r_arr = blocked ? bt : r_arr;
-          if (ATT && FL) {
-            sk[v] += blocked ? T(0) : w * (r_mid - qt);
-            ck[v] += blocked ? w : T(0);
-          } else if (FL) {  // no fog step: R̄ is the arriving radiance
-            sk[v] += w * (blocked ? bt : r_mid);
-          }
-          const T ldotn = n0[l] * ux + n1[l] * uy + n2[l] * uz;
-          ai[v] += r_arr * (std::max(-ldotn, T(0)) * w);
-          const T r_through = ATT ? r_arr + x * (r_arr - qt) : r_arr;
-          rd[v] = ps[v] ? r_through : T(0);
+        auto surf = [&](int64_t v, int64_t l) __attribute__((always_inline)) {  // l: its lane
+          const T cosw = std::max(-(n0[l] * ux + n1[l] * uy + n2[l] * uz), T(0)) * w;
+          rd[v] = step_surf<T, ATT, FL>(rs[v], q[v], bb[v], ATT ? ex[v] : T(0),
+                                        ((bl[l] >> kb) & 1) != 0, cosw, w, ps[v] != 0, sk[v],
+                                        ck[v], ai[v]);
         };
         // whether vector c takes the surface form for this direction (and its record)
         auto special = [&](int64_t c) __attribute__((always_inline)) {
