@@ -22,6 +22,17 @@ def pytest_configure(config):
         cache = tempfile.mkdtemp(prefix="difffog-test-xla-")
         os.environ["DIFFFOG_TEST_XLA_CACHE"] = cache
     os.environ["DIFFFOG_CACHE_DIR"] = cache
+    # pytest-xdist's workers share the cores: the native kernels' threads take fixed shares
+    # of a sweep (so that its sums are the same to the bit), and with two workers of two
+    # threads each on two cores a thread whose core was taken held up its call (the suite
+    # 8.5 → 12.6 minutes); each worker's kernels get its share of the cores instead
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    if workers > 1 and "DIFFFOG_THREADS" not in os.environ:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:
+            cores = os.cpu_count() or 1
+        os.environ["DIFFFOG_THREADS"] = str(max(1, cores // workers))
     enable_compilation_cache(cache)
 
 

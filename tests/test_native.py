@@ -159,6 +159,21 @@ def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic
     assert lam.max() > 0 and irr.max() > 0 and (irr[:, :-1, :17] == 0).all()  # E at normals
 
 
+def test_difffog_threads_sets_the_kernels_threads(monkeypatch):
+    """``DIFFFOG_THREADS`` sets the kernels' threads (pytest-xdist's workers get their share
+    of the cores through it, conftest.py); a value that is not a whole number is refused with
+    a message that names the variable."""
+    monkeypatch.setenv("DIFFFOG_THREADS", "3")
+    assert _native._threads() == 3
+    monkeypatch.setenv("DIFFFOG_THREADS", "0")
+    assert _native._threads() == 1
+    monkeypatch.setenv("DIFFFOG_THREADS", "two")
+    with pytest.raises(ValueError, match="DIFFFOG_THREADS='two'"):
+        _native._threads()
+    monkeypatch.delenv("DIFFFOG_THREADS")
+    assert _native._threads() >= 1
+
+
 @needs_compiler
 def test_native_sweeps_give_the_same_bits_at_every_call(x64):
     """The kernels share their work among threads, each thread summing into its own arrays:

@@ -254,9 +254,19 @@ def status() -> str:
 
 
 def _threads() -> int:
-    """Cores per host device: the kernel shares each slab's tiles among them."""
+    """Threads per kernel call: ``DIFFFOG_THREADS`` where set (e.g. 1 for each of several
+    processes sharing the cores: each thread's share of a sweep is fixed, so that its sums
+    come out the same to the bit, and a thread whose core is taken holds up the call), else
+    the cores per host device."""
     import jax
 
+    env = os.environ.get("DIFFFOG_THREADS", "").strip()
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise ValueError(f"DIFFFOG_THREADS={env!r}: expected a whole number of threads "
+                             "(e.g. DIFFFOG_THREADS=1), or unset it") from None
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:
