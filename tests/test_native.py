@@ -448,6 +448,36 @@ def test_old_builds_are_pruned(tmp_path):
 
 
 @needs_compiler
+def test_blocks_of_directions_in_the_world_frame_equal_the_face_frame(x64):
+    """The step scheme's blocks on a large face (≥ 2²¹ updates) reading q, b and writing Λ, E
+    in the world frame (gathered and written back by whole planes per thread) against the
+    face-frame path, on faces whose plane count is odd (the threads' planes unequal)."""
+    from difffog.geometry._directions import FACE_AXES
+
+    assert _native.available(), _native.status()
+    M, world, dt = 2, (47, 44, 41), jnp.dtype("float64")
+    assert (2 * M + 1) ** 2 * np.prod(world) >= 2 ** 21
+    rng = np.random.default_rng(5)
+    q = jnp.asarray(rng.random(world), dt)
+    b = jnp.asarray(rng.random(world), dt)
+    for f in (0, 5):
+        axis, sign = FACE_AXES[f]
+        shape = K.to_face(jnp.zeros(world), axis, sign).shape
+        _, _, tau, bc, geo, consts = _mixed_face(M, shape, dt, seed=f)
+        consts = K.face_consts(direction_set(M), f)
+        kw = dict(M=M, periodic=(False, False, False), warmup=2 * M + 1, surfaces=True)
+        got = jax.jit(lambda *a: K.sweep_face_world(*a, axis=axis, sign=sign, **kw))(
+            q, b, tau, bc, geo, consts)
+        path = functools.partial(K._face_path, axis, sign, M, kw["periodic"], 2 * M + 1, True,
+                                 (True, True, None), False)
+        ref = jax.jit(path)(q, b, tau, bc, geo, consts)
+        for r, g in zip(ref, got):
+            np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=1e-13,
+                                       atol=1e-13 * float(jnp.max(jnp.abs(r))))
+        assert float(jnp.max(got[0])) > 0 and float(jnp.max(got[1])) > 0
+
+
+@needs_compiler
 @pytest.mark.parametrize("form", ["isotropic", "general"])
 def test_world_frame_equals_the_face_frame(form, x64):
     """``sweep_face_world`` (the kernel reading q, b and writing Λ, E at each face node's world

@@ -1000,7 +1000,9 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
   T* lam0 = g.world ? acc[0].data() : a.lam;
   T* irr0 = g.world ? acc[0].data() + nface : a.irr;
   run([&](int64_t t) {
-    const int64_t j0 = nface * t / nth, j1 = nface * (t + 1) / nth;
+    // (whole planes per thread: each writes to the world frame the planes it summed)
+    const int64_t p0 = g.nw * t / nth, p1 = g.nw * (t + 1) / nth;
+    const int64_t j0 = p0 * nu * nv, j1 = p1 * nu * nv;
     for (size_t x = 1; x < acc.size(); ++x) {
       if (acc[x].empty()) continue;
       const T* l = acc[x].data();
@@ -1011,7 +1013,6 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
       }
     }
     if (g.world) {
-      const int64_t p0 = g.nw * t / nth, p1 = g.nw * (t + 1) / nth;
       permute(g, p0, p1, false, lam0, a.lam);
       permute(g, p0, p1, false, irr0, a.irr);
     }
