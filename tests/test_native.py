@@ -137,11 +137,12 @@ def _mixed_face(M, shape, dt, seed=1):
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 @pytest.mark.parametrize("M,periodic", [(2, (False, False, True)), (3, (True, False, False))])
 def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic, dtype, x64,
-                                                                     native_off):
+                                                                     native_off, monkeypatch):
     """The isotropic step scheme's kernel on a large face (directions in blocks, each swept
     through the face; the surfaces' data per 64-byte vector) on rows of whole vectors:
     fog-only vectors, vectors with SURFACE nodes, vectors blocked for some directions only,
     and a remainder, against XLA's loop.  (The small faces above go plane by plane.)"""
+    monkeypatch.setenv("DIFFFOG_THREADS", "2")  # the blocks run on two threads or more
     dt = jnp.dtype(dtype)
     shape = (16, 100, 53) if M == 2 else (16, 51, 53)  # ≥ 2²¹ updates: by blocks
     assert (2 * M + 1) ** 2 * np.prod(shape) >= 2 ** 21
@@ -175,12 +176,13 @@ def test_difffog_threads_sets_the_kernels_threads(monkeypatch):
 
 
 @needs_compiler
-def test_native_sweeps_give_the_same_bits_at_every_call(x64):
+def test_native_sweeps_give_the_same_bits_at_every_call(x64, monkeypatch):
     """The kernels share their work among threads, each thread summing into its own arrays:
     each thread's share is fixed (the step scheme's blocks of directions, the sub-stepped
     scheme's row tiles), so a sweep repeated gives the same bits.  (Shares taken as threads
     came free summed Λ in an order that changed from call to call: a fit's Jacobian computed
     twice differed in its last bits.)"""
+    monkeypatch.setenv("DIFFFOG_THREADS", "2")  # the blocks run on two threads or more
     assert _native.available(), _native.status()
     args = _mixed_face(3, (16, 51, 53), jnp.dtype("float32"))  # by blocks (≥ 2²¹ updates)
     kw = dict(M=3, periodic=(False, False, False), warmup=7, surfaces=True,
@@ -448,10 +450,11 @@ def test_old_builds_are_pruned(tmp_path):
 
 
 @needs_compiler
-def test_blocks_of_directions_in_the_world_frame_equal_the_face_frame(x64):
+def test_blocks_of_directions_in_the_world_frame_equal_the_face_frame(x64, monkeypatch):
     """The step scheme's blocks on a large face (≥ 2²¹ updates) reading q, b and writing Λ, E
     in the world frame (gathered and written back by whole planes per thread) against the
     face-frame path, on faces whose plane count is odd (the threads' planes unequal)."""
+    monkeypatch.setenv("DIFFFOG_THREADS", "2")  # the blocks run on two threads or more
     from difffog.geometry._directions import FACE_AXES
 
     assert _native.available(), _native.status()
