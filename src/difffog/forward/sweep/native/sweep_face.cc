@@ -671,16 +671,20 @@ void permute(const Dims& g, int64_t p0, int64_t p1, bool to_face, const T* from,
 
 // The surfaces' data of the 64-byte vectors where they matter (a node that is a SURFACE node,
 // has a normal or is blocked for some direction), one record each, built once per sweep: per
-// lane the normal and the blocking bytes, planar (3 × VW and nb × VW: bit d % 8 of byte d / 8
-// says whether direction d is blocked there), whether a node has a normal or is a SURFACE node
+// lane the normal and the blocking bits in words as wide as T, planar (3 × VW and NW × VW: bit
+// d % WB of word d / WB says whether direction d is blocked there; T-wide, so that the surface
+// form's loop reads only arrays with T's lanes and vectorises whole 64-byte vectors), whether a node has a normal or is a SURFACE node
 // (E is summed there) and the OR of the lanes' bytes.  ``index``: per vector of each face row
 // (the whole ones and the remainder: nch = nv / VW + 1 per row) its record, or -1: the part
 // (the thread that built it) · 2^PART_SHIFT + its number there.
 template <typename T>
+using Word = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;  // T's lanes
+
+template <typename T>
 struct SurfPart {
-  std::vector<T> normal;      // (records, 3, VW)
-  std::vector<uint8_t> bits;  // (records, nb, VW)
-  std::vector<uint8_t> any;   // (records, nb)
+  std::vector<T> normal;       // (records, 3, VW)
+  std::vector<Word<T>> bits;   // (records, NW, VW)
+  std::vector<uint8_t> any;    // (records, nb)
   std::vector<uint8_t> touch;  // (records,)
 };
 
@@ -703,7 +707,9 @@ void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64
   SurfPart<T>& part = all.parts[size_t(t)];
   const size_t guess = size_t((r1 - r0) * nch / 4 + 1);  // records: a quarter of the vectors
   part.normal.reserve(guess * 3 * VW);
-  part.bits.reserve(guess * nb * VW);
+  constexpr int64_t WB = 8 * int64_t(sizeof(Word<T>));
+  const int64_t NW = (g.D + WB - 1) / WB;
+  part.bits.reserve(guess * NW * VW);
   part.any.reserve(guess * nb);
   part.touch.reserve(guess);
   for (int64_t r = r0; r < r1; ++r)
@@ -731,17 +737,17 @@ void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64
       all.index[size_t(r * nch + c)] = (t << PART_SHIFT) + int64_t(rec);
       part.touch.push_back(uint8_t(touch));
       part.normal.resize((rec + 1) * size_t(3 * VW), T(0));
-      part.bits.resize((rec + 1) * size_t(nb * VW), 0);
+      part.bits.resize((rec + 1) * size_t(NW * VW), 0);
       part.any.resize((rec + 1) * size_t(nb), 0);
       T* nrm = part.normal.data() + rec * 3 * VW;
-      uint8_t* w = part.bits.data() + rec * nb * VW;
+      Word<T>* w = part.bits.data() + rec * NW * VW;
       uint8_t* any = part.any.data() + rec * nb;
       for (int64_t l = 0; l < nl; ++l)
         for (int x = 0; x < 3; ++x) nrm[x * VW + l] = nn[3 * l + x];
       if (!blocked) continue;
       for (int64_t l = 0; l < nl; ++l)
-        for (int64_t k = 0; k < nb; ++k) {
-          w[k * VW + l] = bj[l * nb + k];
+        for (int64_t k = 0; k < nb; ++k) {  // byte k: directions 8k … 8k + 7
+          w[(8 * k / WB) * VW + l] |= Word<T>(bj[l * nb + k]) << ((8 * k) % WB);
           any[k] |= bj[l * nb + k];
         }
     }
@@ -762,7 +768,9 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
   const T* Q = Qf + off;
   const T* B = Bf + off;
   const T* tau = a.tau + off;
-  using W = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;  // T's lanes
+  using W = Word<T>;
+  constexpr int64_t WB = 8 * int64_t(sizeof(W));
+  const int64_t NW = (g.D + WB - 1) / WB;
   // scratch: e, S (Σ w (R − Q), or Σ w R̄ without fog), C (the blocked weights) of one |L|,
   // E, and the pass flag in words as wide as T
   work.resize(size_t(5 * n));
@@ -772,8 +780,12 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
   T* Ea = Cw + n;
   W* passw = reinterpret_cast<W*>(Ea + n);
   if (SURF) std::fill(Ea, Ea + n, T(0));
-  for (int64_t j = 0; j < n; ++j)
-    passw[j] = W((a.free[off + j] != 0) || (SURF && a.surf[off + j] != 0));
+  {  // (| rather than ||: a branch-free loop that vectorises)
+    const uint8_t* fr = a.free + off;
+    const uint8_t* su = a.surf + off;
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) passw[j] = W((fr[j] | (SURF ? su[j] : uint8_t(0))) != 0);
+  }
   constexpr int64_t VW = SurfVecs<T>::VW;
   const int64_t nvec = nv / VW, nch = nvec + 1;
   const int64_t* vidx = SURF ? sv.index.data() + (p * nu + u0) * nch : nullptr;
@@ -797,7 +809,8 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
       const T* sd = src[b] + (u0 + su) * PV + sv_;  // the plane's rows, shifted by (p, q)
       T* dd = dst[b] + (u0 + M) * PV + M;
       const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
-      const int64_t kw = d >> 3, kb = d & 7;  // its blocking bit
+      const int64_t kw = d >> 3, kb = d & 7;  // its byte in ``any`` and bit there
+      const int64_t dw = d / WB, db = d % WB;  // its word in the records' bits and bit there
       for (int64_t r = 0; r < rows; ++r) {
         const T* rs = sd + r * PV;
         T* rd = dd + r * PV;
@@ -809,15 +822,17 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
         const T* bb = B + o;
         T* ck = Cw + o;
         T* ai = Ea + o;
-        const T *n0 = nullptr, *n1 = nullptr, *n2 = nullptr;  // the record's lanes
-        const uint8_t* bl = nullptr;
+        // the record's max(−L·n, 0)·w per lane (computed once per vector and direction) and
+        // its blocking words (T-wide: with bytes read in it, gcc vectorised the surface form's
+        // loop a quarter of a 64-byte vector at a time)
+        alignas(64) T cw[VW];
+        const W* bw = nullptr;
         auto fog = [&](int64_t v) __attribute__((always_inline)) {
           rd[v] = step_fog<T, ATT, FL>(rs[v], q[v], ATT ? ex[v] : T(0), w, ps[v] != 0, sk[v]);
         };
         auto surf = [&](int64_t v, int64_t l) __attribute__((always_inline)) {  // l: its lane
-          const T cosw = std::max(-(n0[l] * ux + n1[l] * uy + n2[l] * uz), T(0)) * w;
           rd[v] = step_surf<T, ATT, FL>(rs[v], q[v], bb[v], ATT ? ex[v] : T(0),
-                                        ((bl[l] >> kb) & 1) != 0, cosw, w, ps[v] != 0, sk[v],
+                                        ((bw[l] >> db) & 1) != 0, cw[l], w, ps[v] != 0, sk[v],
                                         ck[v], ai[v]);
         };
         // whether vector c takes the surface form for this direction (and its record)
@@ -828,10 +843,13 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
           const SurfPart<T>& pt = sv.parts[size_t(ri >> PART_SHIFT)];
           const size_t x = size_t(ri & ((int64_t(1) << PART_SHIFT) - 1));
           if (!pt.touch[x] && !((pt.any[x * size_t(g.nb) + size_t(kw)] >> kb) & 1)) return false;
-          n0 = pt.normal.data() + x * 3 * VW;
-          n1 = n0 + VW;
-          n2 = n1 + VW;
-          bl = pt.bits.data() + (x * size_t(g.nb) + size_t(kw)) * VW;
+          const T* n0 = pt.normal.data() + x * 3 * VW;
+          const T* n1 = n0 + VW;
+          const T* n2 = n1 + VW;
+          bw = pt.bits.data() + (x * size_t(NW) + size_t(dw)) * VW;
+#pragma omp simd
+          for (int64_t l = 0; l < VW; ++l)
+            cw[l] = std::max(-(n0[l] * ux + n1[l] * uy + n2[l] * uz), T(0)) * w;
           return true;
         };
         for (int64_t c = 0; c < nvec; ++c) {
