@@ -135,19 +135,27 @@ def _mixed_face(M, shape, dt, seed=1):
 
 @needs_compiler
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
-@pytest.mark.parametrize("M,periodic", [(2, (False, False, True)), (3, (True, False, False))])
-def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic, dtype, x64,
-                                                                     native_off, monkeypatch):
+@pytest.mark.parametrize("M,periodic,vol", [
+    (2, (False, False, True), (True, True, None)),
+    (3, (True, False, False), (True, True, None)),
+    # the kernel's other forms: no fog step (an empty volume), and the planes outside a volume
+    # range (neither fog step nor fluence) beside those inside it without the fluence
+    (2, (False, False, False), (False, True, None)),
+    (2, (False, False, False), (True, False, (4, 11))),
+])
+def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic, vol, dtype,
+                                                                     x64, native_off,
+                                                                     monkeypatch):
     """The isotropic step scheme's kernel on a large face (directions in blocks, each swept
-    through the face; the surfaces' data per 64-byte vector) on rows of whole vectors:
-    fog-only vectors, vectors with SURFACE nodes, vectors blocked for some directions only,
-    and a remainder, against XLA's loop.  (The small faces above go plane by plane.)"""
+    through the face one 64-byte vector at a time, its sums in registers) on rows of whole
+    vectors: fog-only vectors, vectors with SURFACE nodes, vectors blocked for some directions
+    only, and a remainder, against XLA's loop.  (The small faces above go plane by plane.)"""
     monkeypatch.setenv("DIFFFOG_THREADS", "2")  # the blocks run on two threads or more
     dt = jnp.dtype(dtype)
     shape = (16, 100, 53) if M == 2 else (16, 51, 53)  # ≥ 2²¹ updates: by blocks
     assert (2 * M + 1) ** 2 * np.prod(shape) >= 2 ** 21
     args = _mixed_face(M, shape, dt)
-    kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=True, vol=(True, True, None))
+    kw = dict(M=M, periodic=periodic, warmup=2 * M + 1, surfaces=True, vol=vol)
     ref = _sweep(args, **kw)
     _native._STATE.clear()
     assert _native.available(), _native.status()
@@ -157,7 +165,8 @@ def test_native_blocks_of_directions_on_long_rows_equal_the_xla_loop(M, periodic
         np.testing.assert_allclose(np.asarray(g), np.asarray(r), rtol=rtol,
                                    atol=rtol * float(jnp.max(jnp.abs(r))))
     lam, irr = np.asarray(got[0]), np.asarray(got[1])
-    assert lam.max() > 0 and irr.max() > 0 and (irr[:, :-1, :17] == 0).all()  # E at normals
+    assert (lam.max() > 0) == vol[1]  # Λ summed where asked
+    assert irr.max() > 0 and (irr[:, :-1, :17] == 0).all()  # E at normals only
 
 
 def test_difffog_threads_sets_the_kernels_threads(monkeypatch):

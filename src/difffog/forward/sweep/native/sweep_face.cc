@@ -755,9 +755,17 @@ void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64
 
 // Rows [u0, u1) of face plane p for the block's nd directions ``dirs`` (ordered by |L|): their
 // carries src[b] → dst[b] (PU, PV), and where the plane is kept Λ and E added to lam and irr
-// (face frame).  A vector takes the surface form for direction b where one of its nodes has a
-// normal, is a SURFACE node or is blocked for b, else the fog-only form (the same for a fog
-// node, whose blocking bits and normal are 0).
+// (face frame).
+//
+// One 64-byte vector of a row at a time, every direction of the block, with the vector's node
+// data (Q, B, the pass flags, the normals) and its sums (S and C of the current |L|, Λ, E)
+// held in local arrays that the compiler keeps in registers: per node and direction one load
+// of the carry and one store (directions outermost, as before, loaded Q, e, the pass flag and
+// S and stored S at every update, and passed over the tile once more per |L| for Λ).  A vector
+// takes the surface form for direction b where one of its nodes has a normal, is a SURFACE
+// node or is blocked for b, else the fog-only form (the same for a fog node, whose blocking
+// bits and normal are 0).  Λ = Q Σ_d w_d + Σ_k [a2_k S_k + a1_k (B − Q) C_k] per |L| run k
+// (``unit``'s regrouping).
 template <typename T, bool ATT, bool SURF, bool FL>
 void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const int32_t* dirs,
                 int64_t nd, T* const* src, T* const* dst, int64_t p, int64_t u0, int64_t u1,
@@ -771,125 +779,180 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
   using W = Word<T>;
   constexpr int64_t WB = 8 * int64_t(sizeof(W));
   const int64_t NW = (g.D + WB - 1) / WB;
-  // scratch: e, S (Σ w (R − Q), or Σ w R̄ without fog), C (the blocked weights) of one |L|,
-  // E, and the pass flag in words as wide as T
-  work.resize(size_t(5 * n));
+  constexpr int64_t VW = SurfVecs<T>::VW;
+  // the block's runs of equal |L|: [run[k], run[k + 1])
+  int64_t run[BLOCK_MAX + 1];
+  int64_t nr = 0;
+  for (int64_t b = 0; b < nd; ++b)
+    if (b == 0 || a.kidx[dirs[b]] != a.kidx[dirs[b - 1]]) run[nr++] = b;
+  run[nr] = nd;
+  T wsum = T(0);
+  for (int64_t b = 0; b < nd; ++b) wsum += a.weight[dirs[b]];
+  // scratch per run: e = e^{-τ|L|} − 1, a2 = (1 − e^{−2τ|L|})/(2τ|L|), a1 = (1 − e^{−τ|L|})/(τ|L|)
+  // (with surfaces); the pass flag in words as wide as T
+  const bool sums = keep && ATT && FL;
+  const int64_t ne = ATT ? nr : 0, na2 = sums ? nr : 0, na1 = sums && SURF ? nr : 0;
+  work.resize(size_t((ne + na2 + na1 + (sums ? 1 : 0) + 1) * n));
   T* e = work.data();
-  T* S = e + n;
-  T* Cw = S + n;
-  T* Ea = Cw + n;
-  W* passw = reinterpret_cast<W*>(Ea + n);
-  if (SURF) std::fill(Ea, Ea + n, T(0));
+  T* a2 = e + ne * n;
+  T* a1 = a2 + na2 * n;
+  T* inv = a1 + na1 * n;  // 1/τ (one division per node, not two per node and |L|)
+  W* passw = reinterpret_cast<W*>(inv + (sums ? n : 0));
+  if (sums) {
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) inv[j] = T(1) / (tau[j] > T(0) ? tau[j] : T(1));
+  }
+  for (int64_t k = 0; k < ne; ++k) {
+    const T len = a.length_k[a.kidx[dirs[run[k]]]];
+    T* ek = e + k * n;
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) ek[j] = em1(-(tau[j] * len));
+    if (!sums) continue;
+    // (1 − e^{−t})/t with t = τ|L| and x = e^{−t} − 1, as ``avg``: the series below 1e-3
+    auto mean = [](T t, T x_over_t) __attribute__((always_inline)) {
+      const bool small = std::fabs(t) < T(1e-3);
+      return small ? T(1) - t / T(2) + t * t / T(6) - t * t * t / T(24) : -x_over_t;
+    };
+    const T il = T(1) / len;
+    T* a2k = a2 + k * n;
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) {
+      const T x = ek[j];
+      a2k[j] = mean(T(2) * (tau[j] * len), x * (x + T(2)) * inv[j] * (T(0.5) * il));
+    }
+    if (!SURF) continue;
+    T* a1k = a1 + k * n;
+#pragma omp simd
+    for (int64_t j = 0; j < n; ++j) a1k[j] = mean(tau[j] * len, ek[j] * inv[j] * il);
+  }
   {  // (| rather than ||: a branch-free loop that vectorises)
     const uint8_t* fr = a.free + off;
     const uint8_t* su = a.surf + off;
 #pragma omp simd
     for (int64_t j = 0; j < n; ++j) passw[j] = W((fr[j] | (SURF ? su[j] : uint8_t(0))) != 0);
   }
-  constexpr int64_t VW = SurfVecs<T>::VW;
   const int64_t nvec = nv / VW, nch = nvec + 1;
   const int64_t* vidx = SURF ? sv.index.data() + (p * nu + u0) * nch : nullptr;
   T* lo = lam + off;
   T* io = irr + off;
-  for (int64_t b0 = 0; b0 < nd;) {  // the run of directions with one |L|
-    int64_t b1 = b0 + 1;
-    while (b1 < nd && a.kidx[dirs[b1]] == a.kidx[dirs[b0]]) ++b1;
-    const T len = ATT ? a.length_k[a.kidx[dirs[b0]]] : T(0);
-    if (ATT) {
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j) e[j] = em1(-(tau[j] * len));
-    }
-    std::fill(S, S + (SURF ? 2 : 1) * n, T(0));
-    T wsum = T(0);
-    for (int64_t b = b0; b < b1; ++b) {
-      const int64_t d = dirs[b];
-      const T w = a.weight[d];
-      wsum += w;
-      const int64_t su = a.start[2 * d], sv_ = a.start[2 * d + 1];
-      const T* sd = src[b] + (u0 + su) * PV + sv_;  // the plane's rows, shifted by (p, q)
-      T* dd = dst[b] + (u0 + M) * PV + M;
-      const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
-      const int64_t kw = d >> 3, kb = d & 7;  // its byte in ``any`` and bit there
-      const int64_t dw = d / WB, db = d % WB;  // its word in the records' bits and bit there
-      for (int64_t r = 0; r < rows; ++r) {
-        const T* rs = sd + r * PV;
-        T* rd = dd + r * PV;
-        const int64_t o = r * nv;
-        const T* ex = e + o;
-        const T* q = Q + o;
-        const W* ps = passw + o;
-        T* sk = S + o;
-        const T* bb = B + o;
-        T* ck = Cw + o;
-        T* ai = Ea + o;
-        // the record's max(−L·n, 0)·w per lane (computed once per vector and direction) and
-        // its blocking words (T-wide: with bytes read in it, gcc vectorised the surface form's
-        // loop a quarter of a 64-byte vector at a time)
-        alignas(64) T cw[VW];
-        const W* bw = nullptr;
-        auto fog = [&](int64_t v) __attribute__((always_inline)) {
-          rd[v] = step_fog<T, ATT, FL>(rs[v], q[v], ATT ? ex[v] : T(0), w, ps[v] != 0, sk[v]);
-        };
-        auto surf = [&](int64_t v, int64_t l) __attribute__((always_inline)) {  // l: its lane
-          rd[v] = step_surf<T, ATT, FL>(rs[v], q[v], bb[v], ATT ? ex[v] : T(0),
-                                        ((bw[l] >> db) & 1) != 0, cw[l], w, ps[v] != 0, sk[v],
-                                        ck[v], ai[v]);
-        };
-        // whether vector c takes the surface form for this direction (and its record)
-        auto special = [&](int64_t c) __attribute__((always_inline)) {
-          if (!SURF) return false;
-          const int64_t ri = vidx[r * nch + c];
-          if (ri < 0) return false;
-          const SurfPart<T>& pt = sv.parts[size_t(ri >> PART_SHIFT)];
-          const size_t x = size_t(ri & ((int64_t(1) << PART_SHIFT) - 1));
-          if (!pt.touch[x] && !((pt.any[x * size_t(g.nb) + size_t(kw)] >> kb) & 1)) return false;
-          const T* n0 = pt.normal.data() + x * 3 * VW;
-          const T* n1 = n0 + VW;
-          const T* n2 = n1 + VW;
-          bw = pt.bits.data() + (x * size_t(NW) + size_t(dw)) * VW;
-#pragma omp simd
-          for (int64_t l = 0; l < VW; ++l)
-            cw[l] = std::max(-(n0[l] * ux + n1[l] * uy + n2[l] * uz), T(0)) * w;
-          return true;
-        };
-        for (int64_t c = 0; c < nvec; ++c) {
-          const int64_t v0 = c * VW;
-          if (special(c)) {
-#pragma omp simd
-            for (int64_t l = 0; l < VW; ++l) surf(v0 + l, l);
-          } else {
-#pragma omp simd
-            for (int64_t l = 0; l < VW; ++l) fog(v0 + l);
-          }
-        }
-        if (special(nvec)) {
-          for (int64_t v = nvec * VW; v < nv; ++v) surf(v, v - nvec * VW);
-        } else {
-          for (int64_t v = nvec * VW; v < nv; ++v) fog(v);
-        }
-      }
-    }
-    // Λ = Σ_d w_d R̄_d with R̄_d = Q + (R_d − Q)·a2 (a2 = (1 − e^{−2τ})/(2τ) for the run's
-    // |L|), or Q + (B − Q)·a1 after a blocked arrival (a1 = (1 − e^{−τ})/τ): the loop summed
-    // S = Σ w (R − Q) and C = Σ w over the blocked ones
-    if (keep && ATT && FL) {
-#pragma omp simd
-      for (int64_t j = 0; j < n; ++j) {
-        const T x = e[j];
-        lo[j] += Q[j] * wsum + avg(T(2) * (tau[j] * len), x * (x + T(2))) * S[j];
-      }
-      if (SURF) {
-#pragma omp simd
-        for (int64_t j = 0; j < n; ++j)
-          lo[j] += Cw[j] != T(0) ? avg(tau[j] * len, e[j]) * (B[j] - Q[j]) * Cw[j] : T(0);
-      }
-    } else if (keep && FL) {
-      for (int64_t j = 0; j < n; ++j) lo[j] += S[j];
-    }
-    b0 = b1;
+  // the block's directions' constants (per tile, not per vector): weight, unit vector, the byte
+  // and bit of ``any`` and the word and bit of the records' blocking words; and per row their
+  // carries' rows (the arriving rays shifted by (p, q))
+  T wt[BLOCK_MAX], uxv[BLOCK_MAX], uyv[BLOCK_MAX], uzv[BLOCK_MAX];
+  int64_t kwv[BLOCK_MAX], dwv[BLOCK_MAX];
+  uint8_t kbv[BLOCK_MAX];
+  int dbv[BLOCK_MAX];
+  const T* rsr[BLOCK_MAX];
+  T* rdr[BLOCK_MAX];
+  for (int64_t b = 0; b < nd; ++b) {
+    const int64_t d = dirs[b];
+    wt[b] = a.weight[d];
+    uxv[b] = a.unit[3 * d];
+    uyv[b] = a.unit[3 * d + 1];
+    uzv[b] = a.unit[3 * d + 2];
+    kwv[b] = d >> 3;
+    kbv[b] = uint8_t(1u << (d & 7));
+    dwv[b] = (d / WB) * VW;
+    dbv[b] = int(d % WB);
   }
-  if (keep && SURF)
-    for (int64_t j = 0; j < n; ++j) io[j] += Ea[j];
+  // the nl (≤ VW) nodes from v0 of row r (FULL: nl = VW, known to the compiler)
+  auto vec = [&](auto full, int64_t r, int64_t c) __attribute__((always_inline)) {
+    constexpr bool FULL = decltype(full)::value;
+    const int64_t v0 = c * VW, nl = FULL ? VW : nv - v0, o = r * nv + v0;
+    // the vector's record (with surfaces)
+    const SurfPart<T>* pt = nullptr;
+    size_t x = 0;
+    bool touch = false;
+    const uint8_t* any = nullptr;  // its blocking bits' OR over the lanes, by byte
+    const W* bits = nullptr;       // its blocking words
+    if (SURF) {
+      const int64_t ri = vidx[r * nch + c];
+      if (ri >= 0) {
+        pt = &sv.parts[size_t(ri >> PART_SHIFT)];
+        x = size_t(ri & ((int64_t(1) << PART_SHIFT) - 1));
+        touch = pt->touch[x] != 0;
+        any = pt->any.data() + x * size_t(g.nb);
+        bits = pt->bits.data() + x * size_t(NW) * VW;
+      }
+    }
+    alignas(64) T qv[VW], bv[VW], n0[VW], n1[VW], n2[VW], lv[VW], ev[VW];
+    alignas(64) W pv[VW];
+    for (int64_t l = 0; l < VW; ++l) {
+      const bool in = l < nl;
+      qv[l] = in ? Q[o + l] : T(0);
+      pv[l] = in ? passw[o + l] : W(0);
+      bv[l] = SURF && in ? B[o + l] : T(0);
+      lv[l] = T(0);
+      ev[l] = T(0);
+    }
+    if (SURF && pt) {
+      const T* nn = pt->normal.data() + x * 3 * VW;
+      for (int64_t l = 0; l < VW; ++l) {
+        n0[l] = nn[l];
+        n1[l] = nn[VW + l];
+        n2[l] = nn[2 * VW + l];
+      }
+    }
+    for (int64_t k = 0; k < nr; ++k) {
+      alignas(64) T xv[VW], s[VW], cc[VW];
+      for (int64_t l = 0; l < VW; ++l) {
+        xv[l] = ATT && l < nl ? e[k * n + o + l] : T(0);
+        s[l] = T(0);
+        cc[l] = T(0);
+      }
+      for (int64_t b = run[k]; b < run[k + 1]; ++b) {
+        const T w = wt[b];
+        const T* rs = rsr[b] + v0;
+        T* rd = rdr[b] + v0;
+        if (SURF && pt && (touch || (any[kwv[b]] & kbv[b]))) {
+          const T ux = uxv[b], uy = uyv[b], uz = uzv[b];
+          const W* bw = bits + dwv[b];
+          const int db = dbv[b];
+#pragma omp simd
+          for (int64_t l = 0; l < nl; ++l) {
+            const T cosw = std::max(-(n0[l] * ux + n1[l] * uy + n2[l] * uz), T(0)) * w;
+            rd[l] = step_surf<T, ATT, FL>(rs[l], qv[l], bv[l], xv[l], ((bw[l] >> db) & 1) != 0,
+                                          cosw, w, pv[l] != 0, s[l], cc[l], ev[l]);
+          }
+        } else {
+#pragma omp simd
+          for (int64_t l = 0; l < nl; ++l)
+            rd[l] = step_fog<T, ATT, FL>(rs[l], qv[l], xv[l], w, pv[l] != 0, s[l]);
+        }
+      }
+      if (!(keep && FL)) continue;
+      if (ATT) {
+        const T* a2k = a2 + k * n + o;
+        const T* a1k = a1 + k * n + o;
+#pragma omp simd
+        for (int64_t l = 0; l < nl; ++l) {
+          T t = a2k[l] * s[l];
+          if (SURF) t += cc[l] != T(0) ? a1k[l] * (bv[l] - qv[l]) * cc[l] : T(0);
+          lv[l] += t;
+        }
+      } else {
+#pragma omp simd
+        for (int64_t l = 0; l < nl; ++l) lv[l] += s[l];
+      }
+    }
+    if (keep && FL) {
+#pragma omp simd
+      for (int64_t l = 0; l < nl; ++l) lo[o + l] += (ATT ? qv[l] * wsum : T(0)) + lv[l];
+    }
+    if (keep && SURF) {
+#pragma omp simd
+      for (int64_t l = 0; l < nl; ++l) io[o + l] += ev[l];
+    }
+  };
+  for (int64_t r = 0; r < rows; ++r) {
+    for (int64_t b = 0; b < nd; ++b) {
+      const int64_t d = dirs[b];
+      rsr[b] = src[b] + (u0 + r + a.start[2 * d]) * PV + a.start[2 * d + 1];
+      rdr[b] = dst[b] + (u0 + r + M) * PV + M;
+    }
+    for (int64_t c = 0; c < nvec; ++c) vec(std::true_type{}, r, c);
+    if (nvec * VW < nv) vec(std::false_type{}, r, nvec);
+  }
 }
 
 template <typename T>
