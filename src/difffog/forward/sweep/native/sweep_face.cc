@@ -628,10 +628,11 @@ void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
 constexpr int64_t BLOCK_CARRY_BYTES = 5 * 1024 * 1024;
 constexpr int64_t BLOCK_MAX = 32;  // directions per block
 // a face with fewer node-and-direction updates goes plane by plane (``unit``): by blocks its
-// call's fixed costs (the records, the threads' arrays, three thread starts) made the small
-// lattices' iteration 1.3-2× slower (fog-balls N = 16-24), from N ≈ 32 the blocks are as fast
-// or faster
-constexpr int64_t BLOCKED_MIN_UPDATES = int64_t(1) << 21;
+// call's fixed costs (the records, the threads' arrays, the thread starts) outweigh the
+// faster loop (stop 72, one face sweep's share of a Jacobi iteration, fog-balls: N = 16,
+// M = 2, 1.6·10⁵ updates a face, 2 against 1 ms on two threads; N = 24, M = 2, 3.5·10⁵, 4
+// against 5 ms; N = 32, M = 3, 1.6·10⁶, 8-10 against 20 ms)
+constexpr int64_t BLOCKED_MIN_UPDATES = int64_t(1) << 18;
 // a row tile's per-node scratch (five arrays, and its Q and τ): within one core's L1
 constexpr int64_t BLOCK_TILE_BYTES = 16 * 1024;
 
@@ -1107,10 +1108,11 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
 // (46 MB) went to memory and back at every step.
 template <typename T>
 void sweep(const Dims& g, const Args<T>& a) {
-  // the isotropic step scheme: by blocks of directions where the face is large enough and
-  // there are threads to share them (on one thread the per-plane unit was as fast or faster:
-  // N = 64, M = 3 0.10 against 0.15 s per iteration, N = 128, M = 2-3 5-10%)
-  if (g.C == 1 && !g.lin && g.threads > 1 && g.D * g.nw * g.nu * g.nv >= BLOCKED_MIN_UPDATES)
+  // the isotropic step scheme: by blocks of directions where the face is large enough, on
+  // any number of threads (since stop 72 the blocks are faster on one thread too: N = 40,
+  // M = 3 0.025 against 0.030 s per iteration, N = 64, M = 3 0.080 against 0.093, N = 128,
+  // M = 3 0.71 against 0.78; at stop 71 the per-plane unit was as fast or faster there)
+  if (g.C == 1 && !g.lin && g.D * g.nw * g.nu * g.nv >= BLOCKED_MIN_UPDATES)
     return sweep_blocked(g, a);
   const int64_t M = g.M, PU = g.nu + 2 * M, PV = g.nv + 2 * M;
   const int64_t chain = g.D * PU * PV;
