@@ -620,7 +620,9 @@ void initial(const Dims& g, const Args<T>& a, int64_t m, T* buf) {
 // at the end.  Swept all together per row tile (as ``unit`` does), the D directions' carries
 // (18 MB at N = 128, M = 5) went through the last-level cache at every plane, and their loads
 // and stores took half of the sweep's time (a profile of fog-balls); by blocks, per plane and
-// tile each direction's rows are read and written while the tile's node data stay in L1.
+// tile each direction's rows are read and written while the tile's node data stay in L1, and
+// (since stop 72) one 64-byte vector at a time through all of the block's directions, its node
+// data and sums in registers (``block_tile``).
 
 // a block's two carries per direction at most (the block size against the passes over the
 // node data; measured: fog without surfaces, N = 128, M = 5, 0.52 / 0.47 / 0.45 s per
@@ -633,7 +635,8 @@ constexpr int64_t BLOCK_MAX = 32;  // directions per block
 // M = 2, 1.6·10⁵ updates a face, 2 against 1 ms on two threads; N = 24, M = 2, 3.5·10⁵, 4
 // against 5 ms; N = 32, M = 3, 1.6·10⁶, 8-10 against 20 ms)
 constexpr int64_t BLOCKED_MIN_UPDATES = int64_t(1) << 18;
-// a row tile's per-node scratch (five arrays, and its Q and τ): within one core's L1
+// a row tile's rows: 16 KB for six arrays of the tile (chosen for stop 71's loop, which read
+// them at every update; ``block_tile`` reads its per-|L| tables once per vector and |L|)
 constexpr int64_t BLOCK_TILE_BYTES = 16 * 1024;
 
 // Face planes [p0, p1) of a one-channel array between the world frame (``node_at``) and the
