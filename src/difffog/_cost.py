@@ -78,12 +78,14 @@ def fit_edge_samples(downsample: int) -> int:
 #: (fog-balls N = 32-96, M = 2-5, this 2-core CPU: each within 0.75-1.2× of the measured)
 CPU_UPDATES_PER_S = 0.42e9
 #: the same for the isotropic step scheme's native sweep (``forward/sweep/_native.py``): rate and
-#: per-node cost fitted to bench_cost.py's 9 sweep rows at stop 65, since the kernel reads and
-#: writes the world frame (fog-balls N = 32-96, M = 2-5, this 2-core CPU, copy 26.8 GB/s: each
-#: within 0.68-1.17× of the measured, the small lattices' under; at stop 63, with the face
-#: copies, 1.1e9 and 4.8e-7; benchmarks/results/cost_native.md)
-CPU_NATIVE_UPDATES_PER_S = 1.27e9
-CPU_NATIVE_SECONDS_PER_NODE = 3.6e-7
+#: per-node cost fitted (least squares in the relative error) to bench_cost.py's 9 sweep rows at
+#: stop 72, since its blocks go one 64-byte vector at a time (fog-balls N = 32-96, M = 2-5, this
+#: 2-core CPU: each within 0.71-1.21× of the measured, the small lattices' under, where 1.27e9
+#: and 3.6e-7 had grown to 0.81-1.45×; benchmarks/results/cost_native_stop72.md; stop 65's fit,
+#: since the kernel reads and writes the world frame, 1.27e9 and 3.6e-7; stop 63's, with the
+#: face copies, 1.1e9 and 4.8e-7)
+CPU_NATIVE_UPDATES_PER_S = 1.79e9
+CPU_NATIVE_SECONDS_PER_NODE = 3.4e-7
 #: the native kernel's general form (the linear scheme, anisotropic moments), seconds per
 #: node-and-direction update, plus this per moment, fitted (least squares in the relative error)
 #: at stop 65, since the kernel reads and writes the world frame: cloud-plane N = 64, M = 3
