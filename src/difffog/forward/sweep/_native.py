@@ -7,9 +7,9 @@ direction on this 2-core CPU whatever the tile (issue 20: 12% of the copy roofli
 a time (a ray from plane sM + m arrives at (s + 1)M + m) and one vectorised pass per direction
 and row tile.  It serves the values of the step scheme (the default for fog whose lattice steps
 are optically thin: since stop 71, on a face of at least 2¹⁸ node-and-direction updates (2²¹
-and two threads or more until stop 72), by blocks of directions, each block swept alone through the whole face with its node data read
-once per block, the blocks shared among the CPU's cores) and
-of the linear scheme (thick steps), isotropic or with a Henyey–Greenstein fog's angular moments
+and two threads or more until stop 72), by blocks of directions, each block swept alone
+through the whole face with its node data read once per block, the blocks shared among the
+CPU's cores) and of the linear scheme (thick steps), isotropic or with a Henyey–Greenstein fog's angular moments
 and the sun's phase channel (the general form: each direction's source built from the node's
 channels, Λ's moments summed), on a CPU; the rest with one chain's carry kept in the last-level
 cache, the tiles of each plane shared among the cores.

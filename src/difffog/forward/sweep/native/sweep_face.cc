@@ -137,12 +137,31 @@ void node_data(const Dims& g, const Args<T>& a, int64_t off, int64_t n, uint8_t*
   }
 }
 
-// (1 − e^{-t})/t from x = e^{-t} − 1, with ``one_minus_exp_over``'s series below 1e-3.
+// (1 − e^{-t})/t: ``ratio`` (the caller's closed form, −(e^{-t} − 1)/t) or, below t = 1e-3,
+// ``one_minus_exp_over``'s series
+template <typename T>
+inline T avg_or_series(T t, T ratio) {
+  const bool small = std::fabs(t) < T(1e-3);
+  return small ? T(1) - t / T(2) + t * t / T(6) - t * t * t / T(24) : ratio;
+}
+
+// (1 − e^{-t})/t from x = e^{-t} − 1
 template <typename T>
 inline T avg(T t, T x) {
-  const bool small = std::fabs(t) < T(1e-3);
-  const T series = T(1) - t / T(2) + t * t / T(6) - t * t * t / T(24);
-  return small ? series : -x / (small ? T(1) : t);
+  return avg_or_series(t, -x / (std::fabs(t) < T(1e-3) ? T(1) : t));
+}
+
+// Blocking bits in words as wide as T (so that a loop that reads them has T's lanes and
+// vectorises whole 64-byte vectors): WB bits a word, ``blocking_words`` words for D directions
+template <typename T>
+using Word = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;
+
+template <typename T>
+constexpr int64_t WB = 8 * int64_t(sizeof(Word<T>));
+
+template <typename T>
+inline int64_t blocking_words(int64_t D) {
+  return (D + WB<T> - 1) / WB<T>;
 }
 
 // The step scheme's update of one ray at one node (``unit``, ``block_tile``): the arriving
@@ -212,9 +231,8 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   // the loops vectorise one vector at a time, not four): pass (n), blocking bits (NW n, bit d
   // of node j in word (d / WB) n + j, with surfaces); bytes: pass, special (2 n), blocking
   // bits (nb n)
-  using W = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;
-  constexpr int64_t WB = 8 * int64_t(sizeof(W));
-  const int64_t NW = SURF ? (g.D + WB - 1) / WB : 0;
+  using W = Word<T>;
+  const int64_t NW = SURF ? blocking_words<T>(g.D) : 0;
   const int64_t nbytes = 2 * n + (SURF ? g.nb * n : 0);
   const int64_t NQ = g.world ? 2 : 0;  // the gathered Q and B
   work.resize(size_t((2 * K + KC + 2 + (SURF ? 3 : 0) + 1 + NW + NQ) * n +
@@ -245,8 +263,8 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
   std::fill(bitw, bitw + NW * n, W(0));
   for (int64_t b = 0; b < (SURF ? g.nb : 0); ++b) {
     const uint8_t* src_b = bits + b * n;
-    W* dst_w = bitw + (8 * b / WB) * n;
-    const int sh = int((8 * b) % WB);
+    W* dst_w = bitw + (8 * b / WB<T>) * n;
+    const int sh = int((8 * b) % WB<T>);
     for (int64_t j = 0; j < n; ++j) dst_w[j] |= W(src_b[j]) << sh;
   }
   // each row as whole vectors (64 bytes) and a remainder; a vector that holds a node where
@@ -268,8 +286,8 @@ void unit(const Dims& g, const Args<T>& a, const T* src, T* dst, int64_t i, int6
     const T* sd = src + (d * PU + u0 + su) * PV + sv;  // the plane's rows, shifted by (p, q)
     T* dd = dst + (d * PU + u0 + M) * PV + M;
     const T ux = a.unit[3 * d], uy = a.unit[3 * d + 1], uz = a.unit[3 * d + 2];
-    const W* bd = bitw + (d / WB) * n;
-    const int bit = int(d % WB);
+    const W* bd = bitw + (d / WB<T>) * n;
+    const int bit = int(d % WB<T>);
     for (int64_t r = 0; r < rows; ++r) {
       const T* rs = sd + r * PV;
       T* rd = dd + r * PV;
@@ -675,15 +693,11 @@ void permute(const Dims& g, int64_t p0, int64_t p1, bool to_face, const T* from,
 
 // The surfaces' data of the 64-byte vectors where they matter (a node that is a SURFACE node,
 // has a normal or is blocked for some direction), one record each, built once per sweep: per
-// lane the normal and the blocking bits in words as wide as T, planar (3 × VW and NW × VW: bit
-// d % WB of word d / WB says whether direction d is blocked there; T-wide, so that the surface
-// form's loop reads only arrays with T's lanes and vectorises whole 64-byte vectors), whether a node has a normal or is a SURFACE node
-// (E is summed there) and the OR of the lanes' bytes.  ``index``: per vector of each face row
-// (the whole ones and the remainder: nch = nv / VW + 1 per row) its record, or -1: the part
-// (the thread that built it) · 2^PART_SHIFT + its number there.
-template <typename T>
-using Word = std::conditional_t<sizeof(T) == 8, uint64_t, uint32_t>;  // T's lanes
-
+// lane the normal and the blocking bits in ``Word``s, planar (3 × VW and NW × VW: bit d % WB of
+// word d / WB says whether direction d is blocked there), whether a node has a normal or is a
+// SURFACE node (E is summed there) and the OR of the lanes' bytes.  ``index``: per vector of
+// each face row (the whole ones and the remainder: nch = nv / VW + 1 per row) its record, or
+// -1: the part (the thread that built it) · 2^PART_SHIFT + its number there.
 template <typename T>
 struct SurfPart {
   std::vector<T> normal;       // (records, 3, VW)
@@ -711,8 +725,7 @@ void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64
   SurfPart<T>& part = all.parts[size_t(t)];
   const size_t guess = size_t((r1 - r0) * nch / 4 + 1);  // records: a quarter of the vectors
   part.normal.reserve(guess * 3 * VW);
-  constexpr int64_t WB = 8 * int64_t(sizeof(Word<T>));
-  const int64_t NW = (g.D + WB - 1) / WB;
+  const int64_t NW = blocking_words<T>(g.D);
   part.bits.reserve(guess * NW * VW);
   part.any.reserve(guess * nb);
   part.touch.reserve(guess);
@@ -751,7 +764,7 @@ void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64
       if (!blocked) continue;
       for (int64_t l = 0; l < nl; ++l)
         for (int64_t k = 0; k < nb; ++k) {  // byte k: directions 8k … 8k + 7
-          w[(8 * k / WB) * VW + l] |= Word<T>(bj[l * nb + k]) << ((8 * k) % WB);
+          w[(8 * k / WB<T>) * VW + l] |= Word<T>(bj[l * nb + k]) << ((8 * k) % WB<T>);
           any[k] |= bj[l * nb + k];
         }
     }
@@ -781,8 +794,7 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
   const T* B = Bf + off;
   const T* tau = a.tau + off;
   using W = Word<T>;
-  constexpr int64_t WB = 8 * int64_t(sizeof(W));
-  const int64_t NW = (g.D + WB - 1) / WB;
+  const int64_t NW = blocking_words<T>(g.D);
   constexpr int64_t VW = SurfVecs<T>::VW;
   // the block's runs of equal |L|: [run[k], run[k + 1])
   int64_t run[BLOCK_MAX + 1];
@@ -812,22 +824,18 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
 #pragma omp simd
     for (int64_t j = 0; j < n; ++j) ek[j] = em1(-(tau[j] * len));
     if (!sums) continue;
-    // (1 − e^{−t})/t with t = τ|L| and x = e^{−t} − 1, as ``avg``: the series below 1e-3
-    auto mean = [](T t, T x_over_t) __attribute__((always_inline)) {
-      const bool small = std::fabs(t) < T(1e-3);
-      return small ? T(1) - t / T(2) + t * t / T(6) - t * t * t / T(24) : -x_over_t;
-    };
+    // ``avg`` with 1/τ for the division (t = τ|L|, x = e^{−t} − 1)
     const T il = T(1) / len;
     T* a2k = a2 + k * n;
 #pragma omp simd
     for (int64_t j = 0; j < n; ++j) {
       const T x = ek[j];
-      a2k[j] = mean(T(2) * (tau[j] * len), x * (x + T(2)) * inv[j] * (T(0.5) * il));
+      a2k[j] = avg_or_series(T(2) * (tau[j] * len), -(x * (x + T(2)) * inv[j] * (T(0.5) * il)));
     }
     if (!SURF) continue;
     T* a1k = a1 + k * n;
 #pragma omp simd
-    for (int64_t j = 0; j < n; ++j) a1k[j] = mean(tau[j] * len, ek[j] * inv[j] * il);
+    for (int64_t j = 0; j < n; ++j) a1k[j] = avg_or_series(tau[j] * len, -(ek[j] * inv[j] * il));
   }
   {  // (| rather than ||: a branch-free loop that vectorises)
     const uint8_t* fr = a.free + off;
@@ -856,8 +864,8 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
     uzv[b] = a.unit[3 * d + 2];
     kwv[b] = d >> 3;
     kbv[b] = uint8_t(1u << (d & 7));
-    dwv[b] = (d / WB) * VW;
-    dbv[b] = int(d % WB);
+    dwv[b] = (d / WB<T>) * VW;
+    dbv[b] = int(d % WB<T>);
   }
   // the nl (≤ VW) nodes from v0 of row r (FULL: nl = VW, known to the compiler)
   auto vec = [&](auto full, int64_t r, int64_t c) __attribute__((always_inline)) {
