@@ -491,6 +491,45 @@ def test_blocks_of_directions_in_the_world_frame_equal_the_face_frame(x64, monke
 
 
 @needs_compiler
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_the_plans_surface_records_give_the_kernels_own_bits(dtype, x64, monkeypatch):
+    """The blocked sweep's surface records made once with the plan (``_native.
+    surface_records``, float32's 16-lane layout) give the same bits as the records the kernel
+    makes at every call, on faces whose rows end in a partial vector (nv = 41) and in whole
+    ones (nv = 48); the kernel reads them (records without their blocking bits change the
+    answer), and a float64 sweep, whose vectors are 8 lanes wide, ignores them."""
+    monkeypatch.setenv("DIFFFOG_THREADS", "2")
+    from difffog.geometry._directions import FACE_AXES
+
+    assert _native.available(), _native.status()
+    M, world, dt = 2, (47, 48, 41), jnp.dtype(dtype)
+    D = (2 * M + 1) ** 2
+    rng = np.random.default_rng(7)
+    q = jnp.asarray(rng.random(world), dt)
+    b = jnp.asarray(rng.random(world), dt)
+    kw = dict(M=M, periodic=(False, False, False), warmup=2 * M + 1, surfaces=True)
+    for f in (0, 5):
+        axis, sign = FACE_AXES[f]
+        shape = K.to_face(jnp.zeros(world), axis, sign).shape
+        assert D * np.prod(shape) >= 2 ** 18 and _native.records_apply(D, shape)
+        _, _, tau, bc, geo, _ = _mixed_face(M, shape, dt, seed=f)
+        consts = K.face_consts(direction_set(M), f)
+        rec = _native.surface_records(np.asarray(geo.normal, np.float32),
+                                      np.asarray(geo.blocked), np.asarray(geo.surf), D)
+        assert rec["index"].shape == shape[:2] + (shape[2] // 16 + 1,)
+        assert 0 < len(rec["touch"]) < rec["index"].size  # some vectors have records
+        sweep = jax.jit(lambda r, *a: K.sweep_face_world(*a, axis=axis, sign=sign, **kw,
+                                                         records=r))
+        own = [np.asarray(x) for x in sweep(None, q, b, tau, bc, geo, consts)]
+        planned = sweep(rec, q, b, tau, bc, geo, consts)
+        unblocked = sweep(dict(rec, bits=np.zeros_like(rec["bits"])), q, b, tau, bc, geo,
+                          consts)
+        for x, y in zip(own, planned):
+            assert np.array_equal(x, np.asarray(y))
+        assert np.array_equal(own[0], np.asarray(unblocked[0])) == (dtype == "float64")
+
+
+@needs_compiler
 @pytest.mark.parametrize("form", ["isotropic", "general"])
 def test_world_frame_equals_the_face_frame(form, x64):
     """``sweep_face_world`` (the kernel reading q, b and writing Λ, E at each face node's world

@@ -86,6 +86,10 @@ CPU_UPDATES_PER_S = 0.42e9
 #: face copies, 1.1e9 and 4.8e-7)
 CPU_NATIVE_UPDATES_PER_S = 1.79e9
 CPU_NATIVE_SECONDS_PER_NODE = 3.4e-7
+#: the share of a face's 16-node row vectors that hold a SURFACE node, for the native sweep's
+#: surface records (measured on fog-balls: 0.28-0.34 at N = 128, 0.36-0.49 at N = 64; it falls
+#: as 1/N, the surfaces being two-dimensional)
+RECORD_SHARE = 0.4
 #: the native kernel's general form (the linear scheme, anisotropic moments), seconds per
 #: node-and-direction update, plus this per moment, fitted (least squares in the relative error)
 #: at stop 65, since the kernel reads and writes the world frame: cloud-plane N = 64, M = 3
@@ -475,6 +479,14 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         if not general:  # (the native kernel's figure above is its own)
             per_iter *= SUBSTEP_COST_LOOP if kernel == "loop" else SUBSTEP_COST_BATCHED
         mem["light solve"] += int(n * SUBSTEP_BYTES_PER_NODE)
+    if surfaces and native and not (K or linear or substep) and D * n >= 1 << 18:
+        # the native blocked sweep's surface records, made with the plan (``_native.
+        # surface_records``): per face an index of the rows' 16-node vectors, and for those
+        # with a SURFACE node (fog-balls: 28-34% of them at N = 128, 36-49% at N = 64; taken
+        # as RECORD_SHARE) 16 lanes of a normal and the blocking words, the lanes' OR, a flag
+        words = -(-D // 32)
+        per_record = 16 * (12 + 4 * words) + math.ceil(D / 8) + 1
+        mem["surface records"] = int(6 * n / 16 * (4 + RECORD_SHARE * per_record))
     from .geometry._hits import shadows_exactly
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M

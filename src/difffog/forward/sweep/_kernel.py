@@ -463,10 +463,11 @@ def _native_common(Q, tau_half_unit, geo: FaceGeometry, consts: SweepConsts, M: 
 
 def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
                  periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-                 vol=(True, True, None), frame: tuple[int, int] | None = None):
+                 vol=(True, True, None), frame: tuple[int, int] | None = None, records=None):
     """``_sweep_face_loop``'s values from the native kernel (``_native.sweep_face``); with
     ``frame`` = (axis, sign), Q and B in the world frame and Λ, E returned in it
-    (``sweep_face_world``)."""
+    (``sweep_face_world``); ``records``: the plan's surface records (``_native.
+    surface_records``) or None."""
     dt = Q.dtype
     ns, length_k, kidx, normal, blocked, table, nk = _native_common(
         Q, tau_half_unit, geo, consts, M, periodic[0], warmup, surfaces)
@@ -477,7 +478,8 @@ def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts
         M - jnp.asarray(consts.pq, jnp.int32), M=M, ns=ns,
         segment=(s0, s1, fog_on, vol[1]), surfaces=surfaces, periodic=periodic,
         table=table, nk=nk,
-        slope=consts.slope.astype(dt) if consts.slope is not None else None, frame=frame)
+        slope=consts.slope.astype(dt) if consts.slope is not None else None, frame=frame,
+        records=records)
 
 
 def _native_substep_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
@@ -531,7 +533,8 @@ def substep_native_applies(kernel: str, consts: SweepConsts, dt) -> bool:
 def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
                      axis: int, sign: int, M: int, periodic: tuple[bool, bool, bool],
                      warmup: int, surfaces: bool, attenuate: bool = True, fluence: bool = True,
-                     vol_range: tuple[int, int] | None = None, recompute: bool = False):
+                     vol_range: tuple[int, int] | None = None, recompute: bool = False,
+                     records=None):
     """``sweep_face`` of the face (``axis``, ``sign``) with q, b, Λ and E in the world frame
     (nx, ny, nz[, ...]), the geometry, τ and the radiance leaving in the face frame: the values
     from the native kernel, which reads and writes each face node's world node, so that
@@ -539,16 +542,19 @@ def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     (on cloud-plane's 20 source and 16 fluence channels, this 2-core CPU, they took about half
     as long as the sweeps themselves: a light solve 9.4 → 7.4 s without them).  Derivatives
     are the face-frame path's (``sweep_face`` between ``to_face`` and ``from_face``: its
-    batched program's).  Where ``world_native_applies``."""
+    batched program's).  Where ``world_native_applies``.  ``records``: the face's surface
+    records made with the plan (``SweepGeometry.records``), or None (the kernel makes them)."""
     vol = (bool(attenuate), bool(fluence), None if vol_range is None else tuple(vol_range))
     return _sweep_face_world(int(axis), int(sign), M, tuple(periodic), int(warmup),
                              bool(surfaces), vol, bool(recompute), q, b, tau_half_unit, bc, geo,
-                             consts)
+                             consts, records)
 
 
 def _face_path(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b, tau_half_unit, bc,
-               geo, consts):
-    """``sweep_face_world`` through the face frame (its derivatives' program)."""
+               geo, consts, records=None):
+    """``sweep_face_world`` through the face frame (its derivatives' program; the records
+    only spare the native kernel work)."""
+    del records
     lf, ef, ex = _sweep_face(M, periodic, warmup, surfaces, vol, None, "loop", recompute,
                              to_face(q, axis, sign), to_face(b, axis, sign), tau_half_unit, bc,
                              geo, consts)
@@ -557,9 +563,10 @@ def _face_path(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b, 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
 def _sweep_face_world(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b,
-                      tau_half_unit, bc, geo, consts):
+                      tau_half_unit, bc, geo, consts, records):
     return _native_call(q, b, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
-                        warmup=warmup, surfaces=surfaces, vol=vol, frame=(axis, sign))
+                        warmup=warmup, surfaces=surfaces, vol=vol, frame=(axis, sign),
+                        records=records)
 
 
 @_sweep_face_world.defjvp

@@ -39,6 +39,7 @@ import ctypes
 import ctypes.util
 import functools
 import hashlib
+import math
 import os
 import shlex
 import shutil
@@ -274,10 +275,57 @@ def _threads() -> int:
     return max(1, cores // max(1, jax.local_device_count("cpu")))
 
 
+#: the lanes of the kernel's float32 vectors (64 bytes): the width of the surfaces' records
+RECORD_LANES = 16
+#: the blocked sweep's threshold: a face of at least this many node-and-direction updates
+#: (``sweep_face.cc``: BLOCKED_MIN_UPDATES), the isotropic step scheme
+BLOCKED_MIN_UPDATES = 1 << 18
+
+
+def records_apply(D: int, face_shape: tuple[int, int, int]) -> bool:
+    """Whether the blocked sweep serves a face of ``face_shape`` (nw, nu, nv) with D directions
+    (the isotropic step scheme's, float32): where the plan makes the surfaces' records."""
+    return D * math.prod(face_shape) >= BLOCKED_MIN_UPDATES
+
+
+def surface_records(normal: np.ndarray, blocked: np.ndarray, surf: np.ndarray,
+                    D: int) -> dict[str, np.ndarray]:
+    """The blocked sweep's records of a face's surfaces (``sweep_face.cc``: ``SurfVecs``), made
+    once with the plan instead of at every call (fog-balls, N = 128, M = 5: 17-20 ms a face on
+    each of two threads, 15% of an iteration).  Each row of the face is cut into vectors of
+    ``RECORD_LANES`` nodes (nv // 16 + 1 of them, the last partial or empty); a vector with a
+    normal, a SURFACE node or a blocked segment has a record: whether it touches a surface
+    (a normal or a SURFACE node), its blocking bytes' OR over the lanes, its normals (3, 16)
+    and its blocking bits (16 lanes of ceil(D / 32) little-endian 32-bit words, bit d % 32 of
+    word d // 32: direction d).
+
+    normal (nw, nu, nv, 3) float32, blocked (nw, nu, nv, ceil(D / 8)) uint8, surf (nw, nu, nv)
+    bool, all in the face frame → index (nw, nu, nv // 16 + 1) int32 (the record's number or
+    -1), touch (R,) uint8, any (R, nb) uint8, normal (R, 3, 16) float32, bits (R, NW, 16)
+    uint32."""
+    lanes = RECORD_LANES
+    nw, nu, nv, nb = blocked.shape
+    nch = nv // lanes + 1
+    pad = [(0, 0), (0, 0), (0, nch * lanes - nv)]
+    nrm = np.pad(np.asarray(normal, np.float32), pad + [(0, 0)]).reshape(nw, nu, nch, lanes, 3)
+    bits = np.pad(np.asarray(blocked, np.uint8), pad + [(0, 0)]).reshape(nw, nu, nch, lanes, nb)
+    touch = (np.pad(np.asarray(surf, bool), pad).reshape(nw, nu, nch, lanes).any(-1)
+             | (nrm != 0).any((-2, -1)))
+    any_ = np.bitwise_or.reduce(bits, axis=3)  # (nw, nu, nch, nb)
+    keep = touch | any_.any(-1)
+    index = np.where(keep, np.cumsum(keep).reshape(keep.shape) - 1, -1).astype(np.int32)
+    words = -(-D // 32)
+    b = bits[keep]  # (R, 16, nb)
+    b = np.pad(b, [(0, 0), (0, 0), (0, 4 * words - nb)]).view("<u4")  # (R, 16, NW)
+    return dict(index=index, touch=touch[keep].astype(np.uint8), any=any_[keep],
+                normal=np.ascontiguousarray(nrm[keep].transpose(0, 2, 1)),
+                bits=np.ascontiguousarray(b.transpose(0, 2, 1)).astype(np.uint32))
+
+
 def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, unit, start, *,
                M: int, ns: int, segment: tuple[int, int, bool, bool], surfaces: bool,
                periodic: tuple[bool, bool, bool], table=None, nk: int = 0, slope=None,
-               frame: tuple[int, int] | None = None):
+               frame: tuple[int, int] | None = None, records=None):
     """The custom call: ``_sweep_face_loop``'s arrays in the face frame (nw, nu, nv[, ...]),
     unslabbed (the kernel visits the ns·M planes of its slabs itself: padding after an open
     sweep axis, a periodic one's warm-up in wrap order), and its direction constants → Λ, E
@@ -292,7 +340,11 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
     frame: (axis, sign) of the face: Q and B are then in the world frame (nx, ny, nz[, C]) and so
     are Λ and E, which the kernel reads and writes at each face node's world node (the face's
     copies, ``_kernel.to_face``, and the transposes back are not made); the geometry and τ stay
-    in the face frame."""
+    in the face frame.
+
+    records: the surfaces' records made with the plan (``surface_records``: a mapping with its
+    five arrays), which the blocked sweep reads instead of making them; used for float32 only
+    (the layout's), else ignored."""
     import jax
     import jax.numpy as jnp
 
@@ -326,16 +378,23 @@ def sweep_face(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight, 
     call = jax.ffi.ffi_call(_STATE["target"], out, vmap_method="sequential")
     f = lambda x: jnp.asarray(x, dt)  # noqa: E731  (the kernel reads every float as Q's type)
     i64 = np.int64
+    use = records is not None and surfaces and dt == np.float32
+    rec = ((jnp.asarray(records["index"], jnp.int32), jnp.asarray(records["touch"], jnp.uint8),
+            jnp.asarray(records["any"], jnp.uint8), jnp.asarray(records["normal"], jnp.float32),
+            jnp.asarray(records["bits"], jnp.uint32)) if use else
+           tuple(jnp.zeros((1,), t) for t in (jnp.int32, jnp.uint8, jnp.uint8, jnp.float32,
+                                              jnp.uint32)))
     lam, irr, exit_, _ = call(
         Q, f(B), f(tau), f(normal), jnp.asarray(bits, jnp.uint8), jnp.asarray(free, jnp.bool_),
         jnp.asarray(surf, jnp.bool_), f(bc), f(length_k), jnp.asarray(kidx, jnp.int32),
         f(weight), f(unit), jnp.asarray(start, jnp.int32),
         f(jnp.zeros((1,)) if table is None else table), f(jnp.zeros((1,)) if slope is None else slope),
+        *rec,
         M=i64(M), nw=i64(nw), nu=i64(nu), nv=i64(nv), ns=i64(ns), D=i64(D), K=i64(K),
         nb=i64(nb), s0=i64(s0), s1=i64(s1), threads=i64(_threads()), tile=i64(tile),
         surfaces=i64(surfaces), per_w=i64(per_w), per_u=i64(per_u), per_v=i64(per_v),
         att_in=i64(att), fl_in=i64(fl), C=i64(C), J=i64(J), NK=i64(nk), linear=i64(linear),
-        world=i64(world), wb=i64(wb), sw=i64(sw), su=i64(su), sv=i64(sv))
+        world=i64(world), wb=i64(wb), sw=i64(sw), su=i64(su), sv=i64(sv), records=i64(use))
     return lam, irr, exit_
 
 

@@ -33,6 +33,7 @@ from ..._errors import SceneError, SolverError
 from ..._numerics import FOUR_PI, safe_div
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
+from . import _native
 from ._implicit import CheckedSolver, KrylovSolver, fixed_point
 from ._dsa import DiffusionPreconditioner, neighbour, on_fluence
 from ._harmonics import MAX_ORDER, basis, delta_m, harmonic_moments, moment_coefficients
@@ -126,6 +127,9 @@ class SweepGeometry(eqx.Module):
     # the geometry of the same lattice at the direction set that carries the sun's
     # once-scattered light (``SweepSolver.once_M``), or None: the solve's own
     once: "SweepGeometry | None" = None
+    # per face, the native blocked sweep's surface records (``_native.surface_records``: made
+    # here once, not at every sweep) or None where it does not take them
+    records: tuple[dict | None, ...] | None = None
 
     def sun_vector(self, dtype):
         """The unit vector towards the sun (3,) the light solve uses (traced or static)."""
@@ -226,6 +230,10 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     substeps = bool(substep) and M > 1
     # Warm-up for periodic sweep axes: every non-horizontal ray must have entered through z.
     warmup = int(M * lattice.shape[2]) if periodic_xy else 0
+    # the native blocked sweep's surface records, made here once (where it will take them: the
+    # isotropic step scheme on a CPU; float32's layout, ignored by a float64 solve)
+    records = (not linear and not substeps and order == 0 and jax.default_backend() == "cpu"
+               and _native.expected())
 
     def cosines():
         c = np.zeros(nt.shape)
@@ -243,6 +251,10 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
                    normal=_host_face(n_face, axis, sign),
                    blocked=_host_face(segment_blocking(solid, surf, vec, periodic_xy), axis,
                                       sign))
+        if (records and surf.any()
+                and _native.records_apply(dirs.D, out["free"].shape)):  # (see ``records``)
+            out["records"] = _native.surface_records(out["normal"], out["blocked"],
+                                                     out["surf"], dirs.D)
         if substeps:  # the sub-stepped sweep's per-node renormalization (geometry only)
             out["wscale"] = substep_weight_scale(
                 out["free"], out["surf"], out["blocked"], dirs.pq, substep_offsets(dirs.pq, M),
@@ -259,8 +271,12 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
                                sun_dir)
                    if shadows and shadows_exactly(scene) else None)
         cnorm_job = pool.submit(cosines)
+        built = list(pool.map(face_arrays, range(6)))
+        recs = tuple(None if "records" not in arrays else
+                     {k: jnp.asarray(a) for k, a in arrays.pop("records").items()}
+                     for arrays in built)
         faces = [FaceGeometry(**{k: jnp.asarray(a) for k, a in arrays.items()})
-                 for arrays in pool.map(face_arrays, range(6))]
+                 for arrays in built]
         cnorm = cnorm_job.result()
         vis = None if vis_job is None else vis_job.result()
     f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
@@ -292,6 +308,7 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
         substep=substeps,
         sun_cells=None if harm is None or sun_dir is None else _sun_cells(dirs),
         sun_vis=None if vis is None else f32(vis),
+        records=recs if any(r is not None for r in recs) else None,
     )
 
 
@@ -618,6 +635,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                 lf, ef, ex = sweep_face_world(
                     q, b, pb.tau_half[f], pb.sky * g.sky_frac[f], g.faces[f], _face_consts(pb, f),
                     axis=axis, sign=sign, periodic=periodic, vol_range=g.vol_range(f),
+                    records=None if g.records is None else g.records[f],
                     **{k: v for k, v in kw.items() if k != "kernel"})
                 lam, irr, exits[f] = lam + lf, irr + ef, ex
             continue

@@ -89,6 +89,13 @@ struct Args {
   const int32_t *kidx, *start;
   const int32_t* sub = nullptr;  // the sub-stepped scheme's crossings' origins (M − 1, D, 2)
   T *lam, *irr, *exit, *scratch;
+  // the surfaces' records made with the plan (``_native.surface_records``, float32's 16-lane
+  // layout; ``sweep_blocked``), or null: the blocked sweep makes them at every call
+  const int32_t* rec_index = nullptr;  // (nw, nu, nv / 16 + 1): a row vector's record or -1
+  const uint8_t* rec_touch = nullptr;  // (R,)
+  const uint8_t* rec_any = nullptr;    // (R, nb)
+  const float* rec_normal = nullptr;   // (R, 3, 16)
+  const uint32_t* rec_bits = nullptr;  // (R, ceil(D / 32), 16)
 };
 
 // The sweep visits ns·M planes; plane i of the sweep is the face's plane ``source(i)``, or -1
@@ -708,12 +715,44 @@ struct SurfPart {
 
 constexpr int PART_SHIFT = 40;
 
+// One row vector's record (``SurfVecs::find``).
+template <typename T>
+struct SurfRec {
+  bool touch;
+  const uint8_t* any;     // its blocking bits' OR over the lanes, by byte (nb)
+  const Word<T>* bits;    // its blocking words (NW, VW)
+  const T* normal;        // (3, VW)
+};
+
 template <typename T>
 struct SurfVecs {
   static constexpr int64_t VW = 64 / int64_t(sizeof(T));
-  int64_t nch = 0;
+  int64_t nch = 0, nb = 0, NW = 0;
   std::vector<int64_t> index;
   std::vector<SurfPart<T>> parts;
+  // or the plan's (Args::rec_*, T = float): one set, numbered in ``rec_index``
+  const int32_t* ext_index = nullptr;
+  const uint8_t* ext_touch = nullptr;
+  const uint8_t* ext_any = nullptr;
+  const Word<T>* ext_bits = nullptr;
+  const T* ext_normal = nullptr;
+
+  // row vector ``i``'s record ((p·nu + u)·nch + c), false where it has none
+  inline bool find(int64_t i, SurfRec<T>& r) const {
+    if (ext_index) {
+      const int64_t x = ext_index[i];
+      if (x < 0) return false;
+      r = {ext_touch[x] != 0, ext_any + x * nb, ext_bits + x * NW * VW, ext_normal + x * 3 * VW};
+      return true;
+    }
+    const int64_t ri = index[size_t(i)];
+    if (ri < 0) return false;
+    const SurfPart<T>& pt = parts[size_t(ri >> PART_SHIFT)];
+    const size_t x = size_t(ri & ((int64_t(1) << PART_SHIFT) - 1));
+    r = {pt.touch[x] != 0, pt.any.data() + x * size_t(nb), pt.bits.data() + x * size_t(NW * VW),
+         pt.normal.data() + x * 3 * VW};
+    return true;
+  }
 };
 
 // Face rows [r0, r1)' records: part ``t`` of ``all`` (and its index for those rows).
@@ -844,7 +883,7 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
     for (int64_t j = 0; j < n; ++j) passw[j] = W((fr[j] | (SURF ? su[j] : uint8_t(0))) != 0);
   }
   const int64_t nvec = nv / VW, nch = nvec + 1;
-  const int64_t* vidx = SURF ? sv.index.data() + (p * nu + u0) * nch : nullptr;
+  const int64_t vbase = (p * nu + u0) * nch;  // the tile's first row vector (records)
   T* lo = lam + off;
   T* io = irr + off;
   // the block's directions' constants (per tile, not per vector): weight, unit vector, the byte
@@ -872,21 +911,11 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
     constexpr bool FULL = decltype(full)::value;
     const int64_t v0 = c * VW, nl = FULL ? VW : nv - v0, o = r * nv + v0;
     // the vector's record (with surfaces)
-    const SurfPart<T>* pt = nullptr;
-    size_t x = 0;
-    bool touch = false;
-    const uint8_t* any = nullptr;  // its blocking bits' OR over the lanes, by byte
-    const W* bits = nullptr;       // its blocking words
-    if (SURF) {
-      const int64_t ri = vidx[r * nch + c];
-      if (ri >= 0) {
-        pt = &sv.parts[size_t(ri >> PART_SHIFT)];
-        x = size_t(ri & ((int64_t(1) << PART_SHIFT) - 1));
-        touch = pt->touch[x] != 0;
-        any = pt->any.data() + x * size_t(g.nb);
-        bits = pt->bits.data() + x * size_t(NW) * VW;
-      }
-    }
+    SurfRec<T> rec{false, nullptr, nullptr, nullptr};
+    const bool pt = SURF && sv.find(vbase + r * nch + c, rec);
+    const bool touch = rec.touch;
+    const uint8_t* any = rec.any;  // its blocking bits' OR over the lanes, by byte
+    const W* bits = rec.bits;      // its blocking words
     alignas(64) T qv[VW], bv[VW], n0[VW], n1[VW], n2[VW], lv[VW], ev[VW];
     alignas(64) W pv[VW];
     for (int64_t l = 0; l < VW; ++l) {
@@ -898,7 +927,7 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
       ev[l] = T(0);
     }
     if (SURF && pt) {
-      const T* nn = pt->normal.data() + x * 3 * VW;
+      const T* nn = rec.normal;
       for (int64_t l = 0; l < VW; ++l) {
         n0[l] = nn[l];
         n1[l] = nn[VW + l];
@@ -1016,14 +1045,25 @@ void sweep_blocked(const Dims& g, const Args<T>& a) {
   const T* Qf = g.world ? qb.get() : a.Q;
   const T* Bf = g.world ? qb.get() + nface : a.B;
   SurfVecs<T> sv;
-  if (g.surfaces) {
-    sv.nch = nv / SurfVecs<T>::VW + 1;
+  sv.nch = nv / SurfVecs<T>::VW + 1;
+  sv.nb = g.nb;
+  sv.NW = blocking_words<T>(g.D);
+  // the plan's records where it made them (float32's layout; from stop 73: fog-balls N = 128,
+  // M = 5 17-20 ms a face on each thread when made here, 15% of an iteration), else here
+  const bool planned = g.surfaces && a.rec_index && std::is_same<T, float>::value;
+  if (planned) {
+    sv.ext_index = a.rec_index;
+    sv.ext_touch = a.rec_touch;
+    sv.ext_any = a.rec_any;
+    sv.ext_bits = reinterpret_cast<const Word<T>*>(a.rec_bits);
+    sv.ext_normal = reinterpret_cast<const T*>(a.rec_normal);
+  } else if (g.surfaces) {
     sv.index.resize(size_t(g.nw * nu * sv.nch));
     sv.parts.resize(size_t(nth));
   }
   run([&](int64_t t) {
     const int64_t p0 = g.nw * t / nth, p1 = g.nw * (t + 1) / nth;
-    if (g.surfaces) surf_records(g, a, p0 * nu, p1 * nu, t, sv);
+    if (g.surfaces && !planned) surf_records(g, a, p0 * nu, p1 * nu, t, sv);
     if (g.world) {
       permute(g, p0, p1, true, a.Q, qb.get());
       permute(g, p0, p1, true, a.B, qb.get() + nface);
@@ -2108,23 +2148,42 @@ ffi::Error SweepFaceImpl(ffi::AnyBuffer Q, ffi::AnyBuffer B, ffi::AnyBuffer tau,
                          ffi::AnyBuffer surf, ffi::AnyBuffer bc, ffi::AnyBuffer length_k,
                          ffi::AnyBuffer kidx, ffi::AnyBuffer weight, ffi::AnyBuffer unit_,
                          ffi::AnyBuffer start, ffi::AnyBuffer table, ffi::AnyBuffer slope,
-                         ffi::Result<ffi::AnyBuffer> lam,
+                         ffi::AnyBuffer rec_index, ffi::AnyBuffer rec_touch,
+                         ffi::AnyBuffer rec_any, ffi::AnyBuffer rec_normal,
+                         ffi::AnyBuffer rec_bits, ffi::Result<ffi::AnyBuffer> lam,
                          ffi::Result<ffi::AnyBuffer> irr, ffi::Result<ffi::AnyBuffer> exit,
                          ffi::Result<ffi::AnyBuffer> scratch, int64_t M, int64_t nw, int64_t nu,
                          int64_t nv, int64_t ns, int64_t D, int64_t K, int64_t nb, int64_t s0,
                          int64_t s1, int64_t threads, int64_t tile, int64_t surfaces,
                          int64_t per_w, int64_t per_u, int64_t per_v, int64_t att_in,
                          int64_t fl_in, int64_t C, int64_t J, int64_t NK, int64_t linear,
-                         int64_t world, int64_t wb, int64_t sw, int64_t su, int64_t sv) {
+                         int64_t world, int64_t wb, int64_t sw, int64_t su, int64_t sv,
+                         int64_t records) {
   Dims g{M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile,
          surfaces != 0, per_w != 0, per_u != 0, per_v != 0, att_in != 0, fl_in != 0,
          C, J, NK, linear != 0, world != 0, wb, sw, su, sv};
   if (M < 1 || nw < 1 || nu < 1 || nv < 1 || ns * M < nw || tile < 1 ||
       D != (2 * M + 1) * (2 * M + 1) || C != 1 + J + (linear ? 3 : 0) || NK > J || NK < 0)
     return ffi::Error::InvalidArgument("difffog_sweep_face: inconsistent dimensions");
+  const int64_t nrec = int64_t(rec_touch.element_count());
+  if (records && (Q.element_type() != ffi::DataType::F32 ||
+                  int64_t(rec_index.element_count()) != nw * nu * (nv / 16 + 1) ||
+                  int64_t(rec_any.element_count()) != nrec * nb ||
+                  int64_t(rec_normal.element_count()) != nrec * 3 * 16 ||
+                  int64_t(rec_bits.element_count()) != nrec * ((D + 31) / 32) * 16 ||
+                  nb != (D + 7) / 8))
+    return ffi::Error::InvalidArgument("difffog_sweep_face: records of the wrong size");
   if (Q.element_type() == ffi::DataType::F32) {
-    sweep<float>(g, args<float>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight,
-                                unit_, start, table, slope, lam, irr, exit, scratch));
+    Args<float> a = args<float>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx, weight,
+                                unit_, start, table, slope, lam, irr, exit, scratch);
+    if (records) {
+      a.rec_index = static_cast<const int32_t*>(rec_index.untyped_data());
+      a.rec_touch = static_cast<const uint8_t*>(rec_touch.untyped_data());
+      a.rec_any = static_cast<const uint8_t*>(rec_any.untyped_data());
+      a.rec_normal = static_cast<const float*>(rec_normal.untyped_data());
+      a.rec_bits = static_cast<const uint32_t*>(rec_bits.untyped_data());
+    }
+    sweep<float>(g, a);
   } else if (Q.element_type() == ffi::DataType::F64) {
     sweep<double>(g, args<double>(Q, B, tau, normal, bits, free, surf, bc, length_k, kidx,
                                   weight, unit_, start, table, slope, lam, irr, exit,
@@ -2231,6 +2290,11 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Arg<ffi::AnyBuffer>()  // start (D, 2) int32
                                   .Arg<ffi::AnyBuffer>()  // table (D, J) (or a dummy)
                                   .Arg<ffi::AnyBuffer>()  // slope (D, 3) (or a dummy)
+                                  .Arg<ffi::AnyBuffer>()  // records' index (nw, nu, nv/16 + 1)
+                                  .Arg<ffi::AnyBuffer>()  // records' touch (R,) uint8
+                                  .Arg<ffi::AnyBuffer>()  // records' any (R, nb) uint8
+                                  .Arg<ffi::AnyBuffer>()  // records' normals (R, 3, 16) f32
+                                  .Arg<ffi::AnyBuffer>()  // records' words (R, NW, 16) u32
                                   .Ret<ffi::AnyBuffer>()  // Λ (nw, nu, nv[, 1 + NK]) or world
                                   .Ret<ffi::AnyBuffer>()  // E (nw, nu, nv) or world
                                   .Ret<ffi::AnyBuffer>()  // exit (M, D, nu, nv)
@@ -2261,7 +2325,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepFace, SweepFaceImpl,
                                   .Attr<int64_t>("wb")
                                   .Attr<int64_t>("sw")
                                   .Attr<int64_t>("su")
-                                  .Attr<int64_t>("sv"));
+                                  .Attr<int64_t>("sv")
+                                  .Attr<int64_t>("records"));
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSweepSubstep, SweepSubstepImpl,
                               ffi::Ffi::Bind()
