@@ -463,11 +463,12 @@ def _native_common(Q, tau_half_unit, geo: FaceGeometry, consts: SweepConsts, M: 
 
 def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *, M: int,
                  periodic: tuple[bool, bool, bool], warmup: int, surfaces: bool,
-                 vol=(True, True, None), frame: tuple[int, int] | None = None, records=None):
+                 vol=(True, True, None), frame: tuple[int, int] | None = None, records=None,
+                 exits: bool = True):
     """``_sweep_face_loop``'s values from the native kernel (``_native.sweep_face``); with
     ``frame`` = (axis, sign), Q and B in the world frame and Λ, E returned in it
     (``sweep_face_world``); ``records``: the plan's surface records (``_native.
-    surface_records``) or None."""
+    surface_records``) or None; ``exits`` False: the radiance leaving is not made (None)."""
     dt = Q.dtype
     ns, length_k, kidx, normal, blocked, table, nk = _native_common(
         Q, tau_half_unit, geo, consts, M, periodic[0], warmup, surfaces)
@@ -479,7 +480,7 @@ def _native_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts
         segment=(s0, s1, fog_on, vol[1]), surfaces=surfaces, periodic=periodic,
         table=table, nk=nk,
         slope=consts.slope.astype(dt) if consts.slope is not None else None, frame=frame,
-        records=records)
+        records=records, exits=exits)
 
 
 def _native_substep_call(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,
@@ -534,7 +535,7 @@ def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
                      axis: int, sign: int, M: int, periodic: tuple[bool, bool, bool],
                      warmup: int, surfaces: bool, attenuate: bool = True, fluence: bool = True,
                      vol_range: tuple[int, int] | None = None, recompute: bool = False,
-                     records=None):
+                     records=None, exits: bool = True):
     """``sweep_face`` of the face (``axis``, ``sign``) with q, b, Λ and E in the world frame
     (nx, ny, nz[, ...]), the geometry, τ and the radiance leaving in the face frame: the values
     from the native kernel, which reads and writes each face node's world node, so that
@@ -543,11 +544,13 @@ def sweep_face_world(q, b, tau_half_unit, bc, geo: FaceGeometry, consts: SweepCo
     as long as the sweeps themselves: a light solve 9.4 → 7.4 s without them).  Derivatives
     are the face-frame path's (``sweep_face`` between ``to_face`` and ``from_face``: its
     batched program's).  Where ``world_native_applies``.  ``records``: the face's surface
-    records made with the plan (``SweepGeometry.records``), or None (the kernel makes them)."""
+    records made with the plan (``SweepGeometry.records``), or None (the kernel makes them);
+    ``exits`` False: the radiance leaving the face is not made (returned as None: a light
+    solve never reads it)."""
     vol = (bool(attenuate), bool(fluence), None if vol_range is None else tuple(vol_range))
     return _sweep_face_world(int(axis), int(sign), M, tuple(periodic), int(warmup),
-                             bool(surfaces), vol, bool(recompute), q, b, tau_half_unit, bc, geo,
-                             consts, records)
+                             bool(surfaces), vol, bool(recompute), bool(exits), q, b,
+                             tau_half_unit, bc, geo, consts, records)
 
 
 def _face_path(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b, tau_half_unit, bc,
@@ -561,20 +564,23 @@ def _face_path(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b, 
     return from_face(lf, axis, sign), from_face(ef, axis, sign), ex
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5, 6, 7))
-def _sweep_face_world(axis, sign, M, periodic, warmup, surfaces, vol, recompute, q, b,
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3, 4, 5, 6, 7, 8))
+def _sweep_face_world(axis, sign, M, periodic, warmup, surfaces, vol, recompute, exits, q, b,
                       tau_half_unit, bc, geo, consts, records):
     return _native_call(q, b, tau_half_unit, bc, geo, consts, M=M, periodic=periodic,
                         warmup=warmup, surfaces=surfaces, vol=vol, frame=(axis, sign),
-                        records=records)
+                        records=records, exits=exits)
 
 
 @_sweep_face_world.defjvp
-def _sweep_face_world_jvp(axis, sign, M, periodic, warmup, surfaces, vol, recompute, primals,
-                          tangents):
+def _sweep_face_world_jvp(axis, sign, M, periodic, warmup, surfaces, vol, recompute, exits,
+                          primals, tangents):
     path = functools.partial(_face_path, axis, sign, M, periodic, warmup, surfaces, vol,
                              recompute)
-    return jax.jvp(path, primals, tangents)
+    out, t_out = jax.jvp(path, primals, tangents)
+    if not exits:
+        out, t_out = (*out[:2], None), (*t_out[:2], None)
+    return out, t_out
 
 
 def _sweep_face_loop(Q, B, tau_half_unit, bc, geo: FaceGeometry, consts: SweepConsts, *,

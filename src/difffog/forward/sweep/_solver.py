@@ -635,7 +635,7 @@ def _sweep_all(q, b, pb: _Problem, return_exits: bool = False):
                 lf, ef, ex = sweep_face_world(
                     q, b, pb.tau_half[f], pb.sky * g.sky_frac[f], g.faces[f], _face_consts(pb, f),
                     axis=axis, sign=sign, periodic=periodic, vol_range=g.vol_range(f),
-                    records=None if g.records is None else g.records[f],
+                    records=None if g.records is None else g.records[f], exits=return_exits,
                     **{k: v for k, v in kw.items() if k != "kernel"})
                 lam, irr, exits[f] = lam + lf, irr + ef, ex
             continue
