@@ -78,14 +78,15 @@ def fit_edge_samples(downsample: int) -> int:
 #: (fog-balls N = 32-96, M = 2-5, this 2-core CPU: each within 0.75-1.2× of the measured)
 CPU_UPDATES_PER_S = 0.42e9
 #: the same for the isotropic step scheme's native sweep (``forward/sweep/_native.py``): rate and
-#: per-node cost fitted (least squares in the relative error) to bench_cost.py's 9 sweep rows at
-#: stop 72, since its blocks go one 64-byte vector at a time (fog-balls N = 32-96, M = 2-5, this
-#: 2-core CPU: each within 0.71-1.21× of the measured, the small lattices' under, where 1.27e9
-#: and 3.6e-7 had grown to 0.81-1.45×; benchmarks/results/cost_native_stop72.md; stop 65's fit,
-#: since the kernel reads and writes the world frame, 1.27e9 and 3.6e-7; stop 63's, with the
-#: face copies, 1.1e9 and 4.8e-7)
-CPU_NATIVE_UPDATES_PER_S = 1.79e9
-CPU_NATIVE_SECONDS_PER_NODE = 3.4e-7
+#: per-node cost fitted (least squares in the relative error) at stop 73, since the surfaces'
+#: records come with the plan and the blocks are cut by cost, to bench_cost.py's 9 sweep rows
+#: and six renders N = 96 and 128, M = 5 (fog-balls, this 2-core CPU: each within 0.68-1.21×
+#: of the measured, where 1.79e9 and 3.4e-7 had grown to 0.65-1.31×, the large lattices' over;
+#: benchmarks/results/cost_native_stop73.md; stop 72's, its blocks one 64-byte vector at a
+#: time, 1.79e9 and 3.4e-7; stop 65's, the kernel in the world frame, 1.27e9 and 3.6e-7; stop
+#: 63's, with the face copies, 1.1e9 and 4.8e-7)
+CPU_NATIVE_UPDATES_PER_S = 3.1e9
+CPU_NATIVE_SECONDS_PER_NODE = 4.3e-7
 #: the share of a face's 16-node row vectors that hold a SURFACE node, for the native sweep's
 #: surface records (measured on fog-balls: 0.28-0.34 at N = 128, 0.36-0.49 at N = 64; it falls
 #: as 1/N, the surfaces being two-dimensional)
@@ -237,6 +238,10 @@ SETUP_S_PER_NODE_SHADOW = 0.5e-6
 #: substep``, prepare s, this 2-core CPU): +0.5 s at 64³, +1.6-2.0 s at 128³ (M = 3,
 #: fog-balls and cloud-tomo); these give 0.52 and 2.5 s
 SETUP_S_PER_SUBSTEP_CROSSING = 1e-8
+#: the native blocked sweep's surface records (``_native.surface_records``, six faces, since
+#: stop 73), seconds per node: fog-balls N = 96, M = 5, prepare 0.96-1.04 s with them against
+#: 0.67-0.84 s without (alternated in one process, this 2-core CPU)
+SETUP_S_PER_NODE_RECORDS = 2e-7
 SETUP_S_PER_SUBSTEP_CALL = 2e-5
 #: the splat's set-up: a fixed part (its footprint and kernel programs) and a part per voxel
 #: (bench_cost.py: 3.1 / 3.9 / 4.9 s at N = 32 / 64 / 96)
@@ -487,11 +492,14 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         words = -(-D // 32)
         per_record = 16 * (12 + 4 * words) + math.ceil(D / 8) + 1
         mem["surface records"] = int(6 * n / 16 * (4 + RECORD_SHARE * per_record))
+        records_s = SETUP_S_PER_NODE_RECORDS * n
+    else:
+        records_s = 0.0
     from .geometry._hits import shadows_exactly
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M
                  + SETUP_S_PER_SEGMENT_SAMPLE * 6 * D * 2 * M) if surfaces else 0)
-             + (SETUP_S_PER_NODE_SHADOW * n if shadows_exactly(scene) else 0))
+             + (SETUP_S_PER_NODE_SHADOW * n if shadows_exactly(scene) else 0) + records_s)
     if substep:
         setup += (M - 1) * D * (SETUP_S_PER_SUBSTEP_CROSSING * n
                                 + SETUP_S_PER_SUBSTEP_CALL * 6 * -(-max(shape) // M))
