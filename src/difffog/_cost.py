@@ -484,14 +484,16 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         if not general:  # (the native kernel's figure above is its own)
             per_iter *= SUBSTEP_COST_LOOP if kernel == "loop" else SUBSTEP_COST_BATCHED
         mem["light solve"] += int(n * SUBSTEP_BYTES_PER_NODE)
-    if surfaces and native and not (K or linear or substep) and D * n >= 1 << 18:
+    from .forward.sweep import _native
+
+    if surfaces and native and not (K or linear or substep) and _native.records_apply(D, shape):
         # the native blocked sweep's surface records, made with the plan (``_native.
         # surface_records``): per face an index of the rows' 16-node vectors, and for those
         # with a SURFACE node (fog-balls: 28-34% of them at N = 128, 36-49% at N = 64; taken
         # as RECORD_SHARE) 16 lanes of a normal and the blocking words, the lanes' OR, a flag
-        words = -(-D // 32)
-        per_record = 16 * (12 + 4 * words) + math.ceil(D / 8) + 1
-        mem["surface records"] = int(6 * n / 16 * (4 + RECORD_SHARE * per_record))
+        lanes, words = _native.RECORD_LANES, -(-D // 32)
+        per_record = lanes * (12 + 4 * words) + math.ceil(D / 8) + 1
+        mem["surface records"] = int(6 * n / lanes * (4 + RECORD_SHARE * per_record))
         records_s = SETUP_S_PER_NODE_RECORDS * n
     else:
         records_s = 0.0

@@ -824,6 +824,11 @@ void surf_records(const Dims& g, const Args<T>& a, int64_t r0, int64_t r1, int64
     }
 }
 
+// Whether direction ``dirs[b]`` begins a run of equal |L| in ``dirs`` (ordered by |L|: kidx)
+inline bool run_begins(const int32_t* kidx, const int32_t* dirs, int64_t b) {
+  return b == 0 || kidx[dirs[b]] != kidx[dirs[b - 1]];
+}
+
 // Rows [u0, u1) of face plane p for the block's nd directions ``dirs`` (ordered by |L|): their
 // carries src[b] → dst[b] (PU, PV), and where the plane is kept Λ and E added to lam and irr
 // (face frame).
@@ -854,7 +859,7 @@ void block_tile(const Dims& g, const Args<T>& a, const T* Qf, const T* Bf, const
   int64_t run[BLOCK_MAX + 1];
   int64_t nr = 0;
   for (int64_t b = 0; b < nd; ++b)
-    if (b == 0 || a.kidx[dirs[b]] != a.kidx[dirs[b - 1]]) run[nr++] = b;
+    if (run_begins(a.kidx, dirs, b)) run[nr++] = b;
   run[nr] = nd;
   T wsum = T(0);
   for (int64_t b = 0; b < nd; ++b) wsum += a.weight[dirs[b]];
@@ -1043,7 +1048,7 @@ constexpr double RUN_COST = 3.0;
 inline std::vector<int64_t> block_cuts(const std::vector<int32_t>& order, const int32_t* kidx,
                                        int64_t D, int64_t nblocks, int64_t cap,
                                        std::vector<double>* block_cost) {
-  auto starts = [&](int64_t i) { return i == 0 || kidx[order[i]] != kidx[order[i - 1]]; };
+  auto starts = [&](int64_t i) { return run_begins(kidx, order.data(), i); };
   std::vector<double> cost(size_t(D + 1), 0.0);  // of order[0, i)
   for (int64_t i = 0; i < D; ++i)
     cost[size_t(i + 1)] = cost[size_t(i)] + 1.0 + (starts(i) ? RUN_COST : 0.0);
