@@ -187,6 +187,54 @@ def test_estimate_follows_the_scheme_the_solver_will_run(monkeypatch):
     assert sub_b.memory["linearised sweeps"] > 1.5 * step_b.memory["linearised sweeps"]
 
 
+def test_a_device_mesh_on_a_cpu_is_estimated_with_a_copy_per_host_device(monkeypatch):
+    """On a CPU the host devices share the cores: a mesh of faces alone runs the native kernel
+    per face (measured: CPU_MESH_COST times one device's iteration; no surface records, which
+    only one device's world-frame sweep reads), a mesh that splits the plane XLA's loop; and
+    every host device keeps its own copy of the light's fields and GMRES's vectors in the one
+    machine's memory (fog-balls, 2 host devices against one, stop 74: +449 MB at N = 64, M =
+    3, +953 MB at N = 96, M = 3).  On a GPU each device has its own memory, which the
+    estimate is compared with: nothing is added there."""
+    from difffog.forward.sweep import _native
+
+    scene = df.load_scene("fog-balls")
+    kw = dict(resolution=64, M=3, backend="cpu")
+    one = _cost.estimate_sweep(scene, **kw)
+    two = _cost.estimate_sweep(scene, devices=2, **kw)
+    assert two.memory["other devices' copies"] == (one.memory["light solve"]
+                                                   + one.memory["Krylov vectors"])
+    assert "surface records" not in two.memory and "other devices' copies" not in one.memory
+    four = _cost.estimate_sweep(scene, devices=4, mesh=(2, 2, 1), **kw)
+    assert four.memory["other devices' copies"] == 3 * two.memory["other devices' copies"]
+    gpu = _cost.estimate_sweep(scene, resolution=64, M=3, backend="gpu", devices=2)
+    assert "other devices' copies" not in gpu.memory
+    if _native.expected():
+        assert two.seconds_per_iteration == pytest.approx(
+            one.seconds_per_iteration * _cost.CPU_MESH_COST, rel=1e-12)
+    monkeypatch.setattr(_native, "expected", lambda: False)  # XLA's loop on one device
+    xla = _cost.estimate_sweep(scene, **kw)
+    split = _cost.estimate_sweep(scene, devices=2, mesh=(1, 2, 1), **kw)
+    monkeypatch.undo()
+    assert _cost.estimate_sweep(scene, devices=2, mesh=(1, 2, 1), **kw).seconds_per_iteration \
+        == split.seconds_per_iteration == xla.seconds_per_iteration
+
+
+def test_a_device_mesh_on_a_cpu_warns_that_one_device_is_faster():
+    """devices > 1 on a CPU whose native kernel would run: a DeviceWarning that names what it
+    costs and what to do (the CLI prints it as one line); the mesh's geometry has no surface
+    records (its sweeps are XLA's, which do not read them)."""
+    from difffog.forward.sweep import _native
+
+    if not _native.expected() or df.estimate(df.load_scene("furnace"), "sweep").backend != "cpu":
+        pytest.skip("the native kernel would not run here: a mesh costs nothing extra")
+    scene = df.load_scene("fog-balls", ["shape.walls.thickness=0.1"])
+    lat = df.voxelize(scene, 24, 2)  # (faces large enough for the blocked sweep)
+    with pytest.warns(df.DeviceWarning, match="leave devices at 1 on a CPU"):
+        geom = df.SweepSolver(M=2, devices=2).prepare(scene, lat)
+    assert geom.records is None
+    assert df.SweepSolver(M=2).prepare(scene, lat).records is not None
+
+
 def test_a_gradient_estimate_counts_the_linearised_sweeps():
     """A reverse-mode gradient's adjoint solve keeps the linearised Jacobi step's residuals
     (stop 41: cloud-plane's fit at N = 48, which then took that route, peaked at 20.8 GB where

@@ -15,6 +15,7 @@ parameters) → ``geometry`` (lattice, directions, rays) → ``forward`` (the fo
 
 from ._errors import (
     AdjointWarning as AdjointWarning,
+    DeviceWarning as DeviceWarning,
     ThickStepWarning as ThickStepWarning,
     ThinLayerWarning as ThinLayerWarning,
     DifffogError as DifffogError,

@@ -87,6 +87,12 @@ CPU_UPDATES_PER_S = 0.42e9
 #: 63's, with the face copies, 1.1e9 and 4.8e-7)
 CPU_NATIVE_UPDATES_PER_S = 3.1e9
 CPU_NATIVE_SECONDS_PER_NODE = 4.3e-7
+#: a CPU's host devices on a mesh of faces (``devices=2``: the ± faces of each axis on two
+#: devices, each with the native kernel on its share of the cores, in the face frame: XLA's
+#: copies of the sources and fields per face): its Jacobi iteration against one device's,
+#: fog-balls N = 64 / 96, M = 3 / 5 and N = 128, M = 5, stop 74 (``bench_sweep.py --devices
+#: 1|2``): 1.36, 1.24, 1.69, 1.42 and 1.25-1.6, the median
+CPU_MESH_COST = 1.4
 #: the share of a face's 16-node row vectors that hold a SURFACE node, for the native sweep's
 #: surface records (measured on fog-balls: 0.28-0.34 at N = 128, 0.36-0.49 at N = 64; it falls
 #: as 1/N, the surfaces being two-dimensional)
@@ -374,7 +380,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
                    kernel: str = "auto", gradient: bool = False, tangent_solves: int = 0,
                    phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
                    sweep_residuals: str = "auto", edge_samples: int = EDGE_SAMPLES,
-                   once_M: int | None = None, **_ignored) -> CostEstimate:
+                   once_M: int | None = None, devices: int = 1, mesh=None,
+                   **_ignored) -> CostEstimate:
     """The :class:`CostEstimate` of the sweep (the registry's ``estimate`` for it).
 
     kernel: the sweep's program ("auto": the backend's, as ``SweepSolver`` chooses it);
@@ -387,8 +394,21 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     scheme: the transport scheme ("auto": the solver's rule, judged from the scene);
     tangents, sweep_residuals, once_M: as ``SweepSolver``'s (once_M: one more sub-stepped
         sweep per solve on that direction set, ``ONCE_S_PER_CROSSING``; the lattice's shell
-        and margin follow it)."""
+        and margin follow it);
+    devices, mesh: as ``SweepSolver``'s.  On a CPU the host devices share the cores: a mesh
+        of faces alone runs the native kernel per face in the face frame (``CPU_MESH_COST``
+        times one device's iteration, no surface records), one that splits the plane runs
+        XLA's loop; and each host device holds its own copy of the light's fields and GMRES's
+        vectors in the one machine's memory (fog-balls, 2 host devices against one, stop 74:
+        +449 MB at N = 64, M = 3, +953 MB at N = 96, M = 3, +3.1 GB at N = 128, M = 5, where
+        those two parts are 0.37, 1.1 and 2.7 GB).  On a GPU (each device its own memory, which
+        the estimate is compared with) a mesh changes nothing here: not measured."""
     backend = backend or _backend()
+    if mesh is None:
+        from .forward.sweep._solver import mesh_shape_for
+
+        mesh = mesh_shape_for(int(devices or 1))
+    ndev = math.prod(mesh)
     if kernel == "auto":
         from .forward.sweep._kernel import kernel_for
 
@@ -458,7 +478,7 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     if backend != "gpu" and kernel == "loop":
         from .forward.sweep import _native
 
-        native = _native.expected()
+        native = _native.expected() and mesh[1] == mesh[2] == 1  # (no halos: one device's plane)
     if backend != "gpu":
         rate, per_node = CPU_UPDATES_PER_S, CPU_SECONDS_PER_NODE
         general = native and (K > 0 or linear or substep)
@@ -474,6 +494,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
             per_iter = 6 * D * n / rate + per_node * n
         if kernel == "batched":
             per_iter *= CPU_BATCHED_SLOWDOWN
+        if native and ndev > 1:
+            per_iter *= CPU_MESH_COST
     if not general:  # (the GPU's programs are assumed to grow alike: not measured there)
         per_iter *= 1.0 + CPU_COST_PER_MOMENT * K
         if linear:
@@ -486,7 +508,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         mem["light solve"] += int(n * SUBSTEP_BYTES_PER_NODE)
     from .forward.sweep import _native
 
-    if surfaces and native and not (K or linear or substep) and _native.records_apply(D, shape):
+    if (surfaces and native and ndev == 1 and not (K or linear or substep)
+            and _native.records_apply(D, shape)):
         # the native blocked sweep's surface records, made with the plan (``_native.
         # surface_records``): per face an index of the rows' 16-node vectors, and for those
         # with a SURFACE node (fog-balls: 28-34% of them at N = 128, 36-49% at N = 64; taken
@@ -497,6 +520,8 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
         records_s = SETUP_S_PER_NODE_RECORDS * n
     else:
         records_s = 0.0
+    if ndev > 1 and backend == "cpu":
+        mem["other devices' copies"] = (ndev - 1) * (mem["light solve"] + mem["Krylov vectors"])
     from .geometry._hits import shadows_exactly
     setup = (SETUP_S_PER_NODE * n + SETUP_S_PER_RAY * rays
              + ((SETUP_S_PER_NODE_DIRECTION_STEP * n * D * M

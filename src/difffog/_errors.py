@@ -34,6 +34,12 @@ class ThinLayerWarning(UserWarning):
     layer's optical depth and the M that lowers the error."""
 
 
+class DeviceWarning(UserWarning):
+    """A device layout that runs slower than the default here: on a CPU, several host devices
+    (``devices=N``, ``--devices N``) run XLA's sweep loop instead of the native kernel, which
+    already uses every core on one device."""
+
+
 class ResourceError(DifffogError, MemoryError):
     """A run would not fit in the memory available: refused before allocating, with the
     estimate, what is available and the setting to lower (``difffog.estimate``)."""

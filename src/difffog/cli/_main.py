@@ -9,8 +9,8 @@ import os
 import sys
 import warnings
 
-from .._errors import (AdjointWarning, DifffogError, MemoryWarning, ResourceError,
-                       ThickStepWarning, ThinLayerWarning)
+from .._errors import (AdjointWarning, DeviceWarning, DifffogError, MemoryWarning,
+                       ResourceError, ThickStepWarning, ThinLayerWarning)
 from ..fit._result import IdentifiabilityWarning
 from ..forward._registry import LEVELS, SOLVERS, preset, solver_entry
 
@@ -137,7 +137,7 @@ def main(argv=None) -> int:
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, (ThickStepWarning, ThinLayerWarning, AdjointWarning,
-                                 IdentifiabilityWarning, MemoryWarning)):
+                                 IdentifiabilityWarning, MemoryWarning, DeviceWarning)):
             print(f"difffog: warning: {message}", file=sys.stderr)
         else:
             shown(message, category, filename, lineno, file, line)
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
         with warnings.catch_warnings():
             warnings.showwarning = one_line
             for category in (ThickStepWarning, ThinLayerWarning, AdjointWarning,
-                             IdentifiabilityWarning, MemoryWarning):
+                             IdentifiabilityWarning, MemoryWarning, DeviceWarning):
                 warnings.simplefilter("always", category)  # said, never raised
             return args.func(args)
     except ResourceError as e:  # a valid request this machine cannot hold: like a failed solve

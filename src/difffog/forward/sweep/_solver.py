@@ -29,7 +29,7 @@ from ...geometry._hits import shadows_exactly, sun_visibility
 from ...geometry._directions import (FACE_AXES, cosine_normalization, direction_set,
                                      face_plane_axes, sky_quadrature)
 from ...geometry._lattice import FREE, SOLID, SURFACE
-from ..._errors import SceneError, SolverError
+from ..._errors import DeviceWarning, SceneError, SolverError
 from ..._numerics import FOUR_PI, safe_div
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
@@ -203,12 +203,13 @@ def check_point_sun(scene) -> None:
 
 def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
                   order: int = 0, linear: bool = False, substep: bool = False,
-                  shadows: bool = True) -> SweepGeometry:
+                  shadows: bool = True, records: bool = True) -> SweepGeometry:
     """Host-side preparation of the static geometry (once per scene and lattice); ``order``:
     the δ-M order L of the anisotropic phase (0: isotropic or δ-isotropic); ``linear``: the
     linear-source scheme (``SweepSolver.scheme``); ``shadows``: cast the sun's exact shadow
     rays where the host can (``sun_vis``; not for the once-scattered sweep's geometry, whose
-    source comes from the solve's own beam)."""
+    source comes from the solve's own beam); ``records``: make the native blocked sweep's
+    surface records where it will read them (False: a device mesh, whose sweeps are XLA's)."""
     check_point_sun(scene)
     M = int(M or lattice.M)
     if M > lattice.M:
@@ -232,8 +233,8 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     warmup = int(M * lattice.shape[2]) if periodic_xy else 0
     # the native blocked sweep's surface records, made here once (where it will take them: the
     # isotropic step scheme on a CPU; float32's layout, ignored by a float64 solve)
-    records = (not linear and not substeps and order == 0 and jax.default_backend() == "cpu"
-               and _native.expected())
+    records = (records and not linear and not substeps and order == 0
+               and jax.default_backend() == "cpu" and _native.expected())
 
     def cosines():
         c = np.zeros(nt.shape)
@@ -702,6 +703,21 @@ def mesh_shape_for(devices: int) -> tuple[int, int, int]:
     rest = devices // nf
     nu = max(d for d in range(1, int(math.isqrt(rest)) + 1) if rest % d == 0)
     return (nf, rest // nu, nu)
+
+
+def cpu_mesh_warning(devices: int) -> str:
+    """What a device mesh costs on a CPU, where one device's native kernel already runs on every
+    core: the mesh's devices share those cores (each its face's sweep, in the face frame, with
+    XLA's copies of the sources and fields per face; a plane split over "u"/"v" takes XLA's
+    loop), and each device holds its own copy of the light's fields and GMRES's vectors
+    (fog-balls, this project's 2-core CPU, stop 74, one Jacobi iteration: 2 host devices
+    1.24-1.69x one device's time at N = 64-128, M = 3-5; a render's peak at N = 128, M = 5
+    6.0 GB against 2.9 GB)."""
+    return (f"devices={devices} on a CPU shares its cores among {devices} host devices, each "
+            "with its own copy of the light: slower and larger than one device, whose native "
+            "kernel already uses every core (fog-balls: 1.2-1.7x the time per iteration, "
+            "2x the memory at N = 128, M = 5); leave devices at 1 on a CPU (several devices "
+            "pay off on several GPUs)")
 
 
 def _device_mesh(shape: tuple[int, int, int]) -> jax.sharding.Mesh:
@@ -1263,8 +1279,13 @@ class SweepSolver(eqx.Module):
         """The static structure of ``scene`` on ``lattice`` (host, once)."""
         scheme = self.resolved_scheme(scene, lattice)
         order = self.resolved_phase_order(scene)
+        one = math.prod(self.layout()) == 1
+        if not one and jax.default_backend() == "cpu" and _native.expected():
+            warnings.warn(cpu_mesh_warning(math.prod(self.layout())), DeviceWarning,
+                          stacklevel=3)
         geom = prepare_sweep(scene, lattice, self.M, self.terms, order,
-                             linear=scheme == "linear", substep=scheme == "substep")
+                             linear=scheme == "linear", substep=scheme == "substep",
+                             records=one)
         if once_M := self.resolved_once_M(scene):
             # the sub-stepped scheme, whatever the solve's: its segments span once_M planes,
             # longer than the solve's, and the sun's first collision falls off along them as
