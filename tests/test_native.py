@@ -639,3 +639,78 @@ def test_gmres_with_the_native_gram_schmidt_solves_as_with_xla(x64):
     assert int(k_n) == int(k_x) and int(k_n) > 6  # more than one cycle
     np.testing.assert_allclose(x_n, x_x, rtol=1e-11, atol=1e-12)
     np.testing.assert_allclose(x_n, x_true, rtol=1e-8, atol=1e-9)
+
+
+def _sky_inputs(shape, dt, seed=3):
+    """Random fog (thin to 40 mean free paths a node, some empty), opaque nodes and normals."""
+    rng = np.random.default_rng(seed)
+    tau = rng.random(shape) * np.where(rng.random(shape) < 0.1, 400.0, 3.0)
+    sigma = jnp.asarray(tau * (rng.random(shape) > 0.2), dt)
+    opaque = jnp.asarray(rng.random(shape) < 0.1)
+    normal = jnp.asarray(rng.standard_normal(shape + (3,)), dt)
+    return sigma, opaque, normal
+
+
+@needs_compiler
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_native_sky_pass_equals_the_xla_program(dtype, x64, monkeypatch):
+    """The sky's first collision (fluence and irradiance from 128 sky directions in five groups
+    by the axis their sheets run along) from the native kernel equals XLA's program, on a
+    lattice whose rows are not whole vectors, with the same bits on 1, 2 and 3 threads (each
+    node's sums run on one thread, over the directions in order)."""
+    from difffog.forward.sweep._uncollided import sky_uncollided
+    from difffog.geometry._directions import sky_quadrature
+
+    dirs, wts = sky_quadrature(8, 16)
+    dt = jnp.dtype(dtype)
+    args = (*_sky_inputs((11, 9, 21), dt), dirs, wts, 0.05, False)
+    assert "ffi_call" in str(jax.make_jaxpr(lambda s: sky_uncollided(s, *args[1:]))(args[0]))
+    xla = sky_uncollided(*args, native=False)
+    tol = 1e-13 if dtype == "float64" else 2e-6
+    runs = []
+    for threads in (1, 2, 3):
+        monkeypatch.setattr(_native, "_threads", lambda t=threads: t)
+        runs.append(sky_uncollided(*args))
+    for k in range(2):
+        # (deep in the thick fog the sky hardly reaches: values over two decades)
+        assert float(jnp.max(xla[k])) > 0.5 and float(jnp.min(xla[k])) < 0.02 * float(
+            jnp.max(xla[k]))
+        np.testing.assert_allclose(runs[0][k], xla[k], rtol=tol, atol=tol * float(
+            jnp.max(xla[k])))
+        for r in runs[1:]:
+            np.testing.assert_array_equal(r[k], runs[0][k])
+    # where it does not serve: a periodic domain, the anisotropic moments, the linear slopes
+    for kw in (dict(periodic_xy=True), dict(harm=np.ones((len(dirs), 4))), dict(slope=True)):
+        full = dict(zip(("sigma_t", "opaque", "normal", "sky_dirs", "sky_wts", "h",
+                         "periodic_xy"), args)) | kw
+        jaxpr = jax.make_jaxpr(lambda s: sky_uncollided(**(full | dict(sigma_t=s))))(args[0])
+        assert "ffi_call" not in str(jaxpr), kw
+
+
+@needs_compiler
+def test_native_sky_pass_derivatives_match_differences(x64):
+    """A loss of the sky's first collision through the native kernel (whose derivative rule is
+    XLA's program): its tangent and its gradient in the extinction match central differences
+    in float64, also under vmap."""
+    from difffog.forward.sweep._uncollided import sky_uncollided
+    from difffog.geometry._directions import sky_quadrature
+
+    dirs, wts = sky_quadrature(4, 8)
+    sigma, opaque, normal = _sky_inputs((7, 6, 8), jnp.float64, seed=5)
+    sigma = sigma / 20.0  # light through the fog, not only off its top
+    w = jnp.asarray(np.random.default_rng(1).random(sigma.shape))
+
+    def loss(s):
+        flu, irr = sky_uncollided(s, opaque, normal, dirs, wts, 0.1, False)
+        return jnp.sum(w * flu) + jnp.sum(w * w * irr)
+
+    dsig = jnp.asarray(np.random.default_rng(2).random(sigma.shape))
+    e = 1e-6
+    fd = (loss(sigma + e * dsig) - loss(sigma - e * dsig)) / (2 * e)
+    _, tangent = jax.jvp(loss, (sigma,), (dsig,))
+    grad = jax.grad(loss)(sigma)
+    assert abs(float(fd)) > 1e-3
+    assert float(tangent) == pytest.approx(float(fd), rel=1e-7)
+    assert float(jnp.sum(grad * dsig)) == pytest.approx(float(fd), rel=1e-7)
+    both = jax.vmap(loss)(jnp.stack([sigma, 2.0 * sigma]))
+    np.testing.assert_allclose(both, [loss(sigma), loss(2.0 * sigma)], rtol=1e-14)

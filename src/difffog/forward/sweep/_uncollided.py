@@ -13,6 +13,7 @@ illumination of surfaces.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -21,6 +22,7 @@ import numpy as np
 
 from ..._numerics import linear_source_terms, one_minus_exp_over
 from ...geometry._directions import face_plane_axes
+from . import _native
 
 
 def sun_sweep_axis(sun_dir: np.ndarray, periodic_xy: bool) -> tuple[int, int]:
@@ -182,7 +184,7 @@ def sun_transmittance(sigma_t, opaque, sun_dir, h, periodic_xy, average=False, s
 
 
 def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, harm=None,
-                   slope=False):
+                   slope=False, native=None):
     """Uncollided sky light at every node: Σ_k w_k T_k and Σ_k w_k T_k max(0, ω_k·N), and with
     ``harm`` ((n_dirs, K) basis values at each direction's propagation direction) the moments
     Σ_k w_k T̄_k Ỹ(−ω_k) (nx, ny, nz, K) as a third result; with ``slope`` the fluence's
@@ -194,17 +196,21 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, h
     direction along z let shallow sky light jump over walls a few voxels thick (measured: the
     floor of ring-box's open box got 27% too much sky).  Laterally periodic domains sweep along
     z only (their x, y sweeps would never start).
+
+    native: None (default) takes the values from the native kernel (``_native.sky_pass``, the
+    same arithmetic in one pass per sheet; derivatives from this XLA program) on a CPU where
+    it is built, for an open domain without ``harm`` or ``slope``; False always runs XLA's.
     """
     dirs = np.asarray(sky_dirs, np.float64)
     wts = np.asarray(sky_wts, np.float64)
+    if (native is not False and harm is None and not slope and not periodic_xy
+            and _native.serves(sigma_t.dtype)):
+        cfg = (tuple(map(tuple, dirs.tolist())), tuple(wts.tolist()), float(h))
+        return _sky_native(sigma_t, opaque, normal, cfg)
     if periodic_xy:
         groups = {(2, 1): np.arange(len(dirs))}
     else:
-        axis = np.argmax(np.abs(dirs), axis=1)
-        sign = np.where(dirs[np.arange(len(dirs)), axis] > 0, 1, -1)
-        groups = {}
-        for k, key in enumerate(zip(axis.tolist(), sign.tolist())):
-            groups.setdefault(key, []).append(k)
+        groups = _sky_groups(dirs)
     flu = jnp.zeros_like(sigma_t)
     irr = jnp.zeros_like(sigma_t)
     mom = None if harm is None else jnp.zeros(sigma_t.shape + (harm.shape[1],), sigma_t.dtype)
@@ -341,3 +347,55 @@ def _sheet_sweep(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, by_
     init = jnp.ones((K, nx, ny), dt)
     _, out = jax.lax.scan(step, init, xs)
     return tuple(jnp.moveaxis(a[::-1], 0, 2) for a in out)
+
+
+def _sky_groups(dirs: np.ndarray) -> dict:
+    """The sky directions of an open domain by the axis their sheets run along, {(axis, sign
+    of ω on it): indices}, in the order :func:`sky_uncollided` adds their sums."""
+    axis = np.argmax(np.abs(dirs), axis=1)
+    sign = np.where(dirs[np.arange(len(dirs)), axis] > 0, 1, -1)
+    groups: dict = {}
+    for k, key in enumerate(zip(axis.tolist(), sign.tolist())):
+        groups.setdefault(key, []).append(k)
+    return groups
+
+
+def _sky_table(cfg, dt) -> np.ndarray:
+    """The native sky pass's per-direction table (K, 12) (``_native.sky_pass``) from
+    ``_sky_native``'s static configuration (directions, weights, h), grouped as
+    :func:`sky_uncollided` groups them: each group's axis and sign, the offsets' whole voxels
+    and fractions per sheet along its two other axes (computed in float64 as
+    ``_sheet_sweep`` does, then cast), the half-segment path, the weight and ω."""
+    dirs, wts, h = np.asarray(cfg[0], np.float64), np.asarray(cfg[1], np.float64), cfg[2]
+    rows = []
+    for (a, sgn), idx in _sky_groups(dirs).items():
+        u, v = face_plane_axes(a)
+        d = dirs[idx][:, (u, v, a)] * np.array([1.0, 1.0, float(sgn)])
+        off = d[:, :2] / d[:, 2:3]
+        i0 = np.floor(off)
+        n = len(idx)
+        rows.append(np.concatenate([np.full((n, 1), a), np.full((n, 1), sgn), i0, off - i0,
+                                    (h / (2.0 * d[:, 2]))[:, None], wts[idx][:, None],
+                                    dirs[idx], np.zeros((n, 1))], 1))
+    return np.concatenate(rows).astype(dt)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _sky_native(sigma_t, opaque, normal, cfg):
+    """:func:`sky_uncollided`'s (fluence, irradiance) from the native kernel (isotropic, open
+    domain); ``cfg`` = (directions, weights, h) as tuples (static).  Its derivatives are XLA's
+    program's (the rule below), as the sweep's are."""
+    dt = sigma_t.dtype
+    return _native.sky_pass(sigma_t, opaque, normal.astype(dt), _sky_table(cfg, dt))
+
+
+@_sky_native.defjvp
+def _sky_native_jvp(cfg, primals, tangents):
+    dirs, wts, h = np.asarray(cfg[0]), np.asarray(cfg[1]), cfg[2]
+    out = _sky_native(*primals, cfg)
+
+    def xla(sigma_t, opaque, normal):
+        return sky_uncollided(sigma_t, opaque, normal, dirs, wts, h, False, native=False)
+
+    _, t_out = jax.jvp(xla, primals, tangents)
+    return out, t_out
