@@ -653,45 +653,49 @@ def _sky_inputs(shape, dt, seed=3):
 
 @needs_compiler
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
-def test_native_sky_pass_equals_the_xla_program(dtype, x64, monkeypatch):
+@pytest.mark.parametrize("harm,slope", [(False, False), (True, True)])
+def test_native_sky_pass_equals_the_xla_program(dtype, harm, slope, x64, monkeypatch):
     """The sky's first collision (fluence and irradiance from 128 sky directions in five groups
-    by the axis their sheets run along) from the native kernel equals XLA's program, on a
+    by the axis their sheets run along; with a Henyey–Greenstein fog its moments, with the
+    linear scheme the fluence's slope) from the native kernel equals XLA's program, on a
     lattice whose rows are not whole vectors, with the same bits on 1, 2 and 3 threads (each
-    node's sums run on one thread, over the directions in order)."""
+    node's sums run on one thread, over the directions in order).  A periodic domain keeps
+    XLA's program."""
     from difffog.forward.sweep._uncollided import sky_uncollided
     from difffog.geometry._directions import sky_quadrature
 
     dirs, wts = sky_quadrature(8, 16)
     dt = jnp.dtype(dtype)
+    kw = dict(harm=np.random.default_rng(4).standard_normal((len(dirs), 5)) if harm else None,
+              slope=slope)
     args = (*_sky_inputs((11, 9, 21), dt), dirs, wts, 0.05, False)
-    assert "ffi_call" in str(jax.make_jaxpr(lambda s: sky_uncollided(s, *args[1:]))(args[0]))
-    xla = sky_uncollided(*args, native=False)
+
+    def jaxpr(periodic):
+        return str(jax.make_jaxpr(lambda s: sky_uncollided(s, *args[1:6], periodic, **kw))(
+            args[0]))
+
+    assert "ffi_call" in jaxpr(False) and "ffi_call" not in jaxpr(True)
+    xla = sky_uncollided(*args, native=False, **kw)
+    assert len(xla) == 2 + harm + slope
     tol = 1e-13 if dtype == "float64" else 2e-6
     runs = []
     for threads in (1, 2, 3):
         monkeypatch.setattr(_native, "_threads", lambda t=threads: t)
-        runs.append(sky_uncollided(*args))
-    for k in range(2):
-        # (deep in the thick fog the sky hardly reaches: values over two decades)
-        assert float(jnp.max(xla[k])) > 0.5 and float(jnp.min(xla[k])) < 0.02 * float(
-            jnp.max(xla[k]))
-        np.testing.assert_allclose(runs[0][k], xla[k], rtol=tol, atol=tol * float(
-            jnp.max(xla[k])))
+        runs.append(sky_uncollided(*args, **kw))
+    for k in range(len(xla)):
+        top = float(jnp.max(jnp.abs(xla[k])))
+        if k < 2:  # (deep in the thick fog the sky hardly reaches: values over two decades)
+            assert top > 0.5 and float(jnp.min(xla[k])) < 0.02 * top
+        np.testing.assert_allclose(runs[0][k], xla[k], rtol=tol, atol=tol * top)
         for r in runs[1:]:
             np.testing.assert_array_equal(r[k], runs[0][k])
-    # where it does not serve: a periodic domain, the anisotropic moments, the linear slopes
-    for kw in (dict(periodic_xy=True), dict(harm=np.ones((len(dirs), 4))), dict(slope=True)):
-        full = dict(zip(("sigma_t", "opaque", "normal", "sky_dirs", "sky_wts", "h",
-                         "periodic_xy"), args)) | kw
-        jaxpr = jax.make_jaxpr(lambda s: sky_uncollided(**(full | dict(sigma_t=s))))(args[0])
-        assert "ffi_call" not in str(jaxpr), kw
 
 
 @needs_compiler
 def test_native_sky_pass_derivatives_match_differences(x64):
     """A loss of the sky's first collision through the native kernel (whose derivative rule is
-    XLA's program): its tangent and its gradient in the extinction match central differences
-    in float64, also under vmap."""
+    XLA's program), its moments and slope included: its tangent and its gradient in the
+    extinction match central differences in float64, also under vmap."""
     from difffog.forward.sweep._uncollided import sky_uncollided
     from difffog.geometry._directions import sky_quadrature
 
@@ -700,9 +704,13 @@ def test_native_sky_pass_derivatives_match_differences(x64):
     sigma = sigma / 20.0  # light through the fog, not only off its top
     w = jnp.asarray(np.random.default_rng(1).random(sigma.shape))
 
+    harm = np.random.default_rng(6).standard_normal((len(dirs), 3))
+
     def loss(s):
-        flu, irr = sky_uncollided(s, opaque, normal, dirs, wts, 0.1, False)
-        return jnp.sum(w * flu) + jnp.sum(w * w * irr)
+        flu, irr, mom, slope = sky_uncollided(s, opaque, normal, dirs, wts, 0.1, False,
+                                              harm=harm, slope=True)
+        return (jnp.sum(w * flu) + jnp.sum(w * w * irr) + jnp.sum(w[..., None] * mom)
+                + jnp.sum(w[..., None] * slope))
 
     dsig = jnp.asarray(np.random.default_rng(2).random(sigma.shape))
     e = 1e-6

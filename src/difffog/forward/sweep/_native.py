@@ -24,8 +24,8 @@ programs.
 ``native/gram_schmidt.cc``, in the same library, orthogonalizes each GMRES step against the
 live rows of its Krylov basis only (``gram_schmidt``; XLA's products read every row), and
 ``native/sky_pass.cc`` computes the sky's first collision of an open domain (``sky_pass``:
-every light solve's fixed pass, 4-5x faster than XLA's program since stop 74; its derivatives
-stay XLA's).
+every light solve's fixed pass, with the moments and the linear scheme's slope where asked;
+3-5x faster than XLA's program since stop 74; its derivatives stay XLA's).
 
 The library is compiled on first use with the machine's C++ compiler (``$CXX``, else
 ``c++``), five objects at once (the sweep's ``PARTS``, the Gram–Schmidt's, the sky's), against
@@ -497,20 +497,25 @@ def gram_schmidt(V, a, live):
     return h, w, norm
 
 
-def sky_pass(sigma, opaque, normal, table):
-    """The sky's first collision (``native/sky_pass.cc``): (fluence, irradiance), each (nx,
-    ny, nz), from sigma and opaque (nx, ny, nz) and normal (nx, ny, nz, 3) in the world frame
-    and table (K, 12), one row per sky direction grouped by the axis its sheets run along
-    (``_uncollided._sky_table``), with ``_uncollided._sheet_sweep``'s arithmetic.  Call where
-    :func:`available`."""
+def sky_pass(sigma, opaque, normal, table, chan=None, nh: int = 0, slope: bool = False):
+    """The sky's first collision (``native/sky_pass.cc``): (fluence, irradiance, channels),
+    each (nx, ny, nz) and (nx, ny, nz, nh + 3·slope) (a 1-element dummy without any), from
+    sigma and opaque (nx, ny, nz) and normal (nx, ny, nz, 3) in the world frame, table (K, 12),
+    one row per sky direction grouped by the axis its sheets run along, and chan (K, nh +
+    3·slope) the channels' weights (``_uncollided._sky_table``), with
+    ``_uncollided._sheet_sweep``'s arithmetic.  Call where :func:`available`."""
     import jax
     import jax.numpy as jnp
 
     dt = sigma.dtype
     out = jax.ShapeDtypeStruct(sigma.shape, dt)
-    call = jax.ffi.ffi_call(_STATE["sky_target"], (out, out), vmap_method="sequential")
+    C = int(nh) + (3 if slope else 0)
+    mom = jax.ShapeDtypeStruct(sigma.shape + (C,) if C else (1,), dt)
+    call = jax.ffi.ffi_call(_STATE["sky_target"], (out, out, mom), vmap_method="sequential")
     return call(sigma, jnp.asarray(opaque, jnp.uint8), jnp.asarray(normal, dt),
-                jnp.asarray(table, dt), threads=np.int64(_threads()))
+                jnp.asarray(table, dt), jnp.zeros((1,), dt) if chan is None else
+                jnp.asarray(chan, dt), threads=np.int64(_threads()), nh=np.int64(nh),
+                slope=np.int64(bool(slope)))
 
 
 @functools.lru_cache(maxsize=64)

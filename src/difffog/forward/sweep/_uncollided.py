@@ -199,13 +199,14 @@ def sky_uncollided(sigma_t, opaque, normal, sky_dirs, sky_wts, h, periodic_xy, h
 
     native: None (default) takes the values from the native kernel (``_native.sky_pass``, the
     same arithmetic in one pass per sheet; derivatives from this XLA program) on a CPU where
-    it is built, for an open domain without ``harm`` or ``slope``; False always runs XLA's.
+    it is built, for an open domain; False always runs XLA's.
     """
     dirs = np.asarray(sky_dirs, np.float64)
     wts = np.asarray(sky_wts, np.float64)
-    if (native is not False and harm is None and not slope and not periodic_xy
-            and _native.serves(sigma_t.dtype)):
-        cfg = (tuple(map(tuple, dirs.tolist())), tuple(wts.tolist()), float(h))
+    if native is not False and not periodic_xy and _native.serves(sigma_t.dtype):
+        cfg = (tuple(map(tuple, dirs.tolist())), tuple(wts.tolist()), float(h),
+               None if harm is None else tuple(map(tuple, np.asarray(harm, np.float64).tolist())),
+               bool(slope))
         return _sky_native(sigma_t, opaque, normal, cfg)
     if periodic_xy:
         groups = {(2, 1): np.arange(len(dirs))}
@@ -360,14 +361,17 @@ def _sky_groups(dirs: np.ndarray) -> dict:
     return groups
 
 
-def _sky_table(cfg, dt) -> np.ndarray:
-    """The native sky pass's per-direction table (K, 12) (``_native.sky_pass``) from
-    ``_sky_native``'s static configuration (directions, weights, h), grouped as
-    :func:`sky_uncollided` groups them: each group's axis and sign, the offsets' whole voxels
-    and fractions per sheet along its two other axes (computed in float64 as
-    ``_sheet_sweep`` does, then cast), the half-segment path, the weight and ω."""
+def _sky_table(cfg, dt) -> tuple[np.ndarray, np.ndarray | None]:
+    """The native sky pass's per-direction tables (``_native.sky_pass``) from ``_sky_native``'s
+    static configuration (directions, weights, h, harm, slope), grouped as
+    :func:`sky_uncollided` groups them: (K, 12) each group's axis and sign, the offsets' whole
+    voxels and fractions per sheet along its two other axes (computed in float64 as
+    ``_sheet_sweep`` does, then cast), the half-segment path, the weight and ω; and the
+    channels' weights (K, NH + 3) or None: the moments' w_k·harm_k, the slope's −12 w_k
+    |ω_axis| ω_k (``_sheet_sweep``'s wgrad, back in the world's axes)."""
     dirs, wts, h = np.asarray(cfg[0], np.float64), np.asarray(cfg[1], np.float64), cfg[2]
-    rows = []
+    harm, slope = (None if cfg[3] is None else np.asarray(cfg[3], np.float64)), cfg[4]
+    rows, chans = [], []
     for (a, sgn), idx in _sky_groups(dirs).items():
         u, v = face_plane_axes(a)
         d = dirs[idx][:, (u, v, a)] * np.array([1.0, 1.0, float(sgn)])
@@ -377,25 +381,38 @@ def _sky_table(cfg, dt) -> np.ndarray:
         rows.append(np.concatenate([np.full((n, 1), a), np.full((n, 1), sgn), i0, off - i0,
                                     (h / (2.0 * d[:, 2]))[:, None], wts[idx][:, None],
                                     dirs[idx], np.zeros((n, 1))], 1))
-    return np.concatenate(rows).astype(dt)
+        ch = [wts[idx][:, None] * harm[idx]] if harm is not None else []
+        if slope:
+            ch.append(-wts[idx][:, None] * _MOMENT_TO_CHANGE * d[:, 2:3] * dirs[idx])
+        chans.append(np.concatenate(ch, 1) if ch else np.zeros((n, 0)))
+    chan = np.concatenate(chans)
+    return np.concatenate(rows).astype(dt), (chan.astype(dt) if chan.shape[1] else None)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(3,))
 def _sky_native(sigma_t, opaque, normal, cfg):
-    """:func:`sky_uncollided`'s (fluence, irradiance) from the native kernel (isotropic, open
-    domain); ``cfg`` = (directions, weights, h) as tuples (static).  Its derivatives are XLA's
-    program's (the rule below), as the sweep's are."""
+    """:func:`sky_uncollided`'s results (fluence, irradiance[, moments][, slope]) from the
+    native kernel (an open domain); ``cfg`` = (directions, weights, h, harm or None, slope) as
+    tuples (static).  Its derivatives are XLA's program's (the rule below), as the sweep's
+    are."""
     dt = sigma_t.dtype
-    return _native.sky_pass(sigma_t, opaque, normal.astype(dt), _sky_table(cfg, dt))
+    table, chan = _sky_table(cfg, dt)
+    nh = 0 if cfg[3] is None else len(cfg[3][0])
+    flu, irr, mom = _native.sky_pass(sigma_t, opaque, normal.astype(dt), table, chan, nh,
+                                     cfg[4])
+    return ((flu, irr) + ((mom[..., :nh],) if nh else ())
+            + ((mom[..., nh:],) if cfg[4] else ()))
 
 
 @_sky_native.defjvp
 def _sky_native_jvp(cfg, primals, tangents):
     dirs, wts, h = np.asarray(cfg[0]), np.asarray(cfg[1]), cfg[2]
+    harm = None if cfg[3] is None else np.asarray(cfg[3])
     out = _sky_native(*primals, cfg)
 
     def xla(sigma_t, opaque, normal):
-        return sky_uncollided(sigma_t, opaque, normal, dirs, wts, h, False, native=False)
+        return sky_uncollided(sigma_t, opaque, normal, dirs, wts, h, False, harm=harm,
+                              slope=cfg[4], native=False)
 
     _, t_out = jax.jvp(xla, primals, tangents)
     return out, t_out

@@ -1,5 +1,5 @@
-// The sky's first collision (``_uncollided.sky_uncollided`` for an open domain, isotropic) as a
-// CPU kernel: for each sky direction ω_k the transmittance T_k from the sky to every node,
+// The sky's first collision (``_uncollided.sky_uncollided`` for an open domain) as a CPU
+// kernel: for each sky direction ω_k the transmittance T_k from the sky to every node,
 // carried sheet by sheet along the axis nearest ω_k (the directions in groups by that axis, as
 // ``_sheet_sweep`` sweeps them) with bilinear resampling at the direction's lateral offset per
 // sheet, and per node
@@ -8,7 +8,9 @@
 //   irradiance Σ_k w_k T_in,k e^{−τ_k} · max(0, n · ω_k)
 //
 // with τ_k = σ_t · h / (2 |ω_k,axis|) the node's half segment, T_out = 0 on an opaque node,
-// else T_in e^{−2τ_k} (two halves); the sky's 1 enters from outside the lattice.  XLA's program
+// else T_in e^{−2τ_k} (two halves); the sky's 1 enters from outside the lattice; with a
+// Henyey–Greenstein fog also the moments Σ_k w_k T̄_k Ỹ(−ω_k), with the linear scheme the
+// fluence's change per spacing (``chan``, below).  XLA's program
 // for the same arithmetic makes about ten passes over a (directions, sheet) array per sheet
 // (slices, pads, products, each its own loop) plus the groups' transposes: fog-balls' 128 sky
 // directions took 0.21-0.25 s at N = 64, M = 3 (four light iterations) and 1.7-1.8 s at
@@ -74,12 +76,37 @@ struct Barrier {  // a generation count; the threads spin, then yield
 // added): the sheets' axis and the sign of ω on it, the offset's whole voxels along the two
 // other axes (u < v) per sheet, their fractions, the half-segment path h / (2 |ω_axis|), the
 // weight and ω (3), a spare column.  flu, irr (nx, ny, nz): the groups' sums, added in order.
+// chan (K, NH + 3·slope): per direction the weights of the NH moments (w_k Ỹ(−ω_k)), summed
+// with T̄ into mom's first NH channels, and with ``slope`` the three of the fluence's change
+// per spacing (−12 w_k |ω_axis| ω_k, world axes), summed with T_in χ(2τ) (the first moment of
+// the transmittance over the node's segment, ``_numerics.linear_source_terms``) into the last
+// three, 0 on an opaque node; mom (nx, ny, nz, NH + 3·slope).
+template <typename T>
+T chi(T x) {  // χ(x) = (1/x)∫₀^x e^{−u}(u/x − ½) du: its series below 0.5, else closed
+  if (std::abs(x) < T(0.5)) {
+    T s = T(0), a = T(1), p = T(1);  // a: (−1)^n/n!, p: x^n
+    for (int n = 0; n < 11; ++n) {
+      if (n) {
+        a = -a / T(n);
+        p *= x;
+      }
+      s += a * T(n) / (T(2) * T(n + 1) * T(n + 2)) * p;
+    }
+    return s;
+  }
+  const T em = std::expm1(-x);
+  return (((-em) - x * (T(1) + em)) / x + em / T(2)) / x;
+}
+
 template <typename T>
 void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* dirs,
-              const int64_t* shape, int64_t K, int64_t threads, T* flu, T* irr) {
+              const T* chan, const int64_t* shape, int64_t K, int64_t NH, bool slope,
+              int64_t threads, T* flu, T* irr, T* mom) {
   const int64_t n = shape[0] * shape[1] * shape[2];
+  const int64_t C = NH + (slope ? 3 : 0);
   std::fill(flu, flu + n, T(0));
   std::fill(irr, irr + n, T(0));
+  if (C) std::fill(mom, mom + n * C, T(0));
   const int64_t stride[3] = {shape[1] * shape[2], shape[2], 1};
   constexpr int64_t VL = 64 / sizeof(T);  // rows are computed whole vectors at a time
   for (int64_t k0 = 0; k0 < K;) {
@@ -112,7 +139,7 @@ void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* d
       // transcendental functions of its optical depths, padded to whole vectors
       const auto len = static_cast<size_t>(Vp);
       std::vector<T> f(len), e(len), o(len), sg(len), op(len), n0(len), n1(len), n2(len),
-          hv(len), mv(len);
+          hv(len), mv(len), xv(len), tv(len), cacc(len * static_cast<size_t>(C));
       for (int64_t s = 0; s < S; ++s) {
         const T* prev_all = buf.data() + (s % 2) * G * plane;
         T* next_all = buf.data() + ((s + 1) % 2) * G * plane;
@@ -130,6 +157,7 @@ void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* d
           }
           std::fill(f.begin(), f.end(), T(0));
           std::fill(e.begin(), e.end(), T(0));
+          std::fill(cacc.begin(), cacc.end(), T(0));
           for (int64_t k = 0; k < G; ++k) {
             const T* d = table + k * 12;
             const T fu = d[4], fv = d[5], path = d[6], wt = d[7], wx = d[8], wy = d[9],
@@ -138,7 +166,8 @@ void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* d
             // the rows u + i0 and u + i0 + 1 of the sheet before, from column v + i0 on
             const T* r0 = prev + (u + iu[size_t(k)] + P) * PV + (iv[size_t(k)] + P);
             const T* r1 = r0 + PV;
-            T *fp = f.data(), *ep = e.data(), *oo = o.data(), *hp = hv.data(), *mp = mv.data();
+            T *fp = f.data(), *ep = e.data(), *oo = o.data(), *hp = hv.data(), *mp = mv.data(),
+              *tp = tv.data();
             const T *sp = sg.data(), *pp = op.data(), *a0 = n0.data(), *a1 = n1.data(),
                     *a2 = n2.data();
             // the transcendental functions in loops of their own (a vector call clobbers
@@ -159,17 +188,40 @@ void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* d
               const T a = r0[v] * (T(1) - fu) + r1[v] * fu;
               const T b = r0[v + 1] * (T(1) - fu) + r1[v + 1] * fu;
               const T tin = a * (T(1) - fv) + b * fv;
+              tp[v] = tin;
               const T tarr = tin * hp[v];
               oo[v] = pp[v] != T(0) ? T(0) : tarr * hp[v];
               fp[v] += wt * (tin * mp[v]);
               const T c = a0[v] * wx + a1[v] * wy + a2[v] * wz;
               ep[v] += wt * (tarr * std::max(c, T(0)));
             }
+            const T* ch = chan + (k0 + k) * C;
+            for (int64_t j = 0; j < NH; ++j) {  // the moments: T̄ Ỹ weights
+              const T cw = ch[j];
+              T* acc = cacc.data() + j * Vp;
+#pragma omp simd
+              for (int64_t v = 0; v < Vp; ++v) acc[v] += (tp[v] * mp[v]) * cw;
+            }
+            if (slope) {  // T_in χ(2τ) along the three weights
+              T* xp = xv.data();
+              for (int64_t v = 0; v < Vp; ++v) xp[v] = tp[v] * chi(T(2) * (sp[v] * path));
+              for (int64_t j = 0; j < 3; ++j) {
+                const T cw = ch[NH + j];
+                T* acc = cacc.data() + (NH + j) * Vp;
+#pragma omp simd
+                for (int64_t v = 0; v < Vp; ++v) acc[v] += xp[v] * cw;
+              }
+            }
             std::copy(o.begin(), o.begin() + V, next_all + k * plane + (u + P) * PV + P);
           }
           for (int64_t v = 0; v < V; ++v) {  // this group's sums onto the earlier groups'
-            flu[base + v * sv] += f[size_t(v)];
-            irr[base + v * sv] += e[size_t(v)];
+            const int64_t i = base + v * sv;
+            flu[i] += f[size_t(v)];
+            irr[i] += e[size_t(v)];
+            for (int64_t j = 0; j < C; ++j) {
+              const bool masked = j >= NH && op[size_t(v)] != T(0);  // the slope: 0 if opaque
+              mom[i * C + j] += masked ? T(0) : cacc[size_t(j * Vp + v)];
+            }
           }
         }
         barrier.wait();  // the next sheet reads rows the other threads wrote
@@ -184,8 +236,9 @@ void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* d
 }
 
 ffi::Error SkyPassImpl(ffi::AnyBuffer sigma, ffi::AnyBuffer opaque, ffi::AnyBuffer normal,
-                       ffi::AnyBuffer dirs, ffi::Result<ffi::AnyBuffer> flu,
-                       ffi::Result<ffi::AnyBuffer> irr, int64_t threads) {
+                       ffi::AnyBuffer dirs, ffi::AnyBuffer chan, ffi::Result<ffi::AnyBuffer> flu,
+                       ffi::Result<ffi::AnyBuffer> irr, ffi::Result<ffi::AnyBuffer> mom,
+                       int64_t threads, int64_t nh, int64_t slope) {
   const auto dims = sigma.dimensions();
   const auto dd = dirs.dimensions();
   if (dims.size() != 3 || opaque.dimensions().size() != 3 || normal.dimensions().size() != 4 ||
@@ -196,19 +249,30 @@ ffi::Error SkyPassImpl(ffi::AnyBuffer sigma, ffi::AnyBuffer opaque, ffi::AnyBuff
         "3), dirs (K, 12), one float type");
   const int64_t shape[3] = {dims[0], dims[1], dims[2]};
   const int64_t K = dd[0];
+  const int64_t C = nh + (slope ? 3 : 0);
+  if (chan.element_type() != sigma.element_type() ||
+      (C && (chan.dimensions().size() != 2 || chan.dimensions()[0] != K ||
+             chan.dimensions()[1] != C || mom->dimensions().size() != 4 ||
+             mom->dimensions()[3] != C)))
+    return ffi::Error::InvalidArgument(
+        "difffog_sky_pass: chan (K, nh + 3 slope) and mom (nx, ny, nz, nh + 3 slope)");
   const auto* op = static_cast<const uint8_t*>(opaque.untyped_data());
   if (sigma.element_type() == ffi::DataType::F32) {
     sky_pass<float>(static_cast<const float*>(sigma.untyped_data()), op,
                     static_cast<const float*>(normal.untyped_data()),
-                    static_cast<const float*>(dirs.untyped_data()), shape, K, threads,
-                    static_cast<float*>(flu->untyped_data()),
-                    static_cast<float*>(irr->untyped_data()));
+                    static_cast<const float*>(dirs.untyped_data()),
+                    static_cast<const float*>(chan.untyped_data()), shape, K, nh, slope != 0,
+                    threads, static_cast<float*>(flu->untyped_data()),
+                    static_cast<float*>(irr->untyped_data()),
+                    static_cast<float*>(mom->untyped_data()));
   } else if (sigma.element_type() == ffi::DataType::F64) {
     sky_pass<double>(static_cast<const double*>(sigma.untyped_data()), op,
                      static_cast<const double*>(normal.untyped_data()),
-                     static_cast<const double*>(dirs.untyped_data()), shape, K, threads,
-                     static_cast<double*>(flu->untyped_data()),
-                     static_cast<double*>(irr->untyped_data()));
+                     static_cast<const double*>(dirs.untyped_data()),
+                     static_cast<const double*>(chan.untyped_data()), shape, K, nh, slope != 0,
+                     threads, static_cast<double*>(flu->untyped_data()),
+                     static_cast<double*>(irr->untyped_data()),
+                     static_cast<double*>(mom->untyped_data()));
   } else {
     return ffi::Error::InvalidArgument("difffog_sky_pass: float32 or float64 only");
   }
@@ -223,6 +287,10 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(DifffogSkyPass, difffog_sky::SkyPassImpl,
                                   .Arg<ffi::AnyBuffer>()  // opaque (nx, ny, nz) uint8
                                   .Arg<ffi::AnyBuffer>()  // normal (nx, ny, nz, 3)
                                   .Arg<ffi::AnyBuffer>()  // dirs (K, 12), grouped
+                                  .Arg<ffi::AnyBuffer>()  // chan (K, nh + 3 slope) or (1,)
                                   .Ret<ffi::AnyBuffer>()  // fluence (nx, ny, nz)
                                   .Ret<ffi::AnyBuffer>()  // irradiance (nx, ny, nz)
-                                  .Attr<int64_t>("threads"));
+                                  .Ret<ffi::AnyBuffer>()  // mom (nx, ny, nz, C) or (1,)
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("nh")
+                                  .Attr<int64_t>("slope"));
