@@ -209,7 +209,8 @@ def prepare_sweep(scene, lattice, M: int | None = None, terms: str = "auto",
     linear-source scheme (``SweepSolver.scheme``); ``shadows``: cast the sun's exact shadow
     rays where the host can (``sun_vis``; not for the once-scattered sweep's geometry, whose
     source comes from the solve's own beam); ``records``: make the native blocked sweep's
-    surface records where it will read them (False: a device mesh, whose sweeps are XLA's)."""
+    surface records where it will read them (False: a device mesh, whose sweeps, in the face
+    frame or XLA's, do not read them)."""
     check_point_sun(scene)
     M = int(M or lattice.M)
     if M > lattice.M:
