@@ -67,6 +67,8 @@ GS_TARGET = "difffog_gram_schmidt"
 #: the sky's first collision (``sky_pass``), in the same library
 _SKY_SOURCE = _SOURCE.with_name("sky_pass.cc")
 SKY_TARGET = "difffog_sky_pass"
+#: the header both the sweep's and the sky's sources include (their threads' barrier)
+_HEADER = _SOURCE.with_name("spin_barrier.h")
 #: the sub-stepped scheme's sweep (``sweep_substep``), in the sweep's source
 SUBSTEP_TARGET = "difffog_sweep_substep"
 #: and its transpose (``sweep_substep_transposed``: a gradient's adjoint)
@@ -138,7 +140,7 @@ def _build() -> Path:
     cxx = shlex.split(cxx)  # $CXX may carry a wrapper or flags ("ccache g++")
     version = subprocess.run([*cxx, "--version"], capture_output=True, text=True,
                              timeout=30).stdout.splitlines()[:1]
-    src = b"\0".join(p.read_bytes() for p in (_SOURCE, _GS_SOURCE, _SKY_SOURCE))
+    src = b"\0".join(p.read_bytes() for p in (_SOURCE, _GS_SOURCE, _SKY_SOURCE, _HEADER))
     libs = ["-lmvec"] if ctypes.util.find_library("mvec") else []  # glibc's vector math
     key = hashlib.sha256(b"\0".join([src, " ".join(_FLAGS + libs + [f"parts={PARTS}"]).encode(),
                                      str(version).encode(),

@@ -32,6 +32,7 @@
 #include <thread>
 #include <vector>
 
+#include "spin_barrier.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -55,21 +56,7 @@ inline double em1(double x) { return expm1(x); }
 inline float ex(float x) { return expf(x); }
 inline double ex(double x) { return exp(x); }
 
-struct Barrier {  // a generation count; the threads spin, then yield
-  std::atomic<int64_t> gen{0}, arrived{0};
-  int64_t n;
-  explicit Barrier(int64_t count) : n(count) {}
-  void wait() {
-    const int64_t g0 = gen.load(std::memory_order_acquire);
-    if (arrived.fetch_add(1, std::memory_order_acq_rel) == n - 1) {
-      arrived.store(0, std::memory_order_relaxed);
-      gen.fetch_add(1, std::memory_order_acq_rel);
-      return;
-    }
-    for (int spins = 0; gen.load(std::memory_order_acquire) == g0; ++spins)
-      if (spins > 2000) std::this_thread::yield();
-  }
-};
+using difffog_native::SpinBarrier;  // (``spin_barrier.h``: one wait per sheet)
 
 // sigma, opaque (nx, ny, nz) and normal (nx, ny, nz, 3) in the world frame (C order); dirs
 // (K, 12) per direction, grouped (each group's rows together, in the order its sums are
@@ -131,7 +118,7 @@ void sky_pass(const T* sigma, const uint8_t* opaque, const T* normal, const T* d
     // two sheet buffers per direction, the sky's 1 to start with (the border stays 1)
     std::vector<T> buf(static_cast<size_t>(2 * G * plane), T(1));
     const int64_t nt = std::max<int64_t>(1, std::min(threads, U));
-    Barrier barrier(nt);
+    SpinBarrier barrier(nt);
     const T* table = dirs + k0 * 12;
     auto work = [&](int64_t t) {
       const int64_t u0 = U * t / nt, u1 = U * (t + 1) / nt;

@@ -26,6 +26,8 @@
 #include <type_traits>
 #include <vector>
 
+#include "spin_barrier.h"
+
 #ifndef DIFFFOG_PART
 #define DIFFFOG_PART -1
 #endif
@@ -1516,23 +1518,8 @@ void sub_sum(const std::vector<std::vector<T>>& parts, int64_t n, T* dst) {
   }
 }
 
-// A barrier for the sweep's threads (a generation count; they spin, then yield: the waits are
-// short and come three times per plane).
-struct SpinBarrier {
-  std::atomic<int64_t> gen{0}, arrived{0};
-  int64_t n;
-  explicit SpinBarrier(int64_t count) : n(count) {}
-  void wait() {
-    const int64_t g0 = gen.load(std::memory_order_acquire);
-    if (arrived.fetch_add(1, std::memory_order_acq_rel) == n - 1) {
-      arrived.store(0, std::memory_order_relaxed);
-      gen.fetch_add(1, std::memory_order_acq_rel);
-      return;
-    }
-    for (int spins = 0; gen.load(std::memory_order_acquire) == g0; ++spins)
-      if (spins > 2000) std::this_thread::yield();
-  }
-};
+// A barrier for the sweep's threads (``spin_barrier.h``: the waits come three times per plane).
+using difffog_native::SpinBarrier;
 
 // One direction's segments arriving at rows [u0, u1) of sweep plane i: the carry moved and
 // stepped through the crossings and the node's own halves (FOG), its deposits into the
