@@ -67,8 +67,8 @@ GS_TARGET = "difffog_gram_schmidt"
 #: the sky's first collision (``sky_pass``), in the same library
 _SKY_SOURCE = _SOURCE.with_name("sky_pass.cc")
 SKY_TARGET = "difffog_sky_pass"
-#: the header both the sweep's and the sky's sources include (their threads' barrier)
-_HEADER = _SOURCE.with_name("spin_barrier.h")
+#: the header both the sweep's and the sky's sources include (vector exp, the threads' barrier)
+_HEADER = _SOURCE.with_name("native_common.h")
 #: the sub-stepped scheme's sweep (``sweep_substep``), in the sweep's source
 SUBSTEP_TARGET = "difffog_sweep_substep"
 #: and its transpose (``sweep_substep_transposed``: a gradient's adjoint)

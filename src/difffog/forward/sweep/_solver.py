@@ -1280,13 +1280,12 @@ class SweepSolver(eqx.Module):
         """The static structure of ``scene`` on ``lattice`` (host, once)."""
         scheme = self.resolved_scheme(scene, lattice)
         order = self.resolved_phase_order(scene)
-        one = math.prod(self.layout()) == 1
-        if not one and jax.default_backend() == "cpu" and _native.expected():
-            warnings.warn(cpu_mesh_warning(math.prod(self.layout())), DeviceWarning,
-                          stacklevel=3)
+        devices = math.prod(self.layout())
+        if devices > 1 and jax.default_backend() == "cpu" and _native.expected():
+            warnings.warn(cpu_mesh_warning(devices), DeviceWarning, stacklevel=3)
         geom = prepare_sweep(scene, lattice, self.M, self.terms, order,
                              linear=scheme == "linear", substep=scheme == "substep",
-                             records=one)
+                             records=devices == 1)
         if once_M := self.resolved_once_M(scene):
             # the sub-stepped scheme, whatever the solve's: its segments span once_M planes,
             # longer than the solve's, and the sun's first collision falls off along them as

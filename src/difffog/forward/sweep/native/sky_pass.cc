@@ -32,31 +32,18 @@
 #include <thread>
 #include <vector>
 
-#include "spin_barrier.h"
+#include "native_common.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
 
-#if defined(__x86_64__) && defined(__GLIBC__) && defined(__GNUC__) && !defined(__clang__) && \
-    (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35))
-// glibc's libmvec (GLIBC_2.35): vector exp and expm1, declared (GCC's attribute) so that the
-// row loops vectorise
-extern "C" {
-__attribute__((simd("notinbranch"))) float expm1f(float) noexcept;
-__attribute__((simd("notinbranch"))) double expm1(double) noexcept;
-__attribute__((simd("notinbranch"))) float expf(float) noexcept;
-__attribute__((simd("notinbranch"))) double exp(double) noexcept;
-}
-#endif
-
 namespace __attribute__((visibility("hidden"))) difffog_sky {
 
-inline float em1(float x) { return expm1f(x); }
-inline double em1(double x) { return expm1(x); }
-inline float ex(float x) { return expf(x); }
-inline double ex(double x) { return exp(x); }
-
-using difffog_native::SpinBarrier;  // (``spin_barrier.h``: one wait per sheet)
+// (``native_common.h``: libmvec's vector exp and expm1 where glibc has them; one barrier wait
+// per sheet)
+using difffog_native::em1;
+using difffog_native::ex;
+using difffog_native::SpinBarrier;
 
 // sigma, opaque (nx, ny, nz) and normal (nx, ny, nz, 3) in the world frame (C order); dirs
 // (K, 12) per direction, grouped (each group's rows together, in the order its sums are
@@ -243,26 +230,22 @@ ffi::Error SkyPassImpl(ffi::AnyBuffer sigma, ffi::AnyBuffer opaque, ffi::AnyBuff
              mom->dimensions()[3] != C)))
     return ffi::Error::InvalidArgument(
         "difffog_sky_pass: chan (K, nh + 3 slope) and mom (nx, ny, nz, nh + 3 slope)");
-  const auto* op = static_cast<const uint8_t*>(opaque.untyped_data());
-  if (sigma.element_type() == ffi::DataType::F32) {
-    sky_pass<float>(static_cast<const float*>(sigma.untyped_data()), op,
-                    static_cast<const float*>(normal.untyped_data()),
-                    static_cast<const float*>(dirs.untyped_data()),
-                    static_cast<const float*>(chan.untyped_data()), shape, K, nh, slope != 0,
-                    threads, static_cast<float*>(flu->untyped_data()),
-                    static_cast<float*>(irr->untyped_data()),
-                    static_cast<float*>(mom->untyped_data()));
-  } else if (sigma.element_type() == ffi::DataType::F64) {
-    sky_pass<double>(static_cast<const double*>(sigma.untyped_data()), op,
-                     static_cast<const double*>(normal.untyped_data()),
-                     static_cast<const double*>(dirs.untyped_data()),
-                     static_cast<const double*>(chan.untyped_data()), shape, K, nh, slope != 0,
-                     threads, static_cast<double*>(flu->untyped_data()),
-                     static_cast<double*>(irr->untyped_data()),
-                     static_cast<double*>(mom->untyped_data()));
-  } else {
+  auto run = [&](auto zero) {  // the kernel in the buffers' float type
+    using T = decltype(zero);
+    sky_pass<T>(static_cast<const T*>(sigma.untyped_data()),
+                static_cast<const uint8_t*>(opaque.untyped_data()),
+                static_cast<const T*>(normal.untyped_data()),
+                static_cast<const T*>(dirs.untyped_data()),
+                static_cast<const T*>(chan.untyped_data()), shape, K, nh, slope != 0, threads,
+                static_cast<T*>(flu->untyped_data()), static_cast<T*>(irr->untyped_data()),
+                static_cast<T*>(mom->untyped_data()));
+  };
+  if (sigma.element_type() == ffi::DataType::F32)
+    run(0.0f);
+  else if (sigma.element_type() == ffi::DataType::F64)
+    run(0.0);
+  else
     return ffi::Error::InvalidArgument("difffog_sky_pass: float32 or float64 only");
-  }
   return ffi::Error::Success();
 }
 

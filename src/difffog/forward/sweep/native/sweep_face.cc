@@ -26,7 +26,7 @@
 #include <type_traits>
 #include <vector>
 
-#include "spin_barrier.h"
+#include "native_common.h"
 
 #ifndef DIFFFOG_PART
 #define DIFFFOG_PART -1
@@ -37,22 +37,11 @@
 namespace ffi = xla::ffi;
 #endif
 
-#if defined(__x86_64__) && defined(__GLIBC__) && defined(__GNUC__) && !defined(__clang__) && \
-    (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35))
-// glibc's libmvec has vector expm1 (GLIBC_2.35): declared (GCC's attribute) so that the table
-// loops vectorise
-extern "C" {
-__attribute__((simd("notinbranch"))) float expm1f(float) noexcept;
-__attribute__((simd("notinbranch"))) double expm1(double) noexcept;
-}
-#endif
-
 // named (the handler's object calls ``sweep<float>`` and ``sweep<double>`` in the other two),
 // hidden from the library's exports
 namespace __attribute__((visibility("hidden"))) difffog_sweep {
 
-inline float em1(float x) { return expm1f(x); }
-inline double em1(double x) { return expm1(x); }
+using difffog_native::em1;  // (``native_common.h``: libmvec's vector expm1 where glibc has it)
 
 struct Dims {
   int64_t M, nw, nu, nv, ns, D, K, nb, s0, s1, threads, tile;
@@ -1518,7 +1507,7 @@ void sub_sum(const std::vector<std::vector<T>>& parts, int64_t n, T* dst) {
   }
 }
 
-// A barrier for the sweep's threads (``spin_barrier.h``: the waits come three times per plane).
+// A barrier for the sweep's threads (``native_common.h``: the waits come three times per plane).
 using difffog_native::SpinBarrier;
 
 // One direction's segments arriving at rows [u0, u1) of sweep plane i: the carry moved and
