@@ -31,7 +31,7 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam", 
     from difffog import Params
     from difffog.forward.sweep._harmonics import basis
     from difffog.forward.sweep._solver import SweepSolver, source_field
-    from difffog.study._slab import slab_problem, slab_reflectance
+    from difffog.study._slab import slab_problem, slab_reflectance, sun_scatter_terms
 
     sun = None if illumination == "diffuse" else (1.0, zenith)
     solver = SweepSolver(M=M, max_iterations=4000, tol=1e-8, phase_order=L,
@@ -56,7 +56,7 @@ def slab(tau, albedo, g, N, M, L, illumination, zenith, first_collision="beam", 
         q, slope = q[..., :-3], q[..., -1]
     ss = None
     if sun is not None and L > 0:
-        ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
+        ss = sun_scatter_terms(light, albedo, tau, g, dens)
     R, T = slab_reflectance(np.asarray(sigma)[0, 0], q, None, margin, lat.h,
                             sky=0.0 if sun else 1.0, sun=sun,
                             basis=basis(L, M) if L else None, sun_scatter=ss, slope=slope)

@@ -200,7 +200,7 @@ def hg_slab_rt(tau, albedo, g, n_fog, M, L, sun=None, once_M=None, scheme="auto"
     it), ``scheme``: the solve's."""
     from difffog.forward.sweep._harmonics import basis
     from difffog.forward.sweep._solver import SweepSolver, source_field
-    from difffog.study._slab import slab_problem, slab_reflectance
+    from difffog.study._slab import slab_problem, slab_reflectance, sun_scatter_terms
 
     solver = SweepSolver(M=M, max_iterations=4000, tol=1e-9, phase_order=L, once_M=once_M,
                          scheme=scheme)
@@ -219,8 +219,8 @@ def hg_slab_rt(tau, albedo, g, n_fog, M, L, sun=None, once_M=None, scheme="auto"
     assert int(light.result) == df.RESULTS.successful
     dens = np.asarray(lat.density)[0, 0]
     ss = None
-    if sun:  # the exact single scattering, and the sun's beam through the true extinction
-        ss = (albedo * tau * dens, g, np.asarray(light.sun_fluence)[0, 0], tau * dens)
+    if sun:  # the exact single scattering, and the sun's beam as the solver attenuates it
+        ss = sun_scatter_terms(light, albedo, tau, g, dens)
     return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
                             sky=0.0 if sun else 1.0, sun=sun, basis=basis(L, M),
                             sun_scatter=ss)

@@ -132,6 +132,20 @@ def slab_exits(solver, geom, params, light, margin: int, *, sky: float,
     return (top + math.pi * sky) / incident, (direct - bottom) / incident
 
 
+def sun_scatter_terms(light, albedo: float, tau: float, g: float, density) -> tuple:
+    """``slab_reflectance``'s ``sun_scatter`` for a slab of optical depth ``tau`` (per unit
+    density) whose solver scatters the sun's first collision with the exact phase: (ζ per cell,
+    g, the beam's fluence, the beam's extinction per cell, the kept peak's (c, width)).  The beam
+    keeps the forward peak that the lattice's directions cannot resolve (``light.sun_peak``):
+    it loses ζ(1 − kept) + γ per unit length, and its light scatters with p·(1 − c·K)."""
+    dens = np.asarray(density, np.float64)
+    kept, c, width = (0.0, 0.0, 1.0) if light.sun_peak is None else (
+        float(x) for x in np.asarray(light.sun_peak, np.float64))
+    zeta = albedo * tau * dens
+    return (zeta, g, np.asarray(light.sun_fluence, np.float64)[0, 0],
+            zeta * (1.0 - kept) + (1.0 - albedo) * tau * dens, (c, width))
+
+
 def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky: float,
                      sun: tuple[float, float] | None = None, n_mu: int = 64, basis=None,
                      n_phi: int = 64, sun_scatter: tuple | None = None, slope=None):
@@ -142,11 +156,12 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     (nz, 1 + K) (``_solver.source_field``) and ``basis`` the solver's ``_harmonics.Basis``:
     direction ω's source is Q_0 + Σ_k Ỹ_k(ω) Q_k, averaged over azimuth here (n_phi points).
     Incident flux is π·sky (+ F·μ₀ for a sun); T includes the unscattered sky and sun.
-    ``sun_scatter`` = (ζ (scalar or per cell), g, sun (nz,), σ_sun (nz,)): add the sun's
-    single scattering with the exact Henyey–Greenstein phase, ζ·p(Θ)·sun per unit length
+    ``sun_scatter`` = (ζ (scalar or per cell), g, sun (nz,), σ_sun (nz,)[, (c, width)]): add
+    the sun's single scattering with the exact Henyey–Greenstein phase (times 1 − c·K(Θ),
+    ``forward_peak_kernel``, the forward peak the sun's beam keeps), ζ·p(Θ)·sun per unit length
     (``sun``: the uncollided sun's fluence at each cell; ``source`` then leaves the sun out),
-    as the cameras do, and attenuate the unscattered sun by σ_sun (the true extinction, where
-    the solver scatters the sun's first collision exactly).
+    as the cameras do, and attenuate the sun's beam by σ_sun (where the solver scatters the
+    sun's first collision exactly: ``sun_scatter_terms``).
     ``slope``: (nz,) h·∂Q/∂z of the linear-source scheme (``LightField.source_slope``): the
     isotropic source then varies linearly across each cell, q + slope·t for t ∈ [−½, ½].
     """
@@ -166,14 +181,16 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     else:
         j_up = j_dn = (s * q)[:, None]
     if sun_scatter is not None:
-        zeta, g, sun_flu, _ = sun_scatter
+        zeta, g, sun_flu = sun_scatter[:3]
+        c, width = sun_scatter[4] if len(sun_scatter) > 4 else (0.0, 1.0)
         mu0 = math.cos(math.radians(sun[1]))
         phi = 2 * math.pi * (np.arange(n_phi) + 0.5) / n_phi
         sin, sin0 = np.sqrt(1.0 - mu**2), math.sqrt(max(0.0, 1.0 - mu0**2))
         for sign, name in ((1.0, "up"), (-1.0, "dn")):
             # cos Θ between the sun's light (going down, −μ₀) and light going ±μ
             cos = -mu0 * sign * mu[:, None] + sin0 * sin[:, None] * np.cos(phi)[None]
-            p = ((1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * cos) ** 1.5)).mean(1)
+            p = ((1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * cos) ** 1.5)
+                 * (1.0 - c * np.maximum(0.0, 1.0 - (1.0 - cos) / width))).mean(1)
             add = (zeta * np.asarray(sun_flu, np.float64))[:, None] * p[None]
             if name == "up":
                 j_up = j_up + add

@@ -45,6 +45,12 @@ class LightField(AbstractLight):
         (≥ 0; ``fluence`` holds it clipped to 0): the linear scheme's where one lattice step
         spans many mean free paths (issue 14's cube at N = 8, ζ = 100: 0.11); GMRES's residual
         elsewhere (~tol).  ``difffog.render`` warns above 1% (``forward._model.DIP_WARNING``).
+    sun_peak: with an anisotropic phase, (kept, c, width): the share of the sun's first
+        collision that its beam keeps, the forward peak that the lattice's directions cannot
+        resolve and would carry off course (``_solver._cell_phase``), so the beam,
+        ``sun_fluence``, is attenuated by ζ(1 − kept) + γ; the light leaving it scatters with
+        p·(1 − c·K), K = ``forward_peak_kernel``(cos Θ, width): the cameras read the sun
+        alike; else None.
     state: the light solve's own state at its fixed point, (Λ [with the moments as channels],
         E: the SURFACE nodes' scattered irradiance), before the clip to Λ ≥ 0: what a solve of
         a nearby problem on the same model starts from (``SweepModel.light(params,
@@ -68,6 +74,7 @@ class LightField(AbstractLight):
     source_slope: Float[Array, "nx ny nz 3"] | None = None
     fluence_slope: Float[Array, "nx ny nz 3"] | None = None
     dip: Float[Array, ""] | None = None
+    sun_peak: Float[Array, "3"] | None = None
     state: tuple[Array, Array] | None = None
     origin: tuple[float, float, float] = eqx.field(static=True, default=(0.0, 0.0, 0.0))
     h: float = eqx.field(static=True, default=1.0)

@@ -44,7 +44,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..._cost import EDGE_SAMPLES
 from ..._numerics import one_minus_exp_over
 from ...scene._description import Camera
-from .._camera import camera_rays, hg_phase
+from .._camera import camera_rays, forward_peak_kernel, hg_phase
 from ._harmonics import basis
 
 __all__ = [
@@ -157,6 +157,9 @@ class LatticeFields(eqx.Module):
     emission: Float[Array, " S"] | None = None
     sun_irradiance: Float[Array, ""] = eqx.field(default=0.0, converter=jnp.asarray)
     sun_extinction: Float[Array, ""] = eqx.field(default=0.0, converter=jnp.asarray)
+    # optional: (c, width) of the forward peak the sun's beam keeps (``LightField.sun_peak``):
+    # the beam's single scattering towards a camera is p·(1 − c·K(cos Θ, width))
+    sun_window: Float[Array, "2"] | None = None
     # optional, for an anisotropic phase in the light solve (``SweepSolver.phase_order`` L > 0):
     # the in-scatter source's angular part, (nx, ny, nz, K): radiance gained per unit length
     # towards a camera ray d is j_iso + Σ_k Ỹ_k(−d)·j_aniso[..., k] (``_harmonics.basis(L, M)``,
@@ -768,7 +771,12 @@ def _segments(fields: LatticeFields, o, d, stop, n_steps: int, step: float):
     if has_sun:
         sd = (jnp.asarray(fields.sun_dir, dtype) if fields.sun_vec is None
               else fields.sun_vec.astype(dtype))
-        coef.append(hg_phase(d @ sd, jnp.asarray(fields.g, dtype))[:, None])
+        cos = d @ sd
+        ph = hg_phase(cos, jnp.asarray(fields.g, dtype))
+        if fields.sun_window is not None:  # less the forward peak the beam keeps
+            c, width = fields.sun_window[0].astype(dtype), fields.sun_window[1].astype(dtype)
+            ph = ph * (1.0 - c * forward_peak_kernel(cos, width))
+        coef.append(ph[:, None])
     if fields.harmonics is not None:  # light going towards the camera: −d
         coef.append(basis(*fields.harmonics).evaluate(-d, jnp).astype(dtype))
     phase = jnp.concatenate(coef, axis=1) if coef else jnp.zeros((o.shape[0], 0), dtype)

@@ -300,7 +300,8 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     (``SweepSolver.phase_order`` L: f = g^(L+1); L = 0 is the δ-isotropic ζ(1 − g), exact for
     g = 0), with the source's angular part from the light's moments when L > 0; the sun's
     single scattering uses the full ζ with the Henyey–Greenstein phase (for L > 0 the
-    uncollided sun is attenuated by the true extinction, as the solve's first collision is).
+    uncollided sun is attenuated as the solve's beam is: the true extinction less the forward
+    peak that the beam keeps, ``LightField.sun_peak``).
     Values are extended from the nearest fluid node into solids and from the nearest SURFACE
     node for the radiosity, so that trilinear interpolation near a surface stays sensible.
     With exact hits the density is the fog's own, ignoring solids (``cam.fog_density``): the
@@ -319,8 +320,11 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
     sigma_t = (zeta_r + params.absorption) * dens
     j_iso = zeta_r * dens * ext(light.fluence + light.sky_fluence, cam.near_fluid) / FOUR_PI
     # the sun's beam loses what scatters out of it: δ-scaled as the light solve's first
-    # collision is (order 0), else the true extinction
-    sun_extinction = (zeta_r if order == 0 else params.scattering) + params.absorption
+    # collision is (order 0), else all but the forward peak the solve's beam keeps
+    # (``LightField.sun_peak``)
+    peak = 0.0 if light.sun_peak is None else light.sun_peak[0].astype(dt)
+    sun_extinction = (zeta_r if order == 0 else params.scattering * (1.0 - peak)
+                      ) + params.absorption
     sun_depth = None
     if cam.sun_path is not None:  # the march attenuates the sun itself, along its own profile
         j_sun = params.scattering * dens * params.sun_irradiance * cam.sun_vis.astype(dt)
@@ -370,6 +374,7 @@ def camera_fields(cam: CameraGeometry, density, light: LightField, params: Param
         emission=params.emission,
         sun_irradiance=params.sun_irradiance,
         sun_extinction=sun_extinction,
+        sun_window=None if light.sun_peak is None else light.sun_peak[1:].astype(dt),
         j_aniso=j_aniso,
         harmonics=None if order == 0 else (order, cam.M),
         j_slope=j_slope,

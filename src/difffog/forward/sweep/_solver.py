@@ -31,6 +31,7 @@ from ...geometry._directions import (FACE_AXES, cosine_normalization, direction_
 from ...geometry._lattice import FREE, SOLID, SURFACE
 from ..._errors import DeviceWarning, SceneError, SolverError
 from ..._numerics import FOUR_PI, safe_div
+from .._camera import forward_peak_kernel
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
 from ..._results import RESULTS
 from . import _native
@@ -388,6 +389,9 @@ class _Problem(eqx.Module):
     sky_moments: jax.Array | None = None  # (nx, ny, nz, K) uncollided sky Σ_k w_k T_k Ỹ(ω_k)
     sun_albedo: jax.Array | None = None  # ζ/(ζ' + γ): the first-collision sun's albedo
     sun_phase: tuple[jax.Array, ...] | None = None  # per face (D,): its cell-averaged phase
+    # (kept, c, width): the share of the sun's first collision its beam keeps, and the part
+    # of the phase it keeps, c·K (``_cell_phase``, ``LightField.sun_peak``)
+    sun_peak: jax.Array | None = None
     # linear scheme: h∇ of the uncollided sun's (unless it has its own channel) and the
     # first-collision sky's fluence along their beams, (nx, ny, nz, 3)
     sun_slope: jax.Array | None = None
@@ -1306,15 +1310,29 @@ class SweepSolver(eqx.Module):
         ext = zeta + params.absorption
         sigma_t = ext * geom.density.astype(dt)
         sun_albedo = sun_phase = None
+        sun_peak = once_phase = None
         if geom.sun_dir is not None and geom.order > 0:
-            # the first collision of the sun exactly: its beam loses all it scatters (true
-            # extinction), and scatters with the exact phase averaged over each direction's
-            # cell; only the light scattered again is δ-M scaled
-            sigma_sun = (params.scattering + params.absorption) * geom.density.astype(dt)
-            # ζ/σ_t' per unit density, like ``ssa``: a node without fog of its own whose
-            # segments reach into fog must re-emit what they take (energy)
-            sun_albedo = safe_div(params.scattering, ext)
-            sun_phase = _cell_phase(geom, params.g, dt)
+            # the first collision of the sun with the exact phase averaged over each
+            # direction's cell, less the forward peak that the direction set cannot resolve
+            # (``unresolved_peak``), taken from within a cell and a half of the sun's own
+            # direction (``_cell_phase``): that share stays in the beam, along the sun's exact
+            # direction, as every later order's δ-M peak does; the lattice's nearest
+            # directions would carry it up to half a cell (~6° at M = 3) off course, and
+            # ~unattenuated by the δ-scaled fog: a g = 0.999 fog cast a shadow where clear air
+            # casts none (test_as_g_approaches_1_the_fog_stops_scattering)
+            cells = geom if geom.once is None else geom.once  # the first collision's cells
+            phase, kept, c = _cell_phase(cells, params.g, dt, unresolved_peak(params.g, cells.M))
+            if geom.once is not None:
+                once_phase = phase
+                sun_phase = _cell_phase(geom, params.g, dt, c=c, width=peak_width(cells.M))[0]
+            else:
+                sun_phase = phase
+            sun_peak = jnp.stack([kept, c, jnp.asarray(peak_width(cells.M), dt)])
+            zeta_sun = params.scattering * (1.0 - kept)
+            sigma_sun = (zeta_sun + params.absorption) * geom.density.astype(dt)
+            # ζ(1 − peak)/σ_t' per unit density, like ``ssa``: a node without fog of its own
+            # whose segments reach into fog must re-emit what they take (energy)
+            sun_albedo = safe_div(zeta_sun, ext)
         else:
             sigma_sun = sigma_t
         sun_slope = sky_slope = None
@@ -1397,7 +1415,8 @@ class SweepSolver(eqx.Module):
                 sky_moments = dep(sky_moments)
         once = (None, None, None)
         if geom.once is not None and sun_phase is not None:
-            once = self._once_scattered(geom, params, sigma_t, sun_albedo * sun_beam)
+            once = self._once_scattered(geom, params, sigma_t, sun_albedo * sun_beam,
+                                        once_phase)
         return _Problem(
             once_fluence=once[0],
             once_source=once[1],
@@ -1418,6 +1437,7 @@ class SweepSolver(eqx.Module):
             sky_moments=sky_moments,
             sun_albedo=sun_albedo,
             sun_phase=sun_phase,
+            sun_peak=sun_peak,
             sun_slope=sun_slope,
             sky_slope=sky_slope,
             sun_beam=sun_beam,
@@ -1434,9 +1454,11 @@ class SweepSolver(eqx.Module):
             recompute=self.resolved_sweep_residuals(geom) == "recompute",
         )
 
-    def _once_scattered(self, geom: SweepGeometry, params: Params, sigma_t, sun_source):
+    def _once_scattered(self, geom: SweepGeometry, params: Params, sigma_t, sun_source,
+                        phase):
         """(Λ₁, S₁, E₁): the sun's first collision (``sun_source``, ζ/σ_t'·F·T̄ per node) with
-        the exact phase averaged over each direction's cell, swept once on the direction set
+        the exact phase averaged over each direction's cell (``phase``, ``_cell_phase``'s on
+        ``geom.once``), swept once on the direction set
         of ``geom.once`` (half-width ``once_M``): the once-scattered light's fluence Λ₁, its
         anisotropic source per unit ζ' and its irradiance E₁ on surfaces.  S₁ is the δ-M
         phase applied to the light's harmonic moments degree by degree, Σ_l g'_l Σ_m a_lm
@@ -1464,7 +1486,7 @@ class SweepSolver(eqx.Module):
             geom=g1, tau_half=tuple(to_face(t, a, sg) for t, (a, sg) in zip(tau1, FACE_AXES)),
             sigma_t=sigma_t, ssa=zero, sun_fluence=zero, sky_fluence=zero, rho=zero,
             emission=zero, direct=zero, sky_direct=zero,
-            sky=jnp.zeros((), dt), sun_phase=_cell_phase(g1, params.g, dt),
+            sky=jnp.zeros((), dt), sun_phase=phase,
             max_iterations=1, tol=0.0, mesh_shape=self.layout(), kernel=self.resolved_kernel(),
             recompute=self.resolved_sweep_residuals(g1) == "recompute")
         lam1, irr1 = _sweep_all(q, jnp.zeros(g1.shape, dt), pb1)
@@ -1558,6 +1580,7 @@ class SweepSolver(eqx.Module):
             error_estimate=err,
             result=_result_code(root, k, err, self.tol, self.max_iterations),
             dip=dip,
+            sun_peak=pb.sun_peak,
             state=root_state,
             origin=geom.origin,
             h=geom.h,
@@ -1585,17 +1608,44 @@ def source_field(pb: _Problem, light: LightField, sun: bool = True):
     return q
 
 
-def _cell_phase(geom: SweepGeometry, g, dt):
-    """Per face (D,): the Henyey–Greenstein phase of the sun's light averaged over each
-    direction's cell, normalized so that Σ_d w_d P_d = 1 over all faces (the first collision
-    re-emits exactly what it scatters)."""
+def unresolved_peak(g, M: int):
+    """The forward peak of a Henyey–Greenstein phase that the direction set of half-width M
+    cannot resolve: g^(L_M + 1), δ-M's peak at the largest order L_M whose (L_M + 1)²
+    harmonics the set's 6(2M + 1)² directions can carry (L_M = 16 at M = 3: 0.06 of the
+    first collision at g = 0.85, 0.42 at 0.95, 0.84 at 0.99)."""
+    L = int(math.floor(math.sqrt(6.0) * (2 * M + 1))) - 1
+    return g ** (L + 1)
+
+
+def peak_width(M: int) -> float:
+    """1 − cos θ_w of the window the unresolved peak is taken from (``forward_peak_kernel``):
+    θ_w = 1.5/M rad, a cell and a half of the direction set of half-width M around the sun."""
+    return 1.0 - math.cos(1.5 / M)
+
+
+def _cell_phase(geom: SweepGeometry, g, dt, peak=0.0, c=None, width=None):
+    """(per face (D,) phase, kept share, c): the Henyey–Greenstein phase p of the sun's light
+    averaged over each direction's cell, less the part c·K·p that its beam keeps (K
+    ``forward_peak_kernel`` around the sun's direction, of ``width`` (default
+    ``peak_width(geom.M)``)), normalized so that Σ_d w_d P_d = 1 over all faces (the first
+    collision re-emits exactly what its beam loses).  c = min(1, ``peak``/∫K·p), or the ``c``
+    given: the share kept is ``peak`` where the window holds that much of the lobe, else all
+    of K·p; p(1 − c·K) ≥ 0 everywhere, and everything is continuous in the sun's direction
+    and in g.  The cameras scatter the beam with the same p(1 − c·K)
+    (``LatticeFields.sun_window``)."""
     vec, wt = geom.sun_cells
-    # the sun's light propagates along −sun_dir
-    cos, wt = vec.astype(dt) @ -geom.sun_vector(dt), wt.astype(dt)
-    p = (wt * (1.0 - g * g) / (FOUR_PI * (1.0 + g * g - 2.0 * g * cos) ** 1.5)).sum(-1)  # (6, D)
-    w = jnp.stack([c.weight.astype(dt) for c in geom.consts])
-    p = p / (w * p).sum()
-    return tuple(p[f] for f in range(6))
+    s = -geom.sun_vector(dt)  # the sun's light propagates along −sun_dir
+    cos, wt = vec.astype(dt) @ s, wt.astype(dt)
+    p = wt * (1.0 - g * g) / (FOUR_PI * (1.0 + g * g - 2.0 * g * cos) ** 1.5)  # (6, D, n²)
+    w = jnp.stack([c_.weight.astype(dt) for c_ in geom.consts])
+    total = (w * p.sum(-1)).sum()
+    kp = p * forward_peak_kernel(cos, peak_width(geom.M) if width is None else width)
+    near = (w * kp.sum(-1)).sum() / total
+    if c is None:
+        c = jnp.minimum(1.0, safe_div(jnp.asarray(peak, dt), near))
+    kept = c * near
+    P = (p - c * kp).sum(-1) / (total * (1.0 - kept))
+    return tuple(P[f] for f in range(6)), kept, c
 
 
 def _result_code(root, k, err, tol: float, max_iterations: int):
