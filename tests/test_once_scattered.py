@@ -80,6 +80,21 @@ def test_the_thick_step_warning_is_about_the_solve_s_steps():
     assert depths[0] == pytest.approx(depths[1], rel=1e-6), depths
 
 
+def test_the_thick_step_warning_never_reads_1_greater_than_1():
+    """A step just past the threshold says so in the digits it needs (it read "σ_t·h·M = 1 >
+    1" for cloud-tomo with g = 0.99 at N = 32, M = 3): translucent-cube's uniform fog at
+    σ_t = 8.0032, h = 1/16, M = 2."""
+    import re
+
+    import jax.numpy as jnp
+
+    scene = load_scene("translucent-cube", ["fog.scattering=7.0032", "fog.absorption=1"])
+    model = df.forward_model(scene, "sweep", accuracy=None, resolution=16, M=2)
+    msg = model.step_warning(model.params(jnp.float32))
+    shown = float(re.search(r"σ_t·h·M = ([0-9.]+) > 1 ", msg).group(1))
+    assert 1.0 < shown < 1.001, msg
+
+
 # R, T error against adding-doubling (benchmarks/slab_anisotropic.py), 60° a = 0.99 τ = 1:
 # at N = 32, M = 3 R +4.3% without once_M, +0.8% with once_M = 6 (T +0.1%); at N = 16, M = 2
 # R +9.2% without, +2.5% with once_M = 4 (T +0.4%): the default suite's case (the M = 3 one

@@ -131,13 +131,16 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    # difffog's own warnings (thick steps, unconverged adjoints, identifiability) as one line
-    # each, like its errors, rather than Python's file:line and source line
+    # difffog's own warnings (thick steps, unconverged adjoints, identifiability, a shape
+    # thinner than a voxel: whatever its code warns) as one line each, like its errors, rather
+    # than Python's file:line and source line
     shown = warnings.showwarning
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, (ThickStepWarning, ThinLayerWarning, AdjointWarning,
-                                 IdentifiabilityWarning, MemoryWarning, DeviceWarning)):
+                                 IdentifiabilityWarning, MemoryWarning, DeviceWarning)) or (
+                os.path.abspath(str(filename)).startswith(package)):
             print(f"difffog: warning: {message}", file=sys.stderr)
         else:
             shown(message, category, filename, lineno, file, line)

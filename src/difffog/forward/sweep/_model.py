@@ -885,7 +885,8 @@ class SweepModel(AbstractForwardModel):
                    "scheme=\"substep\" (slower) resolves")
         else:
             how = "a sunlit one reads dark; scheme=\"substep\" (slower) resolves it"
-        return (f"one lattice step is optically thick (σ_t·h·M = {depth:.3g} > {THICK_STEP:g} at "
+        shown = f"{depth:.3g}" if float(f"{depth:.3g}") > THICK_STEP else f"{depth:.6g}"
+        return (f"one lattice step is optically thick (σ_t·h·M = {shown} > {THICK_STEP:g} at "
                 f"resolution {self.resolution}, M = {self.solver.M}): the light is coarse inside "
                 f"the fog, and thick fog's surface can be off by 5-30% ({how}; "
                 f"docs/validation.md); resolution >= {need} (or a smaller M) brings the "
