@@ -159,7 +159,7 @@ def test_image_gradients_in_g_and_the_rest_match_finite_differences(x64):
                                                "shape.ground.albedo", "sun.irradiance"))
 
 
-@pytest.mark.parametrize("M", [2, 3])
+@pytest.mark.parametrize("M", [2, pytest.param(3, marks=pytest.mark.slow)])  # the budget
 def test_the_suns_beam_keeps_the_forward_peak_its_directions_cannot_resolve(M, x64):
     """The sun's first collision on the lattice: the cell-averaged exact phase less the part of
     its forward peak that M's directions cannot resolve (``unresolved_peak``), which the beam
