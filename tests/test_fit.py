@@ -1180,3 +1180,34 @@ def test_reported_time_is_the_wall_time_of_the_call():
     res = df.fit(toy.scene, target, {"fog.scattering": 0.5, "fog.absorption": 1.0}, forward=toy)
     wall = time.perf_counter() - t
     assert 0.8 * wall <= res.time_s <= wall
+
+
+def test_a_fit_of_g_from_an_isotropic_start_carries_the_moments(monkeypatch):
+    """``fog.g`` as an unknown of a fog that starts isotropic (phase "isotropic", or g = 0):
+    the sweep's "auto" order would be 0 there, the δ-isotropic scaling in which g only
+    rescales ζ, and the fit fitted that (fog-balls from images of another absorption:
+    g = −0.92 ± 0.001, "successful").  The fit's models carry the moments; a fog already
+    anisotropic, an order the caller gives, another solver and other unknowns keep theirs."""
+    from difffog.fit import _driver
+
+    seen = []
+
+    def stop(scene, forward, resolution, model_settings, ladder):
+        seen.append(model_settings)
+        raise RuntimeError("stop here: the models' settings are known")
+
+    monkeypatch.setattr(_driver, "_ladder_levels", stop)
+    iso = df.load_scene("fog-balls")
+    target = {"top": np.ones((128, 128))}
+    cases = [(iso, ["fog.g"], {}, {"phase_order": 3}),
+             (df.apply_overrides(iso, ["fog.g=0"]), ["fog.g"], None, {"phase_order": 3}),
+             (df.load_scene("cloud-plane"), ["fog.g"], None, None),
+             (iso, ["fog.g"], {"phase_order": 1}, {"phase_order": 1}),
+             (iso, ["fog.absorption"], None, None)]
+    for scene, unknowns, given, expected in cases:
+        with pytest.raises(RuntimeError, match="stop here"):
+            df.fit(scene, target, unknowns, model_settings=given)
+        assert seen[-1] == expected, (unknowns, given, seen[-1])
+    with pytest.raises(RuntimeError, match="stop here"):
+        df.fit(iso, target, ["fog.g"], forward="splat")
+    assert seen[-1] is None

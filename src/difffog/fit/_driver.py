@@ -566,6 +566,7 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         raise DifffogError(f"refine_steps={refine_steps!r}: give the most renders of the finer "
                            f"model the correction takes, an integer ≥ 1 (default 4; 1: one "
                            f"Gauss–Newton step)")
+    model_settings = _phase_order_for_g(scene, forward, unknowns, model_settings)
     levels = _ladder_levels(scene, forward, resolution, model_settings, ladder)
     fine_n = _refine_resolution(scene, forward, resolution, model_settings, model_error, levels)
     floor = _brightness_floor(forward, model_floor)
@@ -678,6 +679,23 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
     res.sun_rounds = rounds
     res.time_s = time.perf_counter() - t0
     return res, scene, kw["forward"]
+
+
+def _phase_order_for_g(scene: Scene, forward, unknowns, model_settings):
+    """``model_settings`` with the sweep's anisotropic phase order when ``fog.g`` is an unknown
+    of a scene whose fog starts isotropic (phase "isotropic", or g = 0): "auto" would take
+    order 0 there, the δ-isotropic scaling in which g only rescales ζ, and the fit would fit
+    that (fog-balls from images of another absorption: g = −0.92 ± 0.001, "successful")."""
+    from ..forward.sweep._solver import DEFAULT_PHASE_ORDER
+
+    settings = dict(model_settings or {})
+    if forward != "sweep" or "phase_order" in settings:
+        return model_settings
+    if not any(u.path == "fog.g" for u in as_unknowns(unknowns)):
+        return model_settings
+    if scene.fog is not None and scene.fog.phase == "henyey-greenstein" and scene.fog.g != 0:
+        return model_settings
+    return {**settings, "phase_order": DEFAULT_PHASE_ORDER}
 
 
 def _refine_resolution(scene: Scene, forward, resolution, model_settings, model_error,
@@ -1128,6 +1146,8 @@ def fit_batch(scene: Scene, targets: Sequence[Mapping[str, Any]], unknowns, *,
     t_start = time.perf_counter()
     setups = []
     opts = {**_SETUP_DEFAULTS, **kwargs}
+    opts["model_settings"] = _phase_order_for_g(scene, opts.get("forward", "sweep"), unknowns,
+                                                opts.get("model_settings"))
     for t in targets:  # the first builds the forward model, the others reuse it
         st = _setup(scene, t, unknowns, max_steps=max_steps, rtol=rtol, atol=atol,
                     stall_steps=stall_steps, **opts)
