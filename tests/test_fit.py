@@ -1211,3 +1211,31 @@ def test_a_fit_of_g_from_an_isotropic_start_carries_the_moments(monkeypatch):
     with pytest.raises(RuntimeError, match="stop here"):
         df.fit(iso, target, ["fog.g"], forward="splat")
     assert seen[-1] is None
+
+
+def test_a_fit_running_to_a_bound_says_so_when_it_runs_out_of_steps():
+    """fog-balls' γ fitted to images of γ = 0 ran to max_steps (50 steps, 138 s) with γ falling
+    a few per cent a step (log coordinates: its optimum is at u → −∞), and the message said
+    "raise max_steps or start closer", which cannot help.  The history of that fit (γ from 0.3,
+    0.0104 → 0.0016 over its last 40 steps) now gets one line on what to do; an unknown
+    converging slowly elsewhere, or one that turned back, gets none."""
+    from difffog.fit._driver import _towards_bound
+
+    coords = [Coordinate("fog.absorption", 0.0, math.inf),
+              Coordinate("fog.scattering", 0.0, math.inf),
+              Coordinate("shape.walls.albedo", 0.0, 1.0)]
+    hist = [{"values": {"fog.absorption": 0.3, "fog.scattering": 1.5,
+                        "shape.walls.albedo": 0.5}}]
+    hist += [{"values": {"fog.absorption": 0.0104 * 0.953 ** k, "fog.scattering": 2.12 - 0.002 * k,
+                         "shape.walls.albedo": 0.7 - 0.01 * k}} for k in range(41)]
+    msgs = _towards_bound(hist, coords)
+    assert len(msgs) == 1, msgs
+    assert msgs[0].startswith("fog.absorption fell from ") and "towards its bound 0" in msgs[0]
+    assert "--set fog.absorption=0 without --unknown fog.absorption" in msgs[0]
+    turned = hist[:-1] + [{"values": {**hist[-1]["values"],
+                                      "fog.absorption": hist[-3]["values"]["fog.absorption"]}}]
+    assert _towards_bound(turned, coords) == []
+    slow = [{"values": {**e["values"], "fog.absorption": 0.2 + 0.3 * 0.9 ** k}}
+            for k, e in enumerate(hist)]  # converging to 0.2, not to the bound
+    assert _towards_bound(slow, coords) == []
+    assert _towards_bound(hist[:8], coords) == []

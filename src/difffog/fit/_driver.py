@@ -363,6 +363,33 @@ def _stalled(history: list[dict], stall_steps: int, rtol: float) -> bool:
     return old["values"] != new["values"] or old["values"] != history[0]["values"]
 
 
+def _towards_bound(history: list[dict], coords, window: int = 10) -> list[str]:
+    """What to say of unknowns in log coordinates (a lower bound, no upper one) that ran
+    towards their bound over the last ``window`` steps without getting there (still falling by
+    30% over the window, at under a tenth of where they started): the optimum at
+    the bound is at u → −∞, which LM approaches a step at a time (fog-balls' γ from images of
+    γ = 0: 0.0104 → 0.0016 over 40 steps, each step a few per cent nearer).  One line each: the
+    way, and what to do (hold it at the bound: another lower bound would be the new optimum's,
+    as far away in these coordinates)."""
+    if len(history) <= window:
+        return []
+    out = []
+    for c in coords:
+        if c.mode != "log" or not math.isfinite(c.lower):
+            continue
+        vals = [float(e["values"][c.path]) - c.lower for e in history[-1 - window:]]
+        start = float(history[0]["values"][c.path]) - c.lower
+        falling = all(b <= a for a, b in zip(vals, vals[1:]))
+        # still falling fast (30% over the window), and far below where it started
+        if falling and 0 < vals[-1] < min(0.7 * vals[0], 0.1 * start):
+            at = f"{c.lower:g}"
+            out.append(f"{c.path} fell from {vals[0] + c.lower:.4g} to {vals[-1] + c.lower:.4g} "
+                       f"over the last {window} steps towards its bound {at}: the images may "
+                       f"need none of it; hold it at {at} (--set {c.path}={at} without --unknown "
+                       f"{c.path}; in log coordinates the bound itself is never reached)")
+    return out
+
+
 def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
             max_steps: int, stall_steps: int, extra_warnings=()) -> FitResult:
     st = tr.setup
@@ -374,8 +401,10 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
                    f"{stall_steps} steps — the optimum to the forward model's precision")
     if not tr.done and tr.k >= max_steps:
         name = "nonlinear_max_steps_reached"
+        bound = _towards_bound(tr.history, st.coords)
         message = (f"stopped after max_steps = {max_steps} steps without meeting rtol = {rtol}, "
-                   f"atol = {atol}; raise max_steps or start closer")
+                   f"atol = {atol}; " + ("; ".join(bound) if bound else
+                                         "raise max_steps or start closer"))
     if tr.tangent_failures:
         extra_warnings = [*extra_warnings, f"{RESULTS.tangent_unconverged.message} (the "
                           f"Jacobian of {tr.tangent_failures} of the {tr.k} steps)"]
