@@ -711,18 +711,17 @@ def _fit_sun_rounds(scene: Scene, targets, unknowns, *, checkpoint=None, resume=
 
 
 def _phase_order_for_g(scene: Scene, forward, unknowns, model_settings):
-    """``model_settings`` with the sweep's anisotropic phase order when ``fog.g`` is an unknown
-    of a scene whose fog starts isotropic (phase "isotropic", or g = 0): "auto" would take
+    """``model_settings`` with the anisotropic phase order, for a named solver that takes one
+    (the registry's settings), when ``fog.g`` is an unknown of a scene whose fog starts
+    isotropic (``Scene.anisotropic`` false: phase "isotropic", or g = 0): "auto" would take
     order 0 there, the δ-isotropic scaling in which g only rescales ζ, and the fit would fit
     that (fog-balls from images of another absorption: g = −0.92 ± 0.001, "successful")."""
     from ..forward.sweep._solver import DEFAULT_PHASE_ORDER
 
     settings = dict(model_settings or {})
-    if forward != "sweep" or "phase_order" in settings:
-        return model_settings
-    if not any(u.path == "fog.g" for u in as_unknowns(unknowns)):
-        return model_settings
-    if scene.fog is not None and scene.fog.phase == "henyey-greenstein" and scene.fog.g != 0:
+    if (not isinstance(forward, str) or "phase_order" in settings or scene.anisotropic
+            or "phase_order" not in solver_entry(forward).settings
+            or not any(u.path == "fog.g" for u in as_unknowns(unknowns))):
         return model_settings
     return {**settings, "phase_order": DEFAULT_PHASE_ORDER}
 

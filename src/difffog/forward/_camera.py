@@ -135,11 +135,12 @@ def rays_at(camera: Camera, x, y) -> tuple[np.ndarray, np.ndarray]:
     return o, d
 
 
-def forward_peak_kernel(cos_theta, width):
+def forward_peak_kernel(cos_theta, width, xp=jnp):
     """K in [0, 1]: 1 − (1 − cos θ)/width, 0 beyond, around the forward direction (cos θ = 1);
     ``width`` = 1 − cos θ_w.  The window of the Henyey–Greenstein forward peak that the sweep's
-    sun beam keeps: the beam's light scatters with (1 − c·K)·p (``sweep._solver._cell_phase``)."""
-    return jnp.maximum(0.0, 1.0 - (1.0 - cos_theta) / width)
+    sun beam keeps: the beam's light scatters with (1 − c·K)·p (``sweep._solver._cell_phase``).
+    ``xp``: jax.numpy (traced) or NumPy (the slab reading, ``study._slab``)."""
+    return xp.maximum(0.0, 1.0 - (1.0 - cos_theta) / width)
 
 
 def hg_phase(cos_theta, g):

@@ -181,6 +181,8 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     else:
         j_up = j_dn = (s * q)[:, None]
     if sun_scatter is not None:
+        from ..forward._camera import forward_peak_kernel
+
         zeta, g, sun_flu = sun_scatter[:3]
         c, width = sun_scatter[4] if len(sun_scatter) > 4 else (0.0, 1.0)
         mu0 = math.cos(math.radians(sun[1]))
@@ -190,7 +192,7 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
             # cos Θ between the sun's light (going down, −μ₀) and light going ±μ
             cos = -mu0 * sign * mu[:, None] + sin0 * sin[:, None] * np.cos(phi)[None]
             p = ((1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * cos) ** 1.5)
-                 * (1.0 - c * np.maximum(0.0, 1.0 - (1.0 - cos) / width))).mean(1)
+                 * (1.0 - c * forward_peak_kernel(cos, width, np))).mean(1)
             add = (zeta * np.asarray(sun_flu, np.float64))[:, None] * p[None]
             if name == "up":
                 j_up = j_up + add
