@@ -1100,6 +1100,63 @@ def test_refine_counts_the_brightness_floor():
                    model_floor=bad)
 
 
+def test_noise_sigma_reads_white_noise_not_shading_or_edges():
+    """The noise estimate behind the goodness of fit: 0 for shading that is a sum of a function
+    of x and one of y (the filter is a product of second differences) and for a sharp edge (a
+    few columns, outside the median), the σ of white noise added to them within 10%."""
+    from difffog.fit._misfit import noise_sigma
+
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:64, 0:80] / 64.0
+    shaded = 1.0 + 0.5 * x ** 2 + np.sin(3 * y)
+    edged = shaded + (x > 0.6)
+    assert noise_sigma(shaded) < 1e-12 and noise_sigma(edged) < 1e-12
+    for sigma in (0.01, 0.05):
+        assert noise_sigma(edged + sigma * rng.standard_normal(edged.shape)) == pytest.approx(
+            sigma, rel=0.1)
+    assert noise_sigma(np.ones((2, 9))) == 0.0  # too small to tell
+
+
+def test_a_fit_says_so_when_the_model_does_not_explain_the_images():
+    """A target with something the model lacks (a bright blob the Toy has no term for, as a
+    misplaced highlight or a wrong albedo leaves) is fit with a residual far above what the
+    lattice explains: a MisfitWarning, the goodness of fit says which camera, and the misfit's
+    part of the model error brings the biased estimates within 3 total uncertainties of the
+    truth.  The right target (the Toy without its lattice error) fits to its float rounding:
+    no warning, no misfit part; the LatticeToy's lattice error (a multiple of ζ's column) is
+    what the unknowns absorb, so it explains no residual."""
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3, "shape.walls.albedo": 0.6}
+    start = {"fog.scattering": 0.5, "fog.absorption": 1.0, "shape.walls.albedo": 0.4}
+    exact = LatticeToy(10**9)
+    right = _toy_target(exact, **truth)
+    res = df.fit(Toy().scene, right, start, forward=LatticeToy(10), model_error="refine")
+    g = res.goodness_of_fit["top"]
+    assert res.converged and g["ratio"] < 0.1 and g["unexplained"] == 0.0, g
+    assert g["lattice"] < 1e-5 and g["noise"] < 1e-6 and g["floor"] == 0.0
+    assert g["expected"] == pytest.approx(1e-3)  # what the fit's tolerances resolve
+    assert all("misfit" not in parts for parts in res.model_error_parts.values())
+    assert res.to_json()["goodness_of_fit"] == res.goodness_of_fit
+    y, x = np.mgrid[0:8, 0:10] / 7.0
+    blob = 0.15 * right["top"].mean() * np.exp(-((x - 0.9) ** 2 + (y - 0.5) ** 2) / 0.05)
+    wrong = {"top": right["top"] + blob.astype(np.float32)}
+    with pytest.warns(df.MisfitWarning, match=r"the model does not explain the images: "
+                                              r"residual RMS top .* of its mean"):
+        bad = df.fit(Toy().scene, wrong, start, forward=LatticeToy(10), model_error="refine")
+    g = bad.goodness_of_fit["top"]
+    assert bad.converged and g["ratio"] > 2 and 0.75 < g["unexplained"] <= 1, g
+    assert any("the model does not explain the images" in w for w in bad.warnings)
+    assert "top" in bad.summary() and "(misfit)" in bad.summary()
+    before = []
+    for p, v in truth.items():
+        parts = bad.model_error_parts[p]
+        assert parts["misfit"] > 0, p
+        without = math.hypot(bad.stderr[p], math.sqrt(sum(
+            u * u for k, u in parts.items() if k != "misfit")))
+        before.append(abs(bad.estimates[p] - v) / without)
+        assert abs(bad.estimates[p] - v) <= 3 * bad.uncertainty[p], (p, parts)
+    assert max(before) > 3, before  # the misfit's part is what covers them
+
+
 class TooBigToy(LatticeToy):
     """The LatticeToy whose lattices finer than 15 do not fit in memory."""
 

@@ -34,6 +34,7 @@ from ._results import RESULTS as RESULTS
 from .fit._density import DensityFit as DensityFit, fit_density as fit_density
 from .fit._driver import fit as fit, fit_batch as fit_batch
 from .fit._images import load_target as load_target
+from .fit._misfit import MisfitWarning as MisfitWarning
 from .fit._result import FitResult as FitResult, IdentifiabilityWarning as IdentifiabilityWarning
 from .fit._unknowns import Unknown as Unknown
 from .forward._model import (

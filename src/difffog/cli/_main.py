@@ -11,6 +11,7 @@ import warnings
 
 from .._errors import (AdjointWarning, DeviceWarning, DifffogError, MemoryWarning,
                        ResourceError, ThickStepWarning, ThinLayerWarning)
+from ..fit._misfit import MisfitWarning
 from ..fit._result import IdentifiabilityWarning
 from ..forward._registry import LEVELS, SOLVERS, preset, solver_entry
 
@@ -135,11 +136,12 @@ def main(argv=None) -> int:
     # thinner than a voxel: whatever its code warns) as one line each, like its errors, rather
     # than Python's file:line and source line
     shown = warnings.showwarning
+    said = (ThickStepWarning, ThinLayerWarning, AdjointWarning, IdentifiabilityWarning,
+            MemoryWarning, DeviceWarning, MisfitWarning)
     package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
 
     def one_line(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, (ThickStepWarning, ThinLayerWarning, AdjointWarning,
-                                 IdentifiabilityWarning, MemoryWarning, DeviceWarning)) or (
+        if issubclass(category, said) or (
                 os.path.abspath(str(filename)).startswith(package)):
             print(f"difffog: warning: {message}", file=sys.stderr)
         else:
@@ -148,8 +150,7 @@ def main(argv=None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = one_line
-            for category in (ThickStepWarning, ThinLayerWarning, AdjointWarning,
-                             IdentifiabilityWarning, MemoryWarning, DeviceWarning):
+            for category in said:
                 warnings.simplefilter("always", category)  # said, never raised
             return args.func(args)
     except ResourceError as e:  # a valid request this machine cannot hold: like a failed solve

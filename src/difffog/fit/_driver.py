@@ -35,8 +35,9 @@ from ..forward._model import AbstractForwardModel, batch_devices, map_batch
 from ..forward._registry import check_settings, guard, solver_entry
 from ..scene._description import Scene
 from ..scene._params import SUN_PATHS
-from . import _checkpoint
+from . import _checkpoint, _misfit
 from ._images import load_files
+from ._misfit import MisfitWarning
 from ._result import FitResult, IdentifiabilityWarning, level_label, result_name, statistics
 from ._residuals import LOSSES, tangent_start
 from ._stepper import make_optimizer, stepper_for
@@ -837,17 +838,20 @@ def _moved_estimates(st, u, J, dy) -> dict[str, float]:
     return _physical(st, np.asarray(u, np.float64) + _gauss_newton_step(J, dy))
 
 
-def _floor_shifts(st, u, J, y, weight, fitted, floor: float) -> dict[str, float]:
-    """Each estimate's shift (physical units) under a relative brightness bias ``floor`` of
-    one camera's images at a time, root sum of squares over the cameras; ``weight`` turns an
-    image change into the residual's units."""
+def _floor_shifts(st, u, J, y, weight, fitted, floor) -> dict[str, float]:
+    """Each estimate's shift (physical units) under a relative brightness bias ``floor`` (one
+    for every camera, or {camera: bias}) of one camera's images at a time, root sum of squares
+    over the cameras; ``weight`` turns an image change into the residual's units."""
     total = dict.fromkeys(fitted, 0.0)
     off = 0
     for name in st.names:
         size = st.tgt[name].size
+        bias = floor.get(name, 0.0) if isinstance(floor, Mapping) else floor
         dy = np.zeros_like(y)
-        dy[off:off + size] = floor * y[off:off + size]
+        dy[off:off + size] = bias * y[off:off + size]
         off += size
+        if bias == 0:
+            continue
         for p, v in _moved_estimates(st, u, J, weight * dy).items():
             total[p] += (v - fitted[p]) ** 2
     return {p: math.sqrt(t) for p, t in total.items()}
@@ -877,6 +881,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     # the light states at u so far, (model, state): each render starts from one, resampled
     sources = [] if lin.get("light") is None else [(st.model, lin["light"])]
     meter = sibling(progress, "model error")
+    fine_at_u = None  # the finer model's images at u: the goodness of fit's lattice error
     for i, (what, build) in enumerate(checks):
         label = level_label(what)
         meter.update(i, len(checks), **{"N" if k == "resolution" else k: v
@@ -896,6 +901,8 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
             y_f, name, light = _finer_images(st, model, u, _start(model, sources))
             if light is not None:
                 sources.append((model, light))
+            if i == 0:
+                fine_at_u = y_f
         if name is not None:
             if not moved:  # the correction itself
                 res.warnings.append(f"the estimate is not corrected and the model error not "
@@ -945,6 +952,8 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         for p, v in shifts.items():
             parts[p]["brightness"] = v
         res.model_floor = floor
+    _with_misfit(res, st, u, J, y, sqrt_w, scale, fitted, parts, fine_at_u, fine_n / (fine_n - n),
+                 floor)
     if len(res.sun_rounds) >= 2:  # how far the last rebuild at the estimated sun moved each
         before, last = res.sun_rounds[-2]["estimates"], res.sun_rounds[-1]["estimates"]
         for p in res.paths:
@@ -959,6 +968,31 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
                   {**moved[0][0], "estimates": refined, "linearized": True, "steps": steps}] + [
         {**what, "estimates": est, "linearized": True} for what, est in moved[1:]]
     return res
+
+
+def _with_misfit(res: FitResult, st, u, J, y, sqrt_w, scale: float, fitted, parts, fine,
+                 lattice_factor: float, floor: float) -> None:
+    """The goodness of fit (``res.goodness_of_fit``), the misfit's part of each estimate's
+    model error (``parts[p]["misfit"]``, where some camera's residual is more than the noise,
+    the lattice and the floor explain) and a :class:`MisfitWarning` where it is more than
+    ``_misfit.MISFIT_RATIO`` times that (``fit/_misfit.py``)."""
+    target = np.asarray(st.flat_t, np.float64)
+    cams = _misfit.per_camera(st, y, target, sqrt_w, fine, lattice_factor, floor, J, scale)
+    res.goodness_of_fit = cams
+    excess = {c: v["residual"] * math.sqrt(v["unexplained"]) for c, v in cams.items()}
+    if not any(excess.values()):
+        return
+    bright = _floor_shifts(st, u, J, y, sqrt_w / scale, fitted, excess)
+    r = sqrt_w * (y - target) / scale
+    cov_u = _misfit.regional_spread(st, J, r, cams)
+    d = np.array([c.dv_du(float(x)) for c, x in zip(st.coords, u)])
+    spread = np.sqrt(np.clip(np.diag(cov_u), 0, None)) * np.abs(d)
+    for p, s in zip(res.paths, spread):
+        parts[p]["misfit"] = math.hypot(bright.get(p, 0.0), float(s))
+    said = _misfit.message(cams)
+    if said:
+        warnings.warn(said, MisfitWarning, stacklevel=4)
+        res.warnings.append(said)
 
 
 def _start(model, sources):

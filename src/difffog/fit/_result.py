@@ -70,7 +70,16 @@ class FitResult:
         brightness bias of ``fit``'s ``model_floor`` in one camera's images at a time moves it
         ("brightness", the model's brightness against independent truth, which no finer
         lattice reveals).  ``model_error`` is their root sum of squares.
+        With a misfit (below), a "misfit" part: how far the residual that noise, the lattice
+        and the floor do not explain can move each estimate (``fit/_misfit.py``).
     model_floor: the relative brightness bias behind the "brightness" part (0: none).
+    goodness_of_fit: with ``model_error="refine"``, {camera: {residual, noise, lattice, floor,
+        expected, ratio, unexplained}}: the residual's RMS relative to the target's mean,
+        against what the target's own noise, the model's lattice error in the images and the
+        brightness floor explain (``expected``, their root sum of squares; ``ratio`` =
+        residual / expected; ``unexplained`` the share of the residual's variance they do not
+        explain).  A ratio above 2 warns (:class:`difffog.MisfitWarning`): something the fit
+        holds fixed differs from the images.
     sun_rounds: with the sun's angles as unknowns, one dict per round of the fit (the sun the
         round's model was built at, its estimates, iterations, result): each round rebuilds
         the model at the previous round's sun, until the sun moves less than
@@ -103,6 +112,7 @@ class FitResult:
     model_error_parts: dict = field(default_factory=dict)
     sun_rounds: list = field(default_factory=list)
     model_floor: float = 0.0
+    goodness_of_fit: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -165,6 +175,11 @@ class FitResult:
                          f"{level_label(self.ladder[0])} fit)")
         lines.append(f"{self.result} after {self.iterations} steps in {self.time_s:.1f} s; "
                      f"residual RMS {self.residual_rms:.3g}")
+        if self.goodness_of_fit:
+            lines.append("residual / what noise, lattice and floor explain: " + ", ".join(
+                f"{n} {c['residual']:.2%} / {c['expected']:.2%}"
+                + (" (misfit)" if c["ratio"] > 2 else "")
+                for n, c in self.goodness_of_fit.items()))
         if self.sun_rounds:
             n = len(self.sun_rounds)
             lines.append("the sun: 1 round, on a model built at the starting sun" if n == 1 else
@@ -213,6 +228,7 @@ class FitResult:
             "model_error_parts": self.model_error_parts,
             "sun_rounds": self.sun_rounds,
             "model_floor": self.model_floor,
+            "goodness_of_fit": self.goodness_of_fit,
         }
 
 
