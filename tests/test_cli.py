@@ -339,6 +339,11 @@ def test_fit_writes_estimates_plots_and_residuals(fit_targets, tmp_path, capsys)
         assert rep["uncertainty"][path] >= max(rep["stderr"][path], rep["model_error"][path])
         assert parts["brightness"] > 0  # --model-floor auto: the sweep's 0.5%
     assert rep["model_floor"] == 0.005
+    # the fit's own images: the residual is what the fit's tolerances leave, far inside what
+    # the floor alone explains, and no misfit part
+    for cam in ("top", "oblique"):
+        assert rep["goodness_of_fit"][cam]["ratio"] < 0.5, rep["goodness_of_fit"]
+    assert not any("misfit" in rep["model_error_parts"][p] for p in rep["paths"])
     assert len(rep["correlation"]) == 2 and rep["converged"]
     assert rep["settings"]["forward"] == "sweep" and rep["settings"]["optimizer"] == "lm"
     assert rep["settings"]["model"]["resolution"] == 12
@@ -409,6 +414,49 @@ def test_density_fit_takes_the_model_flags(tmp_path, capsys, monkeypatch):
             "fog.density", "--scheme", "step", "--once-M", "4", "--out", str(tmp_path / "o")]
     assert main(argv) == 2
     assert "settings={'scheme': 'step', 'once_M': 4}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_a_fit_the_model_does_not_explain_is_said_and_written(tmp_path, capsys, monkeypatch,
+                                                              quiet):
+    """A misfit (test_fit's analytic Toy fit to a target with a blob it has no term for, in
+    place of the sweep's fit) reaches the user: in the summary, or with -q as one stderr line
+    (the summary that lists the fit's warnings is not printed then), and in fit.json with the
+    goodness of fit; the fit converged, so the exit status is 0."""
+    from difffog.fit import _driver
+
+    import test_fit as T
+
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3, "shape.walls.albedo": 0.6}
+    right = T._toy_target(T.LatticeToy(10**9), **truth)["top"]
+    y, x = np.mgrid[0:8, 0:10] / 7.0
+    wrong = {"top": right + (0.15 * right.mean() * np.exp(
+        -((x - 0.9) ** 2 + (y - 0.5) ** 2) / 0.05)).astype(np.float32)}
+    real = _driver.fit
+
+    def toy_fit(scene, targets, unknowns, **kw):
+        return real(T.Toy().scene, wrong, {"fog.scattering": 0.5, "fog.absorption": 1.0,
+                                           "shape.walls.albedo": 0.4},
+                    forward=T.LatticeToy(10), model_error="refine")
+
+    monkeypatch.setattr(_driver, "fit", toy_fit)
+    np.save(tmp_path / "T.npy", np.ones((16, 16), np.float32))
+    out = tmp_path / "o"
+    argv = ["fit", *FIT_SMALL, "--target", f"top={tmp_path / 'T.npy'}", "--unknown",
+            "fog.scattering", "--out", str(out)] + (["-q"] if quiet else [])
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    said = "the model does not explain the images: residual RMS top"
+    err = [line for line in cap.err.splitlines() if said in line]
+    if quiet:
+        assert len(err) == 1 and err[0].startswith("difffog: warning: "), cap.err
+        assert cap.out == ""
+    else:
+        assert not err and f"warning: {said}" in cap.out and "(misfit)" in cap.out
+    rep = json.loads((out / "fit.json").read_text())
+    assert rep["goodness_of_fit"]["top"]["ratio"] > 2
+    assert any(said in w for w in rep["warnings"])
+    assert all(rep["model_error_parts"][p]["misfit"] > 0 for p in truth)
 
 
 @pytest.mark.parametrize("extra,needle", [

@@ -319,7 +319,10 @@ def run(args) -> int:
         _fit_plots(result, tmp)
     if result.converged and ckpt.exists():
         ckpt.unlink()
-    if not args.quiet:
+    if args.quiet:  # the summary that lists them is not printed: its warnings still are
+        for said in result.warnings:
+            print(f"difffog: warning: {said}", file=sys.stderr)
+    else:
         print(result.summary())
         print(f"{out / 'fit.json'}: {result.iterations} steps, {report['total_s']:.1f} s")
         if not result.converged:
