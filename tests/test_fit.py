@@ -1100,6 +1100,20 @@ def test_refine_counts_the_brightness_floor():
                    model_floor=bad)
 
 
+def test_a_truth_of_zero_reads_as_an_absolute_error():
+    """A fog without absorption (γ = 0) has no relative error: relative_error and the summary
+    give the estimate's difference instead (they divided by zero)."""
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3}
+    res = df.fit(Toy().scene, _toy_target(Toy(), **truth),
+                 {"fog.scattering": 0.5, "fog.absorption": 1.0}, forward=Toy())
+    said = {"fog.scattering": 1.5, "fog.absorption": 0.0}
+    err = res.relative_error(said)
+    assert err["fog.absorption"] == res.estimates["fog.absorption"] == pytest.approx(0.3, rel=1e-3)
+    assert err["fog.scattering"] == pytest.approx(res.estimates["fog.scattering"] / 1.5 - 1)
+    line = [ln for ln in res.summary(said).splitlines() if ln.startswith("fog.absorption")][0]
+    assert line.endswith("+0.3 (absolute)"), line
+
+
 def test_noise_sigma_reads_white_noise_not_shading_or_edges():
     """The noise estimate behind the goodness of fit: 0 for shading that is a sum of a function
     of x and one of y (the filter is a product of second differences) and for a sharp edge (a

@@ -119,9 +119,10 @@ class FitResult:
         return self.result in ("successful", "loss_stalled")
 
     def relative_error(self, truth: Mapping[str, float]) -> dict[str, float]:
-        """{path: (estimate − truth) / truth} (the sun's angles: estimate − truth, degrees)."""
+        """{path: (estimate − truth) / truth} (the sun's angles, and a truth of 0: estimate −
+        truth, in the unknown's units)."""
         return {p: (self.estimates[p] - truth[p]) / (
-            1.0 if p in SUN_PATHS else truth[p])
+            1.0 if p in SUN_PATHS or truth[p] == 0 else truth[p])
             for p in self.paths if p in truth}
 
     def summary(self, truth: Mapping[str, float] | None = None) -> str:
@@ -148,6 +149,8 @@ class FitResult:
             if truth and p in truth:
                 if p in SUN_PATHS:  # an angle: off by degrees
                     s += f"  {truth[p]:>10.4g}  {self.estimates[p] - truth[p]:>+7.3f}°"
+                elif truth[p] == 0:  # no relative error: the estimate itself, marked
+                    s += f"  {truth[p]:>10.4g}  {self.estimates[p]:>+8.2g} (absolute)"
                 else:
                     s += f"  {truth[p]:>10.4g}  {100 * (self.estimates[p] / truth[p] - 1):>+8.3f}"
             lines.append(s)
