@@ -1114,6 +1114,51 @@ def test_a_truth_of_zero_reads_as_an_absolute_error():
     assert line.endswith("+0.3 (absolute)"), line
 
 
+def test_an_unknown_whose_best_value_is_its_bound_is_held_there_with_a_one_sided_limit():
+    """A fog that does not absorb: the Toy's images of γ = 0 with 2% noise whose least-squares
+    γ is negative.  In log coordinates γ only creeps towards 0 (max_steps); the fit then holds
+    it at 0 and fits ζ and the walls again, converged, to the linear least squares of the other
+    two columns; γ's standard error, and the others', are the three-column model's (the Toy is
+    linear: σ²(AᵀA)⁻¹ with σ² from the two-column residual), and the images allow γ up to
+    1.645 of it (95%, one-sided)."""
+    toy = Toy()
+    truth = {"fog.scattering": 1.5, "fog.absorption": 0.0, "shape.walls.albedo": 0.6}
+    clean = _toy_target(toy, **truth)["top"].astype(np.float64)
+    rng = np.random.default_rng(5)
+    target = (clean + 0.02 * clean.mean() * rng.standard_normal(clean.shape)).astype(np.float32)
+    sun = float(toy.params().sun_irradiance)
+    A = np.stack([sun * np.asarray(toy.a).ravel(), np.asarray(toy.b).ravel(),
+                  np.asarray(toy.c).ravel()], axis=1)
+    t = target.ravel().astype(np.float64)
+    assert np.linalg.lstsq(A, t, rcond=None)[0][1] < 0  # the images want γ below its bound
+    two = np.linalg.lstsq(A[:, [0, 2]], t, rcond=None)[0]
+    s2 = float(np.sum((A[:, [0, 2]] @ two - t) ** 2)) / (t.size - 3)
+    se = np.sqrt(s2 * np.diag(np.linalg.inv(A.T @ A)))
+    res = df.fit(toy.scene, {"top": target}, {"fog.scattering": 0.5, "fog.absorption": 1.0,
+                                              "shape.walls.albedo": 0.4}, forward=Toy())
+    assert res.converged and res.iterations > 50, (res.result, res.message)
+    assert res.estimates["fog.absorption"] == 0.0
+    assert res.estimates["fog.scattering"] == pytest.approx(two[0], rel=1e-4)
+    assert res.estimates["shape.walls.albedo"] == pytest.approx(two[1], rel=1e-4)
+    for k, p in enumerate(truth):
+        assert res.stderr[p] == pytest.approx(se[k], rel=1e-3), p
+    limit = res.at_bound["fog.absorption"]
+    assert limit["bound"] == 0.0 and limit["upper_95"] == pytest.approx(1.6449 * se[1], rel=1e-3)
+    assert "fog.absorption ran to its bound (0): the images need none of it" in res.message
+    assert res.paths == list(truth) and res.initial["fog.absorption"] == 1.0
+    assert res.correlation.shape == (3, 3) and np.all(np.isfinite(res.correlation))
+    assert res.history[-1]["values"]["fog.absorption"] == 0.0
+    assert res.to_json()["at_bound"] == res.at_bound
+    assert "+0 (absolute)" in res.summary(truth)
+    # with the model error: the finer lattice's pull on γ at the bound is its lattice part
+    fine = df.fit(toy.scene, {"top": target}, {"fog.scattering": 0.5, "fog.absorption": 1.0,
+                                               "shape.walls.albedo": 0.4},
+                  forward=LatticeToy(10), model_error="refine")
+    assert fine.converged and fine.estimates["fog.absorption"] == 0.0, fine.message
+    assert math.isfinite(fine.model_error["fog.absorption"])
+    assert fine.uncertainty["fog.absorption"] >= fine.stderr["fog.absorption"] > 0
+
+
 def test_noise_sigma_reads_white_noise_not_shading_or_edges():
     """The noise estimate behind the goodness of fit: 0 for shading that is a sum of a function
     of x and one of y (the filter is a product of second differences) and for a sharp edge (a

@@ -34,8 +34,8 @@ from .._results import RESULTS
 from ..forward._model import AbstractForwardModel, batch_devices, map_batch
 from ..forward._registry import check_settings, guard, solver_entry
 from ..scene._description import Scene
-from ..scene._params import SUN_PATHS
-from . import _checkpoint, _misfit
+from ..scene._params import SUN_PATHS, set_param
+from . import _bound, _checkpoint, _misfit
 from ._images import load_files
 from ._misfit import MisfitWarning
 from ._result import FitResult, IdentifiabilityWarning, level_label, result_name, statistics
@@ -206,7 +206,10 @@ def _exposure_starts(stepper, args, coords, inits, names, tgt, wts, dtype) -> li
 
 def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, downsample,
            model_settings, weights, loss, loss_scale, rtol, atol, max_steps, stall_steps,
-           dtype, channel, transfer, edge_weight=1.0, sun_step=None, sun_memo=None) -> _Setup:
+           dtype, channel, transfer, edge_weight=1.0, sun_step=None, sun_memo=None,
+           fixed=None) -> _Setup:
+    """What a fit at one resolution needs (``fit``'s arguments); ``fixed``: {path: value} of
+    parameters held at a value other than the model's (an unknown held at its bound)."""
     unknowns = as_unknowns(unknowns)
     if loss not in LOSSES:
         raise DifffogError(f"loss '{loss}': choose one of {', '.join(LOSSES)}")
@@ -239,6 +242,8 @@ def _setup(scene: Scene, targets, unknowns, *, optimizer, forward, resolution, d
     edge_share = _weigh_edges(model, names, wts, float(edge_weight))
     dtype = dtype or jnp.result_type(float)
     base = model.params(dtype)
+    for path, v in (fixed or {}).items():
+        base = set_param(base, model.scene, path, v)
     coords, given = coordinates(model.scene, base, unknowns)
     flat_t = np.concatenate([tgt[n].ravel() for n in names])
     flat_w = np.concatenate([wts[n].ravel() for n in names])
@@ -364,14 +369,9 @@ def _stalled(history: list[dict], stall_steps: int, rtol: float) -> bool:
     return old["values"] != new["values"] or old["values"] != history[0]["values"]
 
 
-def _towards_bound(history: list[dict], coords, window: int = 10) -> list[str]:
-    """What to say of unknowns in log coordinates (a lower bound, no upper one) that ran
-    towards their bound over the last ``window`` steps without getting there (still falling by
-    30% over the window, at under a tenth of where they started): the optimum at
-    the bound is at u → −∞, which LM approaches a step at a time (fog-balls' γ from images of
-    γ = 0: 0.0104 → 0.0016 over 40 steps, each step a few per cent nearer).  One line each: the
-    way, and what to do (hold it at the bound: another lower bound would be the new optimum's,
-    as far away in these coordinates)."""
+def _bound_runners(history: list[dict], coords, window: int = 10) -> list[tuple]:
+    """(coordinate, value window steps ago, last value) of the unknowns in log coordinates
+    that ran towards their lower bound (see :func:`_towards_bound`)."""
     if len(history) <= window:
         return []
     out = []
@@ -383,12 +383,57 @@ def _towards_bound(history: list[dict], coords, window: int = 10) -> list[str]:
         falling = all(b <= a for a, b in zip(vals, vals[1:]))
         # still falling fast (30% over the window), and far below where it started
         if falling and 0 < vals[-1] < min(0.7 * vals[0], 0.1 * start):
-            at = f"{c.lower:g}"
-            out.append(f"{c.path} fell from {vals[0] + c.lower:.4g} to {vals[-1] + c.lower:.4g} "
-                       f"over the last {window} steps towards its bound {at}: the images may "
-                       f"need none of it; hold it at {at} (--set {c.path}={at} without --unknown "
-                       f"{c.path}; in log coordinates the bound itself is never reached)")
+            out.append((c, vals[0] + c.lower, vals[-1] + c.lower))
     return out
+
+
+def _towards_bound(history: list[dict], coords, window: int = 10) -> list[str]:
+    """What to say of unknowns in log coordinates (a lower bound, no upper one) that ran
+    towards their bound over the last ``window`` steps without getting there (still falling by
+    30% over the window, at under a tenth of where they started): the optimum at
+    the bound is at u → −∞, which LM approaches a step at a time (fog-balls' γ from images of
+    γ = 0: 0.0104 → 0.0016 over 40 steps, each step a few per cent nearer).  One line each: the
+    way, and what to do (hold it at the bound: another lower bound would be the new optimum's,
+    as far away in these coordinates)."""
+    out = []
+    for c, before, last in _bound_runners(history, coords, window):
+        at = f"{c.lower:g}"
+        out.append(f"{c.path} fell from {before:.4g} to {last:.4g} over the last {window} "
+                   f"steps towards its bound {at}: the images may need none of it; hold it at "
+                   f"{at} (--set {c.path}={at} without --unknown {c.path}; in log coordinates "
+                   f"the bound itself is never reached)")
+    return out
+
+
+def _held_at_bound(res: FitResult) -> dict[str, float]:
+    """{path: bound} of the unknowns a fit that ran out of steps was running to the lower
+    bound of, where holding them there is possible: a parameter of the model (not an
+    exposure), and at least one unknown left to fit."""
+    lin = getattr(res, "_linear", None)
+    if res.result != "nonlinear_max_steps_reached" or lin is None:
+        return {}
+    model, held = lin["setup"].model, {}
+    for c, _, _ in _bound_runners(res.history, lin["setup"].coords):
+        try:
+            set_param(model.params(), model.scene, c.path, c.lower)
+        except DifffogError:  # not a parameter of the model (an exposure)
+            continue
+        held[c.path] = float(c.lower)
+    return held if len(held) < len(res.paths) else {}
+
+
+def _refit_at_bound(first: FitResult, held: dict[str, float], scene: Scene, targets, unknowns,
+                    *, resolution, callback, **kw):
+    """The fit again (the same model) with the ``held`` unknowns at their bounds and the
+    others started where ``first`` left them: (its result, scene, forward), or None where it
+    did not converge."""
+    rest = [dataclasses.replace(u, init=within_bounds(u, first.estimates[u.path]))
+            for u in as_unknowns(unknowns) if u.path not in held]
+    out = _fit_sun_rounds(scene, targets, rest, resolution=resolution, callback=callback,
+                          fixed=held, **kw)
+    # the bound is the optimum only if the images fit there at least as well as where the
+    # first fit stopped, on its way there
+    return out if out[0].converged and out[0].loss <= first.loss * (1 + 1e-3) else None
 
 
 def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
@@ -586,6 +631,12 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         0 leaves it out.  An unknown exposure absorbs it (a gain is such a bias).
     callback: called after every step with that step's history entry (of the last level).
 
+    An unknown whose best value is its lower bound (γ of a fog that does not absorb: in log
+    coordinates it only creeps towards it until ``max_steps``) is then held at the bound and the
+    others are fit again from where they were, on the same model: its estimate is the bound,
+    ``at_bound`` says how far above it the images allow it (95%, one-sided), and the message
+    says so (``fit/_bound.py``).
+
     The result is "light_solve_failed" (not converged) when the light solve at the estimate
     did not converge, or a tangent solve of the estimate's Jacobian; an unconverged tangent
     solve of a step's Jacobian is listed in its warnings.
@@ -608,11 +659,21 @@ def fit(scene: Scene, targets: Mapping[str, Any], unknowns, *, forward="sweep",
         res, scene, forward = _fit_sun_rounds(scene, targets, unknowns, resolution=resolution,
                                               checkpoint=checkpoint, resume=resume,
                                               callback=callback, **kw)
+        first, held = res, _held_at_bound(res)
+        refit = held and _refit_at_bound(first, held, scene, targets, unknowns,
+                                         resolution=resolution, callback=callback, **kw)
+        if held and not refit:
+            res.warnings.append(f"holding {', '.join(held)} at the bound and fitting the "
+                                f"others again did not converge, or fit the images worse")
+        elif held:
+            res, scene, forward = refit
         if fine_n is not None:
             t0 = time.perf_counter()
             _with_refined_error(res, scene, forward, fine_n, downsample, model_settings,
                                 progress, floor, refine_steps)
             res.time_s += time.perf_counter() - t0
+        if refit:
+            _bound.with_held(res, first, list(held), held)
         return res
     if checkpoint is not None or resume:
         raise DifffogError("checkpoint/resume is not supported with a ladder yet (the coarse "
@@ -901,8 +962,9 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
             y_f, name, light = _finer_images(st, model, u, _start(model, sources))
             if light is not None:
                 sources.append((model, light))
-            if i == 0:
+            if i == 0 and y_f is not None:
                 fine_at_u = y_f
+                res._fine_change = sqrt_w * (y_f - y) / scale  # (what _bound needs)
         if name is not None:
             if not moved:  # the correction itself
                 res.warnings.append(f"the estimate is not corrected and the model error not "

@@ -73,6 +73,10 @@ class FitResult:
         With a misfit (below), a "misfit" part: how far the residual that noise, the lattice
         and the floor do not explain can move each estimate (``fit/_misfit.py``).
     model_floor: the relative brightness bias behind the "brightness" part (0: none).
+    at_bound: {path: {bound, upper_95}} for the unknowns a fit ran to their lower bound (a fog
+        that does not absorb) and held there, fitting the others again (``fit/_bound.py``):
+        the estimate is the bound, the standard error that of the joint linear model there,
+        and the images allow the unknown up to ``upper_95`` (95%, one-sided).
     goodness_of_fit: with ``model_error="refine"``, {camera: {residual, noise, lattice, floor,
         expected, ratio, unexplained}}: the residual's RMS relative to the target's mean,
         against what the target's own noise, the model's lattice error in the images and the
@@ -113,6 +117,7 @@ class FitResult:
     sun_rounds: list = field(default_factory=list)
     model_floor: float = 0.0
     goodness_of_fit: dict = field(default_factory=dict)
+    at_bound: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -166,8 +171,9 @@ class FitResult:
             else:
                 source = ("model error from resolution "
                           + " → ".join(str(lv["resolution"]) for lv in self.ladder))
-            lines.append("uncertainty dominated by " + "; ".join(
-                f"{k}: {', '.join(v)}" for k, v in by.items() if v) + f" ({source})")
+            if any(by.values()):
+                lines.append("uncertainty dominated by " + "; ".join(
+                    f"{k}: {', '.join(v)}" for k, v in by.items() if v) + f" ({source})")
         if corrected:
             k = int(self.ladder[1].get("steps", 1))
             how = ("one Gauss–Newton step" if k == 1
@@ -232,6 +238,7 @@ class FitResult:
             "sun_rounds": self.sun_rounds,
             "model_floor": self.model_floor,
             "goodness_of_fit": self.goodness_of_fit,
+            "at_bound": self.at_bound,
         }
 
 
