@@ -1038,6 +1038,8 @@ def _with_misfit(res: FitResult, st, u, J, y, sqrt_w, scale: float, fitted, part
     model error (``parts[p]["misfit"]``, where some camera's residual is more than the noise,
     the lattice and the floor explain) and a :class:`MisfitWarning` where it is more than
     ``_misfit.MISFIT_RATIO`` times that (``fit/_misfit.py``)."""
+    if fine is None:  # (no render of the finer model at the estimate: nothing to hold it to)
+        return
     target = np.asarray(st.flat_t, np.float64)
     cams = _misfit.per_camera(st, y, target, sqrt_w, fine, lattice_factor, floor, J, scale)
     res.goodness_of_fit = cams

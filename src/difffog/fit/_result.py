@@ -12,6 +12,7 @@ import numpy as np
 import optimistix as optx
 
 from ..scene._params import SUN_PATHS
+from ._misfit import MISFIT_RATIO
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -187,7 +188,7 @@ class FitResult:
         if self.goodness_of_fit:
             lines.append("residual / what noise, lattice and floor explain: " + ", ".join(
                 f"{n} {c['residual']:.2%} / {c['expected']:.2%}"
-                + (" (misfit)" if c["ratio"] > 2 else "")
+                + (" (misfit)" if c["ratio"] > MISFIT_RATIO else "")
                 for n, c in self.goodness_of_fit.items()))
         if self.sun_rounds:
             n = len(self.sun_rounds)
