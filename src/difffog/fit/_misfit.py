@@ -57,10 +57,12 @@ class MisfitWarning(UserWarning):
 
 def noise_sigma(image) -> float:
     """The standard deviation of white noise in ``image`` (2-D), from the image alone:
-    Immerkær's estimator (the image convolved with the difference of two Laplacians, whose
-    response to smooth shading is 0 and to white noise of σ is 6σ), with the median absolute
-    value instead of the mean so that edges and silhouettes do not count (×1.4826: the MAD of
-    a normal variable).  0 for an image smaller than 3×3."""
+    Immerkær's estimator (the image convolved with the product of two second differences,
+    [1, −2, 1] ⊗ [1, −2, 1], whose response to shading that is a sum of a function of x and one
+    of y is 0 and to white noise of σ is 6σ), with the median absolute value instead of the
+    mean so that edges and silhouettes do not count (×1.4826: the MAD of a normal variable).
+    Noise correlated between neighbouring pixels (a demosaiced photograph's) reads smaller than
+    it is.  0 for an image smaller than 3×3."""
     a = np.asarray(image, np.float64)
     if a.ndim != 2 or min(a.shape) < 3:
         return 0.0
