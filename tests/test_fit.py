@@ -758,13 +758,19 @@ def test_the_fits_defaults_recover_the_truth_within_their_uncertainty(scene_name
 def test_translucent_cube_ground_albedo_against_mitsuba_within_its_uncertainty_at_24():
     """The ground's albedo sits −0.32% against the Mitsuba image at every N and M tried, a
     bias no finer lattice reveals (its lattice parts are 0.02–0.04%): the brightness floor
-    (0.5% for the sweep) is what covers it, and the total stays informative (under 1%)."""
-    res, truth = _recover("translucent-cube", "mc", N=24, model_error="refine")
+    (0.5% for the sweep) covers it, and the top view's residual (1.6% of its mean, 1.4× what
+    its noise, the lattice and the floor explain; stop 76) adds a misfit part of about 0.9%:
+    the total stays informative (under 1.5%; 1.02% measured, 0.41% before the misfit part
+    was counted), with no misfit warning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", df.MisfitWarning)
+        res, truth = _recover("translucent-cube", "mc", N=24, model_error="refine")
     p = "shape.ground.albedo"
     parts = res.model_error_parts[p]
     assert parts["brightness"] > 3 * max(parts["lattice"], parts["directions"])
+    assert 0 < parts["misfit"] < 0.012 * truth[p]
     assert abs(res.estimates[p] - truth[p]) <= 3 * res.uncertainty[p]
-    assert res.uncertainty[p] < 0.01 * truth[p]
+    assert res.uncertainty[p] < 0.015 * truth[p]
 
 
 def test_stall_test_counts_rejected_steps_after_progress():
