@@ -942,7 +942,6 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     # the light states at u so far, (model, state): each render starts from one, resampled
     sources = [] if lin.get("light") is None else [(st.model, lin["light"])]
     meter = sibling(progress, "model error")
-    fine_at_u = None  # the finer model's images at u: the goodness of fit's lattice error
     for i, (what, build) in enumerate(checks):
         label = level_label(what)
         meter.update(i, len(checks), **{"N" if k == "resolution" else k: v
@@ -962,9 +961,9 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
             y_f, name, light = _finer_images(st, model, u, _start(model, sources))
             if light is not None:
                 sources.append((model, light))
-            if i == 0 and y_f is not None:
-                fine_at_u = y_f
-                res._fine_change = sqrt_w * (y_f - y) / scale  # (what _bound needs)
+            if i == 0 and y_f is not None:  # the finer model's change at u, in the residual's
+                # units: the goodness of fit's lattice error and a held unknown's (_bound)
+                res._fine_change = sqrt_w * (y_f - y) / scale
         if name is not None:
             if not moved:  # the correction itself
                 res.warnings.append(f"the estimate is not corrected and the model error not "
@@ -1014,8 +1013,7 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
         for p, v in shifts.items():
             parts[p]["brightness"] = v
         res.model_floor = floor
-    _with_misfit(res, st, u, J, y, sqrt_w, scale, fitted, parts, fine_at_u, fine_n / (fine_n - n),
-                 floor)
+    _with_misfit(res, st, u, J, y, sqrt_w, scale, fitted, parts, fine_n / (fine_n - n), floor)
     if len(res.sun_rounds) >= 2:  # how far the last rebuild at the estimated sun moved each
         before, last = res.sun_rounds[-2]["estimates"], res.sun_rounds[-1]["estimates"]
         for p in res.paths:
@@ -1032,16 +1030,17 @@ def _with_refined_error(res: FitResult, scene: Scene, forward, fine_n: int,
     return res
 
 
-def _with_misfit(res: FitResult, st, u, J, y, sqrt_w, scale: float, fitted, parts, fine,
+def _with_misfit(res: FitResult, st, u, J, y, sqrt_w, scale: float, fitted, parts,
                  lattice_factor: float, floor: float) -> None:
     """The goodness of fit (``res.goodness_of_fit``), the misfit's part of each estimate's
     model error (``parts[p]["misfit"]``, where some camera's residual is more than the noise,
     the lattice and the floor explain) and a :class:`MisfitWarning` where it is more than
     ``_misfit.MISFIT_RATIO`` times that (``fit/_misfit.py``)."""
-    if fine is None:  # (no render of the finer model at the estimate: nothing to hold it to)
+    change = getattr(res, "_fine_change", None)
+    if change is None:  # (no render of the finer model at the estimate: nothing to hold it to)
         return
     target = np.asarray(st.flat_t, np.float64)
-    cams = _misfit.per_camera(st, y, target, sqrt_w, fine, lattice_factor, floor, J, scale)
+    cams = _misfit.per_camera(st, y, target, sqrt_w, change, lattice_factor, floor, J, scale)
     res.goodness_of_fit = cams
     excess = {c: v["residual"] * math.sqrt(v["unexplained"]) for c, v in cams.items()}
     if not any(excess.values()):

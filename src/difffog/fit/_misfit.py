@@ -78,15 +78,14 @@ def _rms(v, w2) -> float:
     return math.sqrt(float(np.sum(w2 * v * v)) / s) if s > 0 else 0.0
 
 
-def per_camera(st, y, target, sqrt_w, fine, lattice_factor: float, floor: float, J,
+def per_camera(st, y, target, sqrt_w, change, lattice_factor: float, floor: float, J,
                scale: float) -> dict:
     """{camera: {residual, noise, lattice, floor, expected, ratio, unexplained}} (relative to
-    the camera's weighted target mean): ``y`` the fit's images at the estimate, ``fine`` the
-    finer model's there; ``J`` the Jacobian of the residual √w·(y − target)/``scale``.  The
-    lattice error λ is the finer model's change × ``lattice_factor``, less what the unknowns
-    absorb (its part in the span of J's columns, which the fit takes up by moving the
-    estimates, the correction's business, and leaves no residual)."""
-    change = sqrt_w * (fine - y) / scale
+    the camera's weighted target mean): ``y`` the fit's images at the estimate, ``change`` the
+    finer model's images there less ``y``, in the units of the residual √w·(y − target)/
+    ``scale``, whose Jacobian is ``J``.  The lattice error λ is that change × ``lattice_factor``,
+    less what the unknowns absorb (its part in the span of J's columns, which the fit takes up
+    by moving the estimates, the correction's business, and leaves no residual)."""
     change = change - J @ np.linalg.lstsq(J, change, rcond=None)[0]
     out, off = {}, 0
     for name in st.names:
