@@ -427,17 +427,12 @@ def test_a_fit_the_model_does_not_explain_is_said_and_written(tmp_path, capsys, 
 
     import test_fit as T
 
-    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3, "shape.walls.albedo": 0.6}
-    right = T._toy_target(T.LatticeToy(10**9), **truth)["top"]
-    y, x = np.mgrid[0:8, 0:10] / 7.0
-    wrong = {"top": right + (0.15 * right.mean() * np.exp(
-        -((x - 0.9) ** 2 + (y - 0.5) ** 2) / 0.05)).astype(np.float32)}
+    _, wrong = T.misfit_targets()
     real = _driver.fit
 
     def toy_fit(scene, targets, unknowns, **kw):
-        return real(T.Toy().scene, wrong, {"fog.scattering": 0.5, "fog.absorption": 1.0,
-                                           "shape.walls.albedo": 0.4},
-                    forward=T.LatticeToy(10), model_error="refine")
+        return real(T.Toy().scene, wrong, T.MISFIT_START, forward=T.LatticeToy(10),
+                    model_error="refine")
 
     monkeypatch.setattr(_driver, "fit", toy_fit)
     np.save(tmp_path / "T.npy", np.ones((16, 16), np.float32))
@@ -456,7 +451,7 @@ def test_a_fit_the_model_does_not_explain_is_said_and_written(tmp_path, capsys, 
     rep = json.loads((out / "fit.json").read_text())
     assert rep["goodness_of_fit"]["top"]["ratio"] > 2
     assert any(said in w for w in rep["warnings"])
-    assert all(rep["model_error_parts"][p]["misfit"] > 0 for p in truth)
+    assert all(rep["model_error_parts"][p]["misfit"] > 0 for p in T.MISFIT_TRUTH)
 
 
 @pytest.mark.parametrize("extra,needle", [

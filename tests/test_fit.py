@@ -1182,6 +1182,20 @@ def test_noise_sigma_reads_white_noise_not_shading_or_edges():
     assert noise_sigma(np.ones((2, 9))) == 0.0  # too small to tell
 
 
+MISFIT_TRUTH = {"fog.scattering": 1.5, "fog.absorption": 0.3, "shape.walls.albedo": 0.6}
+MISFIT_START = {"fog.scattering": 0.5, "fog.absorption": 1.0, "shape.walls.albedo": 0.4}
+
+
+def misfit_targets():
+    """The Toy's 'top' image at MISFIT_TRUTH without its lattice error, and the same with a
+    bright blob the Toy has no term for (as a misplaced highlight or a wrong albedo leaves):
+    (right, wrong), each {"top": image}."""
+    right = _toy_target(LatticeToy(10**9), **MISFIT_TRUTH)
+    y, x = np.mgrid[0:8, 0:10] / 7.0
+    blob = 0.15 * right["top"].mean() * np.exp(-((x - 0.9) ** 2 + (y - 0.5) ** 2) / 0.05)
+    return right, {"top": right["top"] + blob.astype(np.float32)}
+
+
 def test_a_fit_says_so_when_the_model_does_not_explain_the_images():
     """A target with something the model lacks (a bright blob the Toy has no term for, as a
     misplaced highlight or a wrong albedo leaves) is fit with a residual far above what the
@@ -1190,10 +1204,8 @@ def test_a_fit_says_so_when_the_model_does_not_explain_the_images():
     truth.  The right target (the Toy without its lattice error) fits to its float rounding:
     no warning, no misfit part; the LatticeToy's lattice error (a multiple of ζ's column) is
     what the unknowns absorb, so it explains no residual."""
-    truth = {"fog.scattering": 1.5, "fog.absorption": 0.3, "shape.walls.albedo": 0.6}
-    start = {"fog.scattering": 0.5, "fog.absorption": 1.0, "shape.walls.albedo": 0.4}
-    exact = LatticeToy(10**9)
-    right = _toy_target(exact, **truth)
+    truth, start = MISFIT_TRUTH, MISFIT_START
+    right, wrong = misfit_targets()
     res = df.fit(Toy().scene, right, start, forward=LatticeToy(10), model_error="refine")
     g = res.goodness_of_fit["top"]
     assert res.converged and g["ratio"] < 0.1 and g["unexplained"] == 0.0, g
@@ -1201,9 +1213,6 @@ def test_a_fit_says_so_when_the_model_does_not_explain_the_images():
     assert g["expected"] == pytest.approx(1e-3)  # what the fit's tolerances resolve
     assert all("misfit" not in parts for parts in res.model_error_parts.values())
     assert res.to_json()["goodness_of_fit"] == res.goodness_of_fit
-    y, x = np.mgrid[0:8, 0:10] / 7.0
-    blob = 0.15 * right["top"].mean() * np.exp(-((x - 0.9) ** 2 + (y - 0.5) ** 2) / 0.05)
-    wrong = {"top": right["top"] + blob.astype(np.float32)}
     with pytest.warns(df.MisfitWarning, match=r"the model does not explain the images: "
                                               r"residual RMS top .* of its mean"):
         bad = df.fit(Toy().scene, wrong, start, forward=LatticeToy(10), model_error="refine")
