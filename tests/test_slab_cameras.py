@@ -71,7 +71,7 @@ def test_cameras_read_a_resolved_slab_as_the_exact_one(light):
     mus, wts = 0.5 * (x + 1), 0.5 * w
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", df.ThinLayerWarning)
-        top, bot, _, _ = slab_cameras.camera_slab(1.0, 0.99, light, mus, 32, 2, "auto", "beam",
+        top, bot, _, _, _ = slab_cameras.camera_slab(1.0, 0.99, light, mus, 32, 2, "auto", "beam",
                                                   1e-6)
     top_x, bot_x, inc, direct = exact_slab_radiance(1.0, 0.99, light, mus)
     R, R_x = slab_cameras.flux(top, mus, wts) / inc, slab_cameras.flux(top_x, mus, wts) / inc

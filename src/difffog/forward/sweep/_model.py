@@ -888,9 +888,10 @@ class SweepModel(AbstractForwardModel):
         shown = f"{depth:.3g}" if float(f"{depth:.3g}") > THICK_STEP else f"{depth:.6g}"
         return (f"one lattice step is optically thick (σ_t·h·M = {shown} > {THICK_STEP:g} at "
                 f"resolution {self.resolution}, M = {self.solver.M}): the light is coarse inside "
-                f"the fog, and thick fog's surface can be off by 5-30% ({how}; "
-                f"docs/validation.md); resolution >= {need} (or a smaller M) brings the "
-                f"step to {THICK_STEP:g}")
+                f"the fog: thick fog's lit surface can read 5-30% off ({how}) and the light "
+                f"through it (a cloud's base, its shadow) several times off (docs/validation.md, "
+                f"\"Slabs as cameras see them\"); resolution >= {need} (or a smaller M) brings "
+                f"the step to {THICK_STEP:g}")
 
     def layer_warning(self, params: Params) -> str | None:
         """Warn when the fog is a thin layer across a periodic domain: fog in at least half of
