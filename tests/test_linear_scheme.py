@@ -185,24 +185,41 @@ def test_scheme_is_checked_and_reaches_the_command_line():
 
 def test_auto_scheme_takes_linear_where_a_step_is_thick():
     """scheme="auto" (the default): "linear" exactly where one lattice step spans more than
-    ``LINEAR_STEP_DEPTH`` mean free paths at the scene's values (δ-M scaled), else "step";
-    the model's settings name the scheme it runs."""
-    from difffog.forward.sweep._solver import LINEAR_STEP_DEPTH
+    ``LINEAR_STEP_DEPTH`` mean free paths at the scene's values (δ-M scaled), or more than
+    ``LINEAR_STEP_DEPTH_THICK`` in fog at least ``LINEAR_FOG_SIZE`` mean free paths across
+    (fog-balls' domain: at N = 24, M = 2 a step depth of 0.5 is 6 mean free paths across, at
+    N = 4 under 5 up to a step depth of 1), else "step"; the model's settings name the scheme
+    it runs."""
+    from difffog.forward.sweep._solver import (LINEAR_FOG_SIZE, LINEAR_STEP_DEPTH,
+                                               LINEAR_STEP_DEPTH_THICK)
     from difffog.geometry._lattice import voxelize
 
     scene = df.load_scene("fog-balls")
     solver = SweepSolver(M=2)
     assert solver.scheme == "auto"
     lat = voxelize(scene, 24, 2, margin=3)
+    bare = scene.replace(shapes=())  # no walls thinner than a coarse lattice's voxel
+    coarse = voxelize(bare, 4, 2, margin=3)
     depth_per_unit = lat.max_segment_optical_depth(1.0, 0.0)  # per unit σ_t
-    for ext, want in ((0.9, "step"), (1.1, "linear")):
-        zeta = ext * LINEAR_STEP_DEPTH / depth_per_unit
-        thick = scene.replace(fog=df.Fog(scattering=zeta, absorption=0.0))
-        assert solver.resolved_scheme(thick, lat) == want
+    extent = max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
+    assert 1.1 * LINEAR_STEP_DEPTH_THICK / depth_per_unit * extent > LINEAR_FOG_SIZE
+    # fog many mean free paths across: the thick rule
+    for depth, want in ((0.9 * LINEAR_STEP_DEPTH_THICK, "step"),
+                        (1.1 * LINEAR_STEP_DEPTH_THICK, "linear"),
+                        (1.1 * LINEAR_STEP_DEPTH, "linear")):
+        ext = depth / depth_per_unit
+        thick = scene.replace(fog=df.Fog(scattering=0.8 * ext, absorption=0.2 * ext))
+        assert solver.resolved_scheme(thick, lat) == want, depth
         # a forward-scattering fog is judged after δ-scaling: ζ(1 − g) with g = 0.5
-        hg = thick.replace(fog=df.Fog(scattering=2 * zeta, absorption=0.0,
+        hg = thick.replace(fog=df.Fog(scattering=1.6 * ext, absorption=0.2 * ext,
                                       phase="henyey-greenstein", g=0.5))
-        assert SweepSolver(M=2, phase_order=0).resolved_scheme(hg, lat) == want
+        assert SweepSolver(M=2, phase_order=0).resolved_scheme(hg, lat) == want, depth
+    # the same step depths on a coarse lattice, fog of fewer mean free paths across: only
+    # LINEAR_STEP_DEPTH counts
+    per_coarse = coarse.max_segment_optical_depth(1.0, 0.0)
+    for depth, want in ((0.9 * LINEAR_STEP_DEPTH, "step"), (1.1 * LINEAR_STEP_DEPTH, "linear")):
+        thin = bare.replace(fog=df.Fog(scattering=depth / per_coarse, absorption=0.0))
+        assert solver.resolved_scheme(thin, coarse) == want, depth
     assert SweepSolver(M=2, scheme="step").resolved_scheme(thick, lat) == "step"
     m = df.forward_model(scene, "sweep", accuracy="draft")
     assert m.settings()["solver_options"]["scheme"] == "step"

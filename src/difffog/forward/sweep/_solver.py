@@ -87,6 +87,22 @@ FIRST_COLLISIONS = ("beam", "deposit")
 #: depth of 1: T +13…+53% against +0.5…+3.2%), and issue 14's thick cube at step depths of
 #: 6 / 62 / 625 is +1.8 / +12.6 / +13.3% (step) against −1.2 / +2.7 / +1.3% (linear)
 LINEAR_STEP_DEPTH = 1.0
+#: ... and from this step depth on in fog at least ``LINEAR_FOG_SIZE`` mean free paths across
+#: (``optical_size``): there the step scheme's lattice diffusion already shows in the light
+#: that crosses the fog.  Slabs as cameras read them (stop 77, M = 2, albedo 0.99 and
+#: 0.999, T error; ``benchmarks/slab_cameras.py``): τ = 16 at a step depth of 0.67 (N = 48)
+#: step +3.8…+13% against linear +1.9…+4.9%, at 0.5 +2.1…+7.4% against −1.0…+3.1%; τ = 64 at
+#: 0.67 (N = 192) step +11…+42% against +1.6…+4.4%, and at a step depth of exactly 1 (N = 128)
+#: the step scheme +93% where N = 64 (linear) read +7.6%: the default's error grew with N.
+#: R within 0.4 point of each other; Mitsuba's clouds at N = 96, M = 3 (depths 0.9 / 1.25)
+#: within 0.1 point either way
+LINEAR_STEP_DEPTH_THICK = 0.5
+#: the fog's optical size (δ-scaled σ_t at its densest × ``fog_extent``) from which
+#: ``LINEAR_STEP_DEPTH_THICK`` applies: the slabs' transmission errs by the step scheme's
+#: lattice diffusion times the optical depth light crosses (τ = 4 at a step depth of 0.5: T
+#: +1…+6% step, +1…+4% linear; τ = 16: +2…+12% against −1…+3%); fog-balls and
+#: translucent-cube (2.3-2.5 across) stay on the step scheme at any N
+LINEAR_FOG_SIZE = 5.0
 
 
 class SweepGeometry(eqx.Module):
@@ -348,16 +364,34 @@ def step_depth(scattering, absorption, g, order: int, density, h: float, M: int)
     return ext * float(np.asarray(density).max(initial=0.0)) * h * M
 
 
+def optical_size(fog, density_max: float, extent: float) -> float:
+    """σ_t (δ-scaled: ζ(1 − g) + γ, at ``density_max``) × ``extent``: how many mean free paths
+    across ``fog`` is (its values as given)."""
+    ext = fog.scattering * (1.0 - (fog.g or 0.0)) + fog.absorption
+    return float(max(ext, 0.0) * max(density_max, 0.0) * extent)
+
+
+def fog_extent(scene) -> float:
+    """The longest side of the box the fog fills: its ``region`` within the domain, else the
+    domain."""
+    lo = np.asarray(scene.domain.min, np.float64)
+    hi = np.asarray(scene.domain.max, np.float64)
+    if scene.fog is not None and scene.fog.region is not None:
+        lo = np.maximum(lo, np.asarray(scene.fog.region[0], np.float64))
+        hi = np.minimum(hi, np.asarray(scene.fog.region[1], np.float64))
+    return float(np.max(np.maximum(hi - lo, 0.0)))
+
+
 def diffusive_size(fog, density_max: float, extent: float) -> float:
     """How many mean free paths light diffuses through in ``fog`` (its values as given): the
-    lesser of σ_t (at ``density_max``) × ``extent`` and the diffusion length 1/√(3(1 − a)) in
-    mean free paths (a: single-scattering albedo after δ-scaling)."""
+    lesser of ``optical_size`` and the diffusion length 1/√(3(1 − a)) in mean free paths (a:
+    single-scattering albedo after δ-scaling)."""
     zeta = fog.scattering * (1.0 - (fog.g or 0.0))
     ext = zeta + fog.absorption
     if ext <= 0 or density_max <= 0:
         return 0.0
     a = zeta / ext
-    size = ext * density_max * extent
+    size = optical_size(fog, density_max, extent)
     return float(min(size, np.inf if a >= 1 else 1.0 / math.sqrt(3.0 * (1.0 - a))))
 
 
@@ -1059,8 +1093,9 @@ class SweepSolver(eqx.Module):
         deposits per direction and node; on a CPU a direction loop like "step"'s,
         ``_kernel._sweep_face_substep_loop``).  Opt-in.
         "auto" (default):
-        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH`` (the
-        scene's values at ``prepare``), else "step" (``resolved_scheme``).  Measured
+        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH``, or
+        than ``LINEAR_STEP_DEPTH_THICK`` in fog ``LINEAR_FOG_SIZE`` or more mean free paths
+        across (the scene's values at ``prepare``), else "step" (``resolved_scheme``).  Measured
         (docs/validation.md): equal to "step" in thin fog (τ = 1 slabs: 0.1%), far closer in
         T at τ = 16-64, issue 14's thick cube within 2.7% at step depths of 6 to 625 (step:
         +1.8 to +13.3%); cloud-plane unchanged; +19% per iteration.
@@ -1253,8 +1288,9 @@ class SweepSolver(eqx.Module):
 
     def resolved_scheme(self, scene=None, lattice=None) -> str:
         """The transport scheme ``scheme`` stands for in ``scene`` on ``lattice`` ("auto":
-        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH`` at the
-        scene's values, else "step")."""
+        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH``, or
+        than ``LINEAR_STEP_DEPTH_THICK`` in fog at least ``LINEAR_FOG_SIZE`` mean free paths
+        across (``optical_size``), at the scene's values; else "step")."""
         if self.scheme != "auto":
             return self.scheme
         if scene is None or lattice is None or scene.fog is None:
@@ -1263,7 +1299,13 @@ class SweepSolver(eqx.Module):
         depth = step_depth(fog.scattering, fog.absorption, fog.g or 0.0,
                            self.resolved_phase_order(scene), lattice.peak_density, lattice.h,
                            self.M)
-        return "linear" if depth > LINEAR_STEP_DEPTH else "step"
+        if depth > LINEAR_STEP_DEPTH:
+            return "linear"
+        if depth > LINEAR_STEP_DEPTH_THICK:
+            size = optical_size(fog, lattice.peak_density, fog_extent(scene))
+            if size >= LINEAR_FOG_SIZE:
+                return "linear"
+        return "step"
 
     def resolved_once_M(self, scene=None) -> int:
         """The direction set (half-width) that carries the sun's once-scattered light in
