@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import _common as C
-from difffog.study._slab import exact_slab_radiance, exact_slab_rt
+from difffog.study._slab import exact_slab_collided, exact_slab_radiance, exact_slab_rt
 
 LIGHTS = ("diffuse", "coll0", "coll60")
 
@@ -84,19 +84,7 @@ def camera_slab(tau, albedo, light, mus, N, M, scheme, first_collision, tol):
 
 def collided_profile(tau, albedo, light, z):
     """The exact slab's collided fluence (4π·J) at heights z ∈ (0, 1) (z = 1 the top)."""
-    from difffog.study._slab import _e3
-
-    n = max(400, int(math.ceil(tau * 64)))
-    d = tau / n
-    t = np.arange(n + 1) * d
-    m = np.arange(n)
-    col = np.empty(n)
-    col[0] = (2 * d - 1 + 2 * _e3(d)) / (2 * d)
-    col[1:] = (_e3((m[1:] + 1) * d) + _e3((m[1:] - 1) * d) - 2 * _e3(m[1:] * d)) / (2 * d)
-    K = col[np.abs(m[:, None] - m[None, :])]
-    s0 = math.cos(math.radians(float(light[4:])))
-    j0 = s0 * (np.exp(-t[:-1] / s0) - np.exp(-t[1:] / s0)) / d / (4 * math.pi)
-    J = np.linalg.solve(np.eye(n) - albedo * K, albedo * K @ j0)
+    t, J = exact_slab_collided(tau, albedo, light)
     return 4 * math.pi * np.interp((1 - np.asarray(z)) * tau, 0.5 * (t[1:] + t[:-1]), J)
 
 
@@ -120,28 +108,15 @@ def _t_cell(r):
 
 
 def reading_from_exact_nodes(tau, albedo, light, N, mus):
-    """How the cameras' reading of a face alone errs: the exact collided source (a·J of
-    ``exact_slab_radiance``'s solve) sampled at the N nodes, read back as the march reads it
+    """How the cameras' reading of a face alone errs: the exact collided source (a·J,
+    ``exact_slab_collided``) sampled at the N nodes, read back as the march reads it
     (between nodes the blend of their linear extrapolations, central slopes; from the face
     node to the face its value, "const", or its one-sided slope extrapolated, "slope") and
     integrated towards the top at each μ, against the exact source's emergent radiance.
     Returns {"const": errors, "slope": errors}, relative, per μ."""
-    from difffog.study._slab import _e3
-
-    n = max(400, int(math.ceil(tau * 64)))
-    d = tau / n
-    t = np.arange(n + 1) * d
-    m = np.arange(n)
-    col = np.empty(n)
-    col[0] = (2 * d - 1 + 2 * _e3(d)) / (2 * d)
-    col[1:] = (_e3((m[1:] + 1) * d) + _e3((m[1:] - 1) * d) - 2 * _e3(m[1:] * d)) / (2 * d)
-    K = col[np.abs(m[:, None] - m[None, :])]
-    if light == "diffuse":
-        j0 = 0.5 * (_e3(t[:-1]) - _e3(t[1:])) / d
-    else:
-        s0 = math.cos(math.radians(float(light[4:])))
-        j0 = s0 * (np.exp(-t[:-1] / s0) - np.exp(-t[1:] / s0)) / d / (4 * math.pi)
-    src = albedo * np.linalg.solve(np.eye(n) - albedo * K, albedo * K @ j0)
+    t, J = exact_slab_collided(tau, albedo, light)
+    src = albedo * J
+    d = t[1] - t[0]
     mid = 0.5 * (t[1:] + t[:-1])
     h = tau / N
     nodes = (np.arange(N) + 0.5) * h

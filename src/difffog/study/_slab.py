@@ -244,6 +244,30 @@ def _e3(x):
     return np.where(x > 0, expn(3, np.maximum(x, 1e-300)), 0.5)
 
 
+def exact_slab_collided(tau: float, albedo: float, light: str, *,
+                        cells_per_tau: float = 64.0, min_cells: int = 400):
+    """(t, J) of a homogeneous isotropic slab: the cell edges in optical depth from the top
+    (n + 1) and each cell's collided mean intensity J (n), solving J = a·Λ[J + J₀] (Λ the E₁
+    kernel averaged over each pair of cells exactly, by differences of E₃; J₀ the uncollided
+    light, cell-averaged) directly on cells of 1/``cells_per_tau`` mean free path, at least
+    ``min_cells``.  ``light``: "diffuse" (a sky of radiance 1) or "collZ" (a sun of irradiance
+    1 at zenith Z degrees)."""
+    n = max(int(min_cells), int(math.ceil(tau * cells_per_tau)))
+    d = tau / n
+    t = np.arange(n + 1) * d
+    m = np.arange(n)
+    col = np.empty(n)
+    col[0] = (2 * d - 1 + 2 * _e3(d)) / (2 * d)
+    col[1:] = (_e3((m[1:] + 1) * d) + _e3((m[1:] - 1) * d) - 2 * _e3(m[1:] * d)) / (2 * d)
+    K = col[np.abs(m[:, None] - m[None, :])]
+    if light == "diffuse":  # J₀ of a downward isotropic radiance 1: E₂(t)/2, cell-averaged
+        j0 = 0.5 * (_e3(t[:-1]) - _e3(t[1:])) / d
+    else:  # F e^(−t/μ₀)/4π, cell-averaged
+        sun = math.cos(math.radians(float(light[4:])))
+        j0 = sun * (np.exp(-t[:-1] / sun) - np.exp(-t[1:] / sun)) / d / (4 * math.pi)
+    return t, np.linalg.solve(np.eye(n) - albedo * K, albedo * K @ j0)
+
+
 def exact_slab_radiance(tau: float, albedo: float, light: str, mus, *,
                         cells_per_tau: float = 64.0, min_cells: int = 400):
     """(I_top(μ), I_bottom(μ), incident flux, direct) of a homogeneous isotropic slab.
@@ -254,27 +278,13 @@ def exact_slab_radiance(tau: float, albedo: float, light: str, mus, *,
     sun's unscattered flux through the bottom (0 for the sky), so that R = 2π∫I_top μ dμ /
     incident and T = (2π∫I_bottom μ dμ + direct) / incident.
 
-    The collided mean intensity solves J = a·Λ[J + J₀] (Λ the E₁ kernel, J₀ the uncollided
-    light) on cells of 1/``cells_per_tau`` mean free path (at least ``min_cells``), with the
-    kernel averaged over each pair of cells exactly (differences of E₃) and a dense direct
-    solve; the single scattering of the sun and of the sky is integrated in closed form (the
-    sky's over a 400-point μ' quadrature).  R and T agree with the adding-doubling table to
+    The collided light is ``exact_slab_collided``'s; the single scattering of the sun and of
+    the sky is integrated in closed form (the sky's over a 400-point μ' quadrature).  R and T agree with the adding-doubling table to
     0.003% (τ ≤ 64; tests/test_slab_cameras.py).
     """
-    n = max(int(min_cells), int(math.ceil(tau * cells_per_tau)))
-    d = tau / n
-    t = np.arange(n + 1) * d
-    m = np.arange(n)
-    col = np.empty(n)
-    col[0] = (2 * d - 1 + 2 * _e3(d)) / (2 * d)
-    col[1:] = (_e3((m[1:] + 1) * d) + _e3((m[1:] - 1) * d) - 2 * _e3(m[1:] * d)) / (2 * d)
-    K = col[np.abs(m[:, None] - m[None, :])]
+    t, J = exact_slab_collided(tau, albedo, light, cells_per_tau=cells_per_tau,
+                               min_cells=min_cells)
     sun = None if light == "diffuse" else math.cos(math.radians(float(light[4:])))
-    if sun is None:  # J₀ of a downward isotropic radiance 1: E₂(t)/2, cell-averaged
-        j0 = 0.5 * (_e3(t[:-1]) - _e3(t[1:])) / d
-    else:  # F e^(−t/μ₀)/4π, cell-averaged
-        j0 = sun * (np.exp(-t[:-1] / sun) - np.exp(-t[1:] / sun)) / d / (4 * math.pi)
-    J = np.linalg.solve(np.eye(n) - albedo * K, albedo * K @ j0)  # collided mean intensity
     mus = np.asarray(mus, np.float64)
     et = np.exp(-t[None, :] / mus[:, None])
     eb = np.exp(-(tau - t[None, :]) / mus[:, None])
