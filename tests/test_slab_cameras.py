@@ -81,3 +81,26 @@ def test_cameras_read_a_resolved_slab_as_the_exact_one(light):
     steep = mus >= 0.3
     np.testing.assert_allclose(top[steep], top_x[steep], rtol=0.02)
     np.testing.assert_allclose(bot[steep], bot_x[steep], rtol=0.02)
+
+
+def test_a_thick_slab_half_a_mean_free_path_a_step_takes_the_linear_scheme():
+    """τ = 16, albedo 0.99, sun overhead, N = 48, M = 2 (a step depth of 0.67, fog 16 mean free
+    paths across): the default takes the linear scheme, whose light through the slab the
+    cameras read +2.2% from the exact slab, where the step scheme reads it +8.3% (its lattice
+    diffusion; until stop 77 the default took it at step depths up to 1)."""
+    import slab_cameras
+
+    x, w = np.polynomial.legendre.leggauss(4)
+    mus, wts = 0.5 * (x + 1), 0.5 * w
+    _, bot_x, inc, direct = exact_slab_radiance(16.0, 0.99, "coll0", mus)
+    T_x = (slab_cameras.flux(bot_x, mus, wts) + direct) / inc
+    T = {}
+    for scheme in ("auto", "step"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", df.ThickStepWarning)
+            _, bot, _, model, _ = slab_cameras.camera_slab(16.0, 0.99, "coll0", mus, 48, 2,
+                                                          scheme, "beam", 1e-6)
+        T[scheme] = (slab_cameras.flux(bot, mus, wts) + direct) / inc / T_x - 1
+        if scheme == "auto":
+            assert model.geometry.linear
+    assert abs(T["auto"]) < 0.03 and T["step"] > 0.06, T

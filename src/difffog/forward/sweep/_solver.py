@@ -91,7 +91,7 @@ LINEAR_STEP_DEPTH = 1.0
 #: (``optical_size``): there the step scheme's lattice diffusion already shows in the light
 #: that crosses the fog.  Slabs as cameras read them (stop 77, M = 2, albedo 0.99 and
 #: 0.999, T error; ``benchmarks/slab_cameras.py``): τ = 16 at a step depth of 0.67 (N = 48)
-#: step +3.8…+13% against linear +1.9…+4.9%, at 0.5 +2.1…+7.4% against −1.0…+3.1%; τ = 64 at
+#: step +3.8…+13% against linear +1.9…+4.9%, at 0.5 +2.1…+7.4% against +1.1…+3.1%; τ = 64 at
 #: 0.67 (N = 192) step +11…+42% against +1.6…+4.4%, and at a step depth of exactly 1 (N = 128)
 #: the step scheme +93% where N = 64 (linear) read +7.6%: the default's error grew with N.
 #: R within 0.4 point of each other; Mitsuba's clouds at N = 96, M = 3 (depths 0.9 / 1.25)
