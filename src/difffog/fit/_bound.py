@@ -42,9 +42,8 @@ def with_held(res, first, held: list[str], bounds: dict[str, float]):
     finer model's change where the refit has one, and the one-sided 95% limit in
     ``res.at_bound``."""
     lin = res._linear
-    st, J2, y = lin["setup"], lin["J"], lin["y"]
-    sqrt_w, scale = np.asarray(st.data[1], np.float64), float(st.data[2])
-    r = sqrt_w * (y - np.asarray(st.flat_t, np.float64)) / scale
+    st, J2, r = lin["setup"], lin["J"], lin["residual"]
+    sqrt_w = np.asarray(st.data[1], np.float64)
     Jh = held_columns(first, held)
     J = np.concatenate([J2, Jh], axis=1)
     mask = sqrt_w > 0

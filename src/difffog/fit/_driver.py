@@ -508,8 +508,13 @@ def _finish(tr: _Tracker, u, state, *, time_s: float, rtol: float, atol: float,
         target_files=st.target_files,
         mask_files=st.mask_files,
     )
-    # what a model-error estimate needs: the optimum and its linearization (not serialized)
-    res._linear = dict(setup=st, u=np.asarray(u), J=J, y=y, light=light_state)
+    # what a model-error estimate needs: the optimum and its linearization, and the residual
+    # √w·(y − target)/scale without a robust loss's factor (the misfit's, a held unknown's);
+    # not serialized
+    residual = (np.asarray(st.data[1], np.float64) * (y - np.asarray(st.flat_t, np.float64))
+                / float(st.data[2]))
+    res._linear = dict(setup=st, u=np.asarray(u), J=J, y=y, light=light_state,
+                       residual=residual)
     return res
 
 
@@ -1046,8 +1051,7 @@ def _with_misfit(res: FitResult, st, u, J, y, sqrt_w, scale: float, fitted, part
     if not any(excess.values()):
         return
     bright = _floor_shifts(st, u, J, y, sqrt_w / scale, fitted, excess)
-    r = sqrt_w * (y - target) / scale
-    cov_u = _misfit.regional_spread(st, J, r, cams)
+    cov_u = _misfit.regional_spread(st, J, res._linear["residual"], cams)
     d = np.array([c.dv_du(float(x)) for c, x in zip(st.coords, u)])
     spread = np.sqrt(np.clip(np.diag(cov_u), 0, None)) * np.abs(d)
     for p, s in zip(res.paths, spread):
