@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 import _common as C
-from difffog.study._slab import exact_slab_collided, exact_slab_radiance, exact_slab_rt
+from difffog.study._slab import (exact_slab_collided, exact_slab_radiance, exact_slab_rt,
+                                 isotropic_slab_rows)
 
 LIGHTS = ("diffuse", "coll0", "coll60")
 
@@ -88,13 +89,12 @@ def collided_profile(tau, albedo, light, z):
     return 4 * math.pi * np.interp((1 - np.asarray(z)) * tau, 0.5 * (t[1:] + t[:-1]), J)
 
 
-def fluence_ratios(model, light_field, tau, albedo, light, N, pad=0.25):
+def fluence_ratios(model, light_field, tau, albedo, light):
     """The lattice's collided fluence Λ over the exact one at the top fog node, the bottom one
     and mid-depth (sunlit rows: with a sky the lattice's Λ carries the uncollided sky too)."""
     lam = np.asarray(light_field.fluence, np.float64)[0, 0]
     lam = lam if lam.ndim == 1 else lam[:, 0]
-    h = 1.0 / N
-    z = model.lattice.origin[2] + (np.arange(lam.shape[0]) + 0.5) * h
+    z = model.lattice.origin[2] + (np.arange(lam.shape[0]) + 0.5) * model.lattice.h
     fog = np.nonzero((z > 0) & (z < 1))[0]
     idx = [fog[-1], fog[len(fog) // 2], fog[0]]
     return lam[idx] / collided_profile(tau, albedo, light, z[idx])
@@ -140,16 +140,7 @@ def reading_from_exact_nodes(tau, albedo, light, N, mus):
 
 
 def table_rows(taus, albedos, lights):
-    ref = {}
-    from difffog.study.references import references_dir
-
-    with open(references_dir() / "slab_adding_doubling.csv") as f:
-        for r in csv.DictReader(f):
-            if float(r["g"]) != 0.0:
-                continue
-            ill = "diffuse" if r["illumination"] == "diffuse" else f"coll{int(float(r['zenith_deg']))}"
-            key = (float(r["tau"]), float(r["albedo"]), ill)
-            ref[key] = (float(r["R_total"]), float(r["T_total"]))
+    ref = isotropic_slab_rows()
     return [(t, a, li, *ref[(t, a, li)]) for t in taus for a in albedos for li in lights
             if (t, a, li) in ref]
 
@@ -199,7 +190,7 @@ def main(argv=None):
                 top, bot, secs, model, lf = camera_slab(tau, alb, light, mus, N, M, a.scheme,
                                                         a.first_collision, a.tol)
                 lam = ([float("nan")] * 3 if light == "diffuse"
-                       else fluence_ratios(model, lf, tau, alb, light, N).tolist())
+                       else fluence_ratios(model, lf, tau, alb, light).tolist())
                 R_c, T_c = flux(top, mus, wts) / inc, (flux(bot, mus, wts) + direct) / inc
                 R_q, T_q = flux(top_x, mus, wts) / inc, (flux(bot_x, mus, wts) + direct) / inc
                 row = dict(tau=tau, albedo=alb, light=light, N=N, M=M, R_ad=R_ad, T_ad=T_ad,

@@ -314,6 +314,20 @@ def exact_slab_radiance(tau: float, albedo: float, light: str, mus, *,
     return top, bot, sun, sun * math.exp(-tau / sun)
 
 
+def isotropic_slab_rows() -> dict[tuple[float, float, str], tuple[float, float]]:
+    """{(τ, albedo, light): (R_total, T_total)} of the adding-doubling table's isotropic rows,
+    light named as ``exact_slab_radiance`` names it ("diffuse", "coll0", "coll60")."""
+    from .references import slab_table
+
+    rows = {}
+    for r in slab_table():
+        if r["g"] != 0.0:
+            continue
+        light = "diffuse" if r["illumination"] == "diffuse" else f"coll{int(r['zenith_deg'])}"
+        rows[(r["tau"], r["albedo"], light)] = (r["R_total"], r["T_total"])
+    return rows
+
+
 def exact_slab_rt(tau: float, albedo: float, light: str, n_mu: int = 48,
                   cells_per_tau: float = 64.0) -> tuple[float, float]:
     """R, T of ``exact_slab_radiance``'s slab by an ``n_mu``-point Gauss–Legendre μ rule."""
