@@ -314,14 +314,94 @@ def exact_slab_radiance(tau: float, albedo: float, light: str, mus, *,
     return top, bot, sun, sun * math.exp(-tau / sun)
 
 
-def isotropic_slab_rows() -> dict[tuple[float, float, str], tuple[float, float]]:
-    """{(τ, albedo, light): (R_total, T_total)} of the adding-doubling table's isotropic rows,
-    light named as ``exact_slab_radiance`` names it ("diffuse", "coll0", "coll60")."""
+def _hg_modes(g: float, mu_out, mu_in, modes: int, n_phi: int = 2048):
+    """(modes, n_out, n_in): the Henyey–Greenstein phase (mean 1 over the sphere) between
+    propagation cosines ``mu_out`` and ``mu_in`` (signed), its azimuthal Fourier coefficients
+    p_m = (1/2π)∫ p(cos Θ(ψ)) cos(mψ) dψ, m < ``modes`` (midpoint rule in ψ, spectral for
+    this smooth periodic integrand)."""
+    psi = (np.arange(n_phi) + 0.5) * (math.pi / n_phi)
+    mo, mi = np.asarray(mu_out)[:, None, None], np.asarray(mu_in)[None, :, None]
+    c = mo * mi + np.sqrt(np.clip(1 - mo * mo, 0, None) * np.clip(1 - mi * mi, 0, None)) \
+        * np.cos(psi)
+    p = (1 - g * g) / (1 + g * g - 2 * g * c) ** 1.5
+    return np.stack([(p * np.cos(m * psi)).mean(axis=2) for m in range(modes)])
+
+
+def adding_doubling_radiance(tau: float, albedo: float, g: float, light: str, mus,
+                             azimuths=None, *, n_quad: int = 64, modes: int = 96,
+                             delta: float = 1e-7):
+    """(I_top, I_bottom, incident flux, direct) of a homogeneous Henyey–Greenstein slab (any
+    g; g = 0 is isotropic) at the cosines ``mus``, by adding-doubling on an ``n_quad``-point
+    Gauss–Legendre rule per hemisphere: a layer of optical depth ``delta`` or less (single
+    scattering, exact within it for every pair of directions) doubled up to τ.  ``light`` as
+    ``exact_slab_radiance`` names it.  The cameras' cosines (and the sun's) join the rule
+    with a vanishing weight, so the radiance is the adding-doubling's own at exactly those
+    angles, not interpolated.  Under a sun off the zenith the radiance depends on the azimuth:
+    ``azimuths`` (degrees, each camera's azimuth from the sun's: 0 on the sun's side) gives
+    I_top, I_bottom of shape (len(mus), len(azimuths)) from ``modes`` azimuthal Fourier
+    modes; without it, their azimuthal mean.  Against ``exact_slab_radiance`` (g = 0): within
+    0.2% at μ = 0.034 and 0.05% elsewhere; its R and T against the adding-doubling table's
+    g = 0.85 rows (iadpython) within 0.001% (tests/test_slab_cameras.py)."""
+    x, w = np.polynomial.legendre.leggauss(n_quad)
+    mq, wq = 0.5 * (x + 1), 0.5 * w
+    mus = np.asarray(mus, np.float64)
+    sun = None if light == "diffuse" else math.cos(math.radians(float(light[4:])))
+    eps = 1e-40  # the extra cosines' weight: they read the field without feeding it
+    mu = np.concatenate([mq, mus, [] if sun is None else [sun]])
+    wt = np.concatenate([wq, np.full(mu.size - n_quad, eps)])
+    n = mu.size
+    n_modes = modes if (azimuths is not None and sun is not None and sun < 1.0) else 1
+    pf = _hg_modes(g, mu, mu, n_modes)  # both directions into the slab (transmission)
+    pb = _hg_modes(g, mu, -mu, n_modes)  # one out of it (reflection)
+    norm = 0.5 * ((pf[0, :, :n_quad] + pb[0, :, :n_quad]) * wq).sum(1)  # each row scatters a
+    pf, pb = pf / norm[None, :, None], pb / norm[None, :, None]
+    k = max(0, int(math.ceil(math.log2(tau / delta))))
+    d = tau / 2 ** k
+    mi, mj = mu[:, None], mu[None, :]
+    refl = mj / (mi + mj) * -np.expm1(-d * (1 / mi + 1 / mj)) * wt[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        trans = np.where(np.abs(mi - mj) < 1e-14, d / mi * np.exp(-d / mi),
+                         mj / (mj - mi) * (np.exp(-d / mj) - np.exp(-d / mi))) * wt[None]
+    E = np.diag(np.exp(-d / mu))
+    cam = slice(n_quad, n_quad + mus.size)
+    out_top, out_bot = [], []
+    for m in range(n_modes):
+        R = albedo / 2 * pb[m] * refl
+        T = E + albedo / 2 * pf[m] * trans  # (every mode's radiance is attenuated alike)
+        for _ in range(k):  # the layer on itself: R + T(1 − RR)⁻¹RT, T(1 − RR)⁻¹T
+            TG = T @ np.linalg.inv(np.eye(n) - R @ R)
+            R, T = R + TG @ R @ T, TG @ T
+        if sun is None:
+            out_top.append(R[cam] @ np.ones(n))
+            out_bot.append(T[cam] @ np.ones(n))
+        else:  # a beam of irradiance 1: per mode a radiance density 1/2π at μ₀
+            out_top.append(R[cam, -1] / (2 * math.pi * eps))
+            out_bot.append(T[cam, -1] / (2 * math.pi * eps))
+    if sun is None:
+        return out_top[0], out_bot[0], math.pi, 0.0
+    top, bot = np.array(out_top), np.array(out_bot)
+    if n_modes > 1:  # the light's propagation azimuth is the sun's + 180°
+        dpsi = np.radians(np.asarray(azimuths, np.float64)) - math.pi
+        c = np.cos(np.arange(n_modes)[:, None] * dpsi[None, :])
+        c[1:] *= 2.0
+        top, bot = np.einsum("mk,ma->ka", top, c), np.einsum("mk,ma->ka", bot, c)
+    elif azimuths is not None:
+        top = np.repeat(top[0][:, None], len(azimuths), axis=1)
+        bot = np.repeat(bot[0][:, None], len(azimuths), axis=1)
+    else:
+        top, bot = top[0], bot[0]
+    return top, bot, sun, sun * math.exp(-tau / sun)
+
+
+def isotropic_slab_rows(g: float = 0.0) -> dict[tuple[float, float, str], tuple[float, float]]:
+    """{(τ, albedo, light): (R_total, T_total)} of the adding-doubling table's rows of
+    anisotropy ``g`` (0: isotropic), light named as ``exact_slab_radiance`` names it
+    ("diffuse", "coll0", "coll60")."""
     from .references import slab_table
 
     rows = {}
     for r in slab_table():
-        if r["g"] != 0.0:
+        if r["g"] != g:
             continue
         light = "diffuse" if r["illumination"] == "diffuse" else f"coll{int(r['zenith_deg'])}"
         rows[(r["tau"], r["albedo"], light)] = (r["R_total"], r["T_total"])
