@@ -17,6 +17,14 @@ scattering in closed form); its R and T are checked against the adding-doubling 
     python benchmarks/slab_cameras.py                       # τ 16 64, a .9 .99 .999, N 32, M 2
     python benchmarks/slab_cameras.py --m 2 3 --scheme linear --first-collision deposit
     python benchmarks/slab_cameras.py --quick --out /tmp/sc  # τ 4, a 0.9, diffuse, N 16
+    python benchmarks/slab_cameras.py --g 0.85 --taus 1 2 4 16 --albedos 0.9 0.99 --m 3 \
+        --name slab_cameras_hg                             # issue 15's Henyey–Greenstein rows
+
+With ``--g`` (a Henyey–Greenstein fog) the reference is adding-doubling at the cameras' own
+angles (``difffog.study._slab.adding_doubling_radiance``, checked against the table's R and T
+in each row), and under the sun at 60° the cameras stand at ``--azimuths`` azimuths around
+the slab (the radiance then depends on the azimuth; R and T are read on those same angles, a
+trapezoid in azimuth, and each image is held against the exact radiance at its angle).
 
 Writes ``slab_cameras.md`` (``--name``) to ``--out`` (default ``benchmarks/results``).
 """
@@ -32,8 +40,8 @@ from pathlib import Path
 
 import numpy as np
 import _common as C
-from difffog.study._slab import (exact_slab_collided, exact_slab_radiance, exact_slab_rt,
-                                 isotropic_slab_rows)
+from difffog.study._slab import (adding_doubling_radiance, exact_slab_collided,
+                                 exact_slab_radiance, exact_slab_rt, isotropic_slab_rows)
 
 LIGHTS = ("diffuse", "coll0", "coll60")
 
@@ -42,45 +50,59 @@ def flux(I, mus, wts):
     return 2 * math.pi * float(np.sum(wts * mus * I))
 
 
-def slab_scene(tau, albedo, light, mus, pad=0.25, width=0.25, pixels=4):
+def slab_scene(tau, albedo, light, mus, pad=0.25, width=0.25, pixels=4, g=0.0, azimuths=(0.0,)):
+    """The slab as a scene: cameras ``top{k}`` / ``bottom{k}`` at μ_k (``top{k}_{j}`` at
+    azimuth j of ``azimuths``, degrees from the sun's, where there are several)."""
     from difffog.scene._description import Camera, Domain, Fog, Scene, Sky, Sun
 
     cams = []
     for k, mu in enumerate(mus):
         s = math.sqrt(max(0.0, 1 - mu * mu))
-        for name, sign, z0 in (("top", 1.0, 1.0), ("bottom", -1.0, 0.0)):
-            c = (width / 2, width / 2, z0)
-            pos = (c[0] + 2.0 * s, c[1], z0 + sign * 2.0 * mu)
-            cams.append(Camera(f"{name}{k}", "orthographic", pos, c, up=(0, 1, 0),
-                               resolution=(pixels, pixels), extent=(width / 2, width / 2)))
+        for j, az in enumerate(azimuths):
+            ca, sa = math.cos(math.radians(az)), math.sin(math.radians(az))
+            tag = f"{k}" if len(azimuths) == 1 else f"{k}_{j}"
+            for name, sign, z0 in (("top", 1.0, 1.0), ("bottom", -1.0, 0.0)):
+                c = (width / 2, width / 2, z0)
+                pos = (c[0] + 2.0 * s * ca, c[1] + 2.0 * s * sa, z0 + sign * 2.0 * mu)
+                cams.append(Camera(f"{name}{tag}", "orthographic", pos, c, up=(-sa, ca, 0),
+                                   resolution=(pixels, pixels),
+                                   extent=(width / 2, width / 2)))
+    phase = dict(phase="henyey-greenstein", g=g) if g else {}
     sun = None if light == "diffuse" else Sun(1.0, float(light[4:]), 0.0)
     return Scene(
         title=f"slab τ={tau} a={albedo} {light}",
         domain=Domain((0, 0, -pad), (width, width, 1 + pad), "periodic-xy"),
         fog=Fog(scattering=albedo * tau, absorption=(1 - albedo) * tau,
-                region=((0, 0, 0), (width, width, 1))),
+                region=((0, 0, 0), (width, width, 1)), **phase),
         sky=Sky(1.0) if light == "diffuse" else None, sun=sun, cameras=tuple(cams))
 
 
-def camera_slab(tau, albedo, light, mus, N, M, scheme, first_collision, tol):
+def camera_slab(tau, albedo, light, mus, N, M, scheme, first_collision, tol, g=0.0,
+                azimuths=(0.0,), phase_order="auto", once_M=None):
+    """(I_top, I_bottom, seconds, model, light field): each camera's image mean, shape
+    (len(mus),), or (len(mus), len(azimuths)) where there are several azimuths."""
     import difffog as df
 
     pad = 0.25
     # 8 nodes across (the slab is laterally homogeneous): a lattice of 8 × 8 × 1.5 N
-    scene = slab_scene(tau, albedo, light, mus, pad=pad, width=8.0 / N)
+    scene = slab_scene(tau, albedo, light, mus, pad=pad, width=8.0 / N, g=g, azimuths=azimuths)
+    extra = dict(phase_order=phase_order, once_M=once_M) if g else {}
     model = df.forward_model(scene, "sweep", accuracy=None, resolution=int(round(N * (1 + 2 * pad))),
                              M=M, tol=tol, max_iterations=20000, supersample=1, scheme=scheme,
-                             first_collision=first_collision)
+                             first_collision=first_collision, **extra)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out = df.render(model)
     secs = time.perf_counter() - t0
-    top = np.array([float(np.asarray(out.images[f"top{k}"], np.float64).mean())
-                    for k in range(len(mus))])
-    bot = np.array([float(np.asarray(out.images[f"bottom{k}"], np.float64).mean())
-                    for k in range(len(mus))])
-    return top, bot, secs, model, out.light
+    def read(name):
+        if len(azimuths) == 1:
+            return np.array([float(np.asarray(out.images[f"{name}{k}"], np.float64).mean())
+                             for k in range(len(mus))])
+        return np.array([[float(np.asarray(out.images[f"{name}{k}_{j}"], np.float64).mean())
+                          for j in range(len(azimuths))] for k in range(len(mus))])
+
+    return read("top"), read("bottom"), secs, model, out.light
 
 
 def collided_profile(tau, albedo, light, z):
@@ -139,8 +161,8 @@ def reading_from_exact_nodes(tau, albedo, light, N, mus):
     return out
 
 
-def table_rows(taus, albedos, lights):
-    ref = isotropic_slab_rows()
+def table_rows(taus, albedos, lights, g=0.0):
+    ref = isotropic_slab_rows(g)
     return [(t, a, li, *ref[(t, a, li)]) for t in taus for a in albedos for li in lights
             if (t, a, li) in ref]
 
@@ -153,6 +175,13 @@ def main(argv=None):
     ap.add_argument("--n", type=int, nargs="+", default=[32])
     ap.add_argument("--m", type=int, nargs="+", default=[2])
     ap.add_argument("--mu", type=int, default=6, help="Gauss–Legendre μ points (cameras per side)")
+    ap.add_argument("--g", type=float, default=0.0,
+                    help="Henyey–Greenstein g (0: isotropic, the exact integral equation)")
+    ap.add_argument("--azimuths", type=int, default=16,
+                    help="with --g, under the 60° sun: azimuths around the slab (even)")
+    ap.add_argument("--phase-order", default="auto", help="with --g: the light solve's L")
+    ap.add_argument("--once-m", type=int, default=None,
+                    help="with --g: the once-scattered sun's direction set (SweepSolver.once_M)")
     ap.add_argument("--scheme", default="auto", choices=["auto", "step", "linear", "substep"])
     ap.add_argument("--first-collision", default="beam", choices=["beam", "deposit"])
     ap.add_argument("--tol", type=float, default=1e-8)
@@ -181,16 +210,39 @@ def main(argv=None):
         jax.config.update("jax_enable_x64", True)
     x, w = np.polynomial.legendre.leggauss(a.mu)
     mus, wts = 0.5 * (x + 1), 0.5 * w
+    po = a.phase_order if a.phase_order == "auto" else int(a.phase_order)
     rows = []
-    for tau, alb, light, R_ad, T_ad in table_rows(a.taus, a.albedos, a.lights):
-        top_x, bot_x, inc, direct = exact_slab_radiance(tau, alb, light, mus)
-        R_x, T_x = exact_slab_rt(tau, alb, light)
+    for tau, alb, light, R_ad, T_ad in table_rows(a.taus, a.albedos, a.lights, a.g):
+        # azimuths: one unless the radiance depends on it (a Henyey–Greenstein slab under an
+        # oblique sun); then 0…180° from the sun's side (the scene is symmetric about its
+        # plane), weighted as a trapezoid over the full circle
+        n_az = a.azimuths if (a.g and light not in ("diffuse", "coll0")) else 1
+        az = np.arange(n_az // 2 + 1) * 360.0 / n_az if n_az > 1 else np.zeros(1)
+        w_az = (np.r_[1.0, np.full(len(az) - 2, 2.0), 1.0] / n_az) if n_az > 1 else np.ones(1)
+        if a.g:
+            top_x, bot_x, inc, direct = adding_doubling_radiance(
+                tau, alb, a.g, light, mus, azimuths=az if n_az > 1 else None)
+            xf, wf = np.polynomial.legendre.leggauss(48)
+            mf, wmf = 0.5 * (xf + 1), 0.5 * wf
+            tf, bf, _, _ = adding_doubling_radiance(tau, alb, a.g, light, mf)
+            R_x, T_x = flux(tf, mf, wmf) / inc, (flux(bf, mf, wmf) + direct) / inc
+        else:
+            top_x, bot_x, inc, direct = exact_slab_radiance(tau, alb, light, mus)
+            R_x, T_x = exact_slab_rt(tau, alb, light)
         for M in a.m:
             for N in a.n:
-                top, bot, secs, model, lf = camera_slab(tau, alb, light, mus, N, M, a.scheme,
-                                                        a.first_collision, a.tol)
-                lam = ([float("nan")] * 3 if light == "diffuse"
+                top, bot, secs, model, lf = camera_slab(
+                    tau, alb, light, mus, N, M, a.scheme, a.first_collision, a.tol, g=a.g,
+                    azimuths=tuple(az), phase_order=po, once_M=a.once_m)
+                lam = ([float("nan")] * 3 if light == "diffuse" or a.g
                        else fluence_ratios(model, lf, tau, alb, light).tolist())
+                err_top, err_bot = top / top_x - 1, bot / bot_x - 1
+                if n_az > 1:  # per μ: the azimuths' mean image and the worst one
+                    worst_top = np.take_along_axis(err_top, np.abs(err_top).argmax(1)[:, None], 1)[:, 0]
+                    worst_bot = np.take_along_axis(err_bot, np.abs(err_bot).argmax(1)[:, None], 1)[:, 0]
+                    top, bot, top_x, bot_x = top @ w_az, bot @ w_az, top_x @ w_az, bot_x @ w_az
+                else:
+                    worst_top, worst_bot = err_top, err_bot
                 R_c, T_c = flux(top, mus, wts) / inc, (flux(bot, mus, wts) + direct) / inc
                 R_q, T_q = flux(top_x, mus, wts) / inc, (flux(bot_x, mus, wts) + direct) / inc
                 row = dict(tau=tau, albedo=alb, light=light, N=N, M=M, R_ad=R_ad, T_ad=T_ad,
@@ -198,9 +250,13 @@ def main(argv=None):
                            T=T_c * T_x / T_q if T_q > 0 else float("nan"),
                            err_R=R_c / R_q - 1, err_T=T_c / T_q - 1 if T_q > 1e-300 else float("nan"),
                            top=(top / top_x - 1).tolist(), bottom=(bot / bot_x - 1).tolist(),
+                           worst_top=worst_top.tolist(), worst_bottom=worst_bot.tolist(),
+                           all_top=err_top.ravel().tolist(), all_bottom=err_bot.ravel().tolist(),
+                           azimuths=az.tolist(),
                            scheme=model.solver.resolved_scheme(model.scene, model.lattice)
                            if hasattr(model, "lattice") else a.scheme, seconds=secs,
-                           lam_top=lam[0], lam_mid=lam[1], lam_bottom=lam[2])
+                           lam_top=lam[0], lam_mid=lam[1], lam_bottom=lam[2],
+                           L=model.solver.resolved_phase_order(model.scene) if a.g else 0)
                 rows.append(row)
                 print(f"τ={tau:g} a={alb:g} {light:8s} N={N} M={M}: R {100 * row['err_R']:+.2f}% "
                       f"T {100 * row['err_T']:+.2f}%  (exact vs AD: R {100 * (R_x / R_ad - 1):+.3f}% "
@@ -209,22 +265,33 @@ def main(argv=None):
                       "  bottom(μ) " + " ".join(f"{100 * e:+.1f}" for e in row["bottom"]),
                       flush=True)
     mu_s = ", ".join(f"{m:.3f}" for m in mus)
+    hg = (f"Henyey–Greenstein g = {a.g:g}; the exact radiance by adding-doubling at the cameras' "
+          f"angles, L {a.phase_order}, once-M {a.once_m}; under the sun at 60° cameras at {a.azimuths} azimuths (0…180° by symmetry), "
+          "I(μ) the error of their trapezoid mean, 'worst' the largest image error over the "
+          "azimuths; ") if a.g else ""
     lines = [
-        "# Thick slabs as cameras see them (isotropic)",
+        "# Slabs as cameras see them (" + (f"Henyey–Greenstein, g = {a.g:g})" if a.g
+                                            else "isotropic)"),
         "",
-        f"`python benchmarks/slab_cameras.py` (module docstring); scheme {a.scheme}, first "
+        f"`python benchmarks/slab_cameras.py` (module docstring); {hg}scheme {a.scheme}, first "
         f"collision {a.first_collision}, {'float32' if a.f32 else 'float64'}, tol {a.tol:g}. "
         f"R, T: the cameras' images at μ = {mu_s} (Gauss–Legendre, above and below) "
         "integrated over the hemisphere, error against the exact slab on the same μ (whose R, "
         "T by a fine μ quadrature are checked against adding-doubling: column 'exact vs AD'). "
         "I(μ): each camera's error, smallest μ first.",
         "",
-        *C.md_table(["τ", "a", "light", "N", "M", "scheme", "R", "T", "exact vs AD (R / T)",
-                     "Λ / exact: top node, mid, bottom node", "top I(μ) %", "bottom I(μ) %"],
-                    [[f"{r['tau']:g}", f"{r['albedo']:g}", r["light"], r["N"], r["M"], r["scheme"],
+        *C.md_table(["τ", "a", "light", "N", "M", "scheme" + (", L" if a.g else ""), "R", "T",
+                     "exact vs AD (R / T)",
+                     ("worst image over azimuths: top, bottom (%)" if a.g else
+                      "Λ / exact: top node, mid, bottom node"), "top I(μ) %", "bottom I(μ) %"],
+                    [[f"{r['tau']:g}", f"{r['albedo']:g}", r["light"], r["N"], r["M"],
+                      r["scheme"] + (f", {r['L']}" if a.g else ""),
                       f"{100 * r['err_R']:+.2f}%", _t_cell(r),
                       f"{100 * (r['R_exact'] / r['R_ad'] - 1):+.3f} / "
                       + (f"{100 * (r['T_exact'] / r['T_ad'] - 1):+.3f}" if r["T_ad"] > 0 else "–"),
+                      (" ".join(f"{100 * e:+.1f}" for e in r["worst_top"]) + ", "
+                       + " ".join(f"{100 * e:+.1f}" for e in r["worst_bottom"])
+                       if len(r["azimuths"]) > 1 else "–") if a.g else
                       "–" if r["light"] == "diffuse" else
                       f"{r['lam_top']:.3f} / {r['lam_mid']:.3f} / {r['lam_bottom']:.3f}",
                       " ".join(f"{100 * e:+.1f}" for e in r["top"]),
@@ -237,13 +304,16 @@ def main(argv=None):
               *C.machine_lines(C.machine())]
     print("wrote", C.write_text(a.out / f"{a.name}.md", "\n".join(lines) + "\n"))
     keys = ["tau", "albedo", "light", "N", "M", "scheme", "R_ad", "T_ad", "R_exact", "T_exact",
-            "R", "T", "err_R", "err_T", "lam_top", "lam_mid", "lam_bottom", "seconds"]
+            "R", "T", "err_R", "err_T", "lam_top", "lam_mid", "lam_bottom", "L", "seconds"]
     with open(a.out / f"{a.name}.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(keys + [f"top_mu{k}" for k in range(a.mu)]
-                   + [f"bottom_mu{k}" for k in range(a.mu)])
+                   + [f"bottom_mu{k}" for k in range(a.mu)]
+                   + [f"worst_top_mu{k}" for k in range(a.mu)]
+                   + [f"worst_bottom_mu{k}" for k in range(a.mu)])
         for r in rows:
-            w.writerow([r[k] for k in keys] + r["top"] + r["bottom"])
+            w.writerow([r[k] for k in keys] + r["top"] + r["bottom"] + r["worst_top"]
+                       + r["worst_bottom"])
     return rows
 
 
