@@ -184,14 +184,12 @@ def test_scheme_is_checked_and_reaches_the_command_line():
 
 
 def test_auto_scheme_takes_linear_where_a_step_is_thick():
-    """scheme="auto" (the default): "linear" exactly where one lattice step spans more than
-    ``LINEAR_STEP_DEPTH`` mean free paths at the scene's values (δ-M scaled), or more than
-    ``LINEAR_STEP_DEPTH_THICK`` in fog at least ``LINEAR_FOG_SIZE`` mean free paths across
-    (fog-balls' domain: at N = 24, M = 2 a step depth of 0.5 is 6 mean free paths across, at
-    N = 4 under 5 up to a step depth of 1), else "step"; the model's settings name the scheme
-    it runs."""
-    from difffog.forward.sweep._solver import (LINEAR_FOG_SIZE, LINEAR_STEP_DEPTH,
-                                               LINEAR_STEP_DEPTH_THICK)
+    """scheme="auto" (the default): "linear" where one lattice step spans more than
+    ``LINEAR_STEP_DEPTH`` mean free paths at the scene's values (δ-M scaled), and at any step
+    depth in fog at least ``LINEAR_FOG_SIZE`` mean free paths across (fog-balls' domain at
+    N = 24, M = 2: 12 mean free paths across per unit of step depth; at N = 4 under 5 up to a
+    step depth of 1), else "step"; the model's settings name the scheme it runs."""
+    from difffog.forward.sweep._solver import LINEAR_FOG_SIZE, LINEAR_STEP_DEPTH
     from difffog.geometry._lattice import voxelize
 
     scene = df.load_scene("fog-balls")
@@ -202,11 +200,11 @@ def test_auto_scheme_takes_linear_where_a_step_is_thick():
     coarse = voxelize(bare, 4, 2, margin=3)
     depth_per_unit = lat.max_segment_optical_depth(1.0, 0.0)  # per unit σ_t
     extent = max(b - a for a, b in zip(scene.domain.min, scene.domain.max))
-    assert 1.1 * LINEAR_STEP_DEPTH_THICK / depth_per_unit * extent > LINEAR_FOG_SIZE
-    # fog many mean free paths across: the thick rule
-    for depth, want in ((0.9 * LINEAR_STEP_DEPTH_THICK, "step"),
-                        (1.1 * LINEAR_STEP_DEPTH_THICK, "linear"),
-                        (1.1 * LINEAR_STEP_DEPTH, "linear")):
+    at_size = LINEAR_FOG_SIZE / extent * depth_per_unit  # the step depth of fog 5 across
+    assert at_size < 0.5 * LINEAR_STEP_DEPTH
+    # thin steps: the fog's size decides; thick ones: linear whatever the size
+    for depth, want in ((0.9 * at_size, "step"), (1.1 * at_size, "linear"),
+                        (0.9 * LINEAR_STEP_DEPTH, "linear"), (1.1 * LINEAR_STEP_DEPTH, "linear")):
         ext = depth / depth_per_unit
         thick = scene.replace(fog=df.Fog(scattering=0.8 * ext, absorption=0.2 * ext))
         assert solver.resolved_scheme(thick, lat) == want, depth

@@ -111,15 +111,16 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
             lines.append(f"segment    max optical depth of one lattice step σ_t·h·M = "
                          f"{seg:.3g}{warn}")
             from .._cost import _linear
-            from ..forward.sweep._solver import (LINEAR_FOG_SIZE, LINEAR_STEP_DEPTH,
-                                                 LINEAR_STEP_DEPTH_THICK)
+            from ..forward.sweep._solver import LINEAR_FOG_SIZE, LINEAR_STEP_DEPTH
 
             lin = _linear(scene, resolution, M, phase_order, "auto")
-            lines.append(
-                "transport  " + ("linear source along each lattice segment (a step is thicker "
-                                 if lin else "constant source per node (no step is thicker ")
-                + f"than {LINEAR_STEP_DEPTH:g} mean free path, or {LINEAR_STEP_DEPTH_THICK:g} in "
-                f"fog {LINEAR_FOG_SIZE:g} or more across; --scheme overrides)")
+            why = (f"a step is thicker than {LINEAR_STEP_DEPTH:g} mean free path, or the fog is "
+                   f"{LINEAR_FOG_SIZE:g} or more across" if lin else
+                   f"no step is thicker than {LINEAR_STEP_DEPTH:g} mean free path and the fog is "
+                   f"under {LINEAR_FOG_SIZE:g} across")
+            lines.append("transport  " + ("linear source along each lattice segment" if lin
+                                          else "constant source per node")
+                         + f" ({why}; --scheme overrides)")
     else:
         lines.append("fog        none")
     if scene.sun is not None:

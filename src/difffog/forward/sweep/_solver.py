@@ -87,21 +87,19 @@ FIRST_COLLISIONS = ("beam", "deposit")
 #: depth of 1: T +13…+53% against +0.5…+3.2%), and issue 14's thick cube at step depths of
 #: 6 / 62 / 625 is +1.8 / +12.6 / +13.3% (step) against −1.2 / +2.7 / +1.3% (linear)
 LINEAR_STEP_DEPTH = 1.0
-#: ... and from this step depth on in fog at least ``LINEAR_FOG_SIZE`` mean free paths across
-#: (``optical_size``): there the step scheme's lattice diffusion already shows in the light
-#: that crosses the fog.  Slabs as cameras read them (stop 77, M = 2, albedo 0.99 and
-#: 0.999, T error; ``benchmarks/slab_cameras.py``): τ = 16 at a step depth of 0.67 (N = 48)
-#: step +3.8…+13% against linear +1.9…+4.9%, at 0.5 +2.1…+7.4% against +1.1…+3.1%; τ = 64 at
-#: 0.67 (N = 192) step +11…+42% against +1.6…+4.4%, and at a step depth of exactly 1 (N = 128)
-#: the step scheme +93% where N = 64 (linear) read +7.6%: the default's error grew with N.
-#: R within 0.4 point of each other; Mitsuba's clouds at N = 96, M = 3 (depths 0.9 / 1.25)
-#: within 0.1 point either way
-LINEAR_STEP_DEPTH_THICK = 0.5
-#: the fog's optical size (δ-scaled σ_t at its densest × ``fog_extent``) from which
-#: ``LINEAR_STEP_DEPTH_THICK`` applies: the slabs' transmission errs by the step scheme's
-#: lattice diffusion times the optical depth light crosses (τ = 4 at a step depth of 0.5: T
-#: +1…+6% step, +1…+4% linear; τ = 16: +2…+12% against −1…+3%); fog-balls and
-#: translucent-cube (2.3-2.5 across) stay on the step scheme at any N
+#: ... and at any step depth in fog at least this many mean free paths across
+#: (``optical_size``: δ-scaled σ_t at the densest node × ``fog_extent``): there the step
+#: scheme's lattice diffusion shows in the light that crosses the fog, and any threshold in
+#: step depth made the default's error jump where refining the lattice crossed it.  Slabs as
+#: cameras read them (``benchmarks/slab_cameras.py``, T error over albedo 0.9–0.999 and three
+#: lights): stop 77 took the linear scheme from a step depth of 0.5 here, after τ = 64 at a
+#: depth of exactly 1 (N = 128, M = 2: step) had read +93% where N = 64 (linear) read +7.6%;
+#: under that rule τ = 16 read +2.1…+12.4% at N = 64, M = 2 and +0.6…+6.0% at N = 128, M = 3
+#: (step, depths 0.5 and 0.375; the linear scheme there −1.0…+3.1% and −0.5…+1.0%), and
+#: τ = 64 +6.1…+22.4% at N = 256, M = 2 (step) where N = 128 (linear) read +3.4…+8.6%
+#: (stop 78; docs/validation.md, "Any step depth in thick fog").  It costs +19% per
+#: iteration.  Mitsuba's clouds at N = 96, M = 3 read the same to 0.1 point either way;
+#: fog-balls and translucent-cube (2.3–2.5 across) stay on the step scheme at any N
 LINEAR_FOG_SIZE = 5.0
 
 
@@ -1093,9 +1091,9 @@ class SweepSolver(eqx.Module):
         deposits per direction and node; on a CPU a direction loop like "step"'s,
         ``_kernel._sweep_face_substep_loop``).  Opt-in.
         "auto" (default):
-        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH``, or
-        than ``LINEAR_STEP_DEPTH_THICK`` in fog ``LINEAR_FOG_SIZE`` or more mean free paths
-        across (the scene's values at ``prepare``), else "step" (``resolved_scheme``).  Measured
+        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH``, and
+        throughout fog ``LINEAR_FOG_SIZE`` or more mean free paths across (the scene's values
+        at ``prepare``), else "step" (``resolved_scheme``).  Measured
         (docs/validation.md): equal to "step" in thin fog (τ = 1 slabs: 0.1%), far closer in
         T at τ = 16-64, issue 14's thick cube within 2.7% at step depths of 6 to 625 (step:
         +1.8 to +13.3%); cloud-plane unchanged; +19% per iteration.
@@ -1288,9 +1286,9 @@ class SweepSolver(eqx.Module):
 
     def resolved_scheme(self, scene=None, lattice=None) -> str:
         """The transport scheme ``scheme`` stands for in ``scene`` on ``lattice`` ("auto":
-        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH``, or
-        than ``LINEAR_STEP_DEPTH_THICK`` in fog at least ``LINEAR_FOG_SIZE`` mean free paths
-        across (``optical_size``), at the scene's values; else "step")."""
+        "linear" where one lattice step is optically thicker than ``LINEAR_STEP_DEPTH``, and at
+        any step depth in fog at least ``LINEAR_FOG_SIZE`` mean free paths across
+        (``optical_size``), at the scene's values; else "step")."""
         if self.scheme != "auto":
             return self.scheme
         if scene is None or lattice is None or scene.fog is None:
@@ -1301,10 +1299,9 @@ class SweepSolver(eqx.Module):
                            self.M)
         if depth > LINEAR_STEP_DEPTH:
             return "linear"
-        if depth > LINEAR_STEP_DEPTH_THICK:
-            size = optical_size(fog, lattice.peak_density, fog_extent(scene))
-            if size >= LINEAR_FOG_SIZE:
-                return "linear"
+        if depth > 0 and optical_size(fog, lattice.peak_density,
+                                      fog_extent(scene)) >= LINEAR_FOG_SIZE:
+            return "linear"
         return "step"
 
     def resolved_once_M(self, scene=None) -> int:
