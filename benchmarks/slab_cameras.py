@@ -251,7 +251,6 @@ def main(argv=None):
                            err_R=R_c / R_q - 1, err_T=T_c / T_q - 1 if T_q > 1e-300 else float("nan"),
                            top=(top / top_x - 1).tolist(), bottom=(bot / bot_x - 1).tolist(),
                            worst_top=worst_top.tolist(), worst_bottom=worst_bot.tolist(),
-                           all_top=err_top.ravel().tolist(), all_bottom=err_bot.ravel().tolist(),
                            azimuths=az.tolist(),
                            scheme=model.solver.resolved_scheme(model.scene, model.lattice)
                            if hasattr(model, "lattice") else a.scheme, seconds=secs,
