@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 import _common as C
 from difffog.study._slab import (adding_doubling_radiance, exact_slab_collided,
-                                 exact_slab_radiance, exact_slab_rt, isotropic_slab_rows)
+                                 exact_slab_radiance, exact_slab_rt, half_range_gauss,
+                                 isotropic_slab_rows)
 
 LIGHTS = ("diffuse", "coll0", "coll60")
 
@@ -195,8 +196,7 @@ def main(argv=None):
     if a.quick:
         a.taus, a.albedos, a.lights, a.n, a.m = [4.0], [0.9], ["diffuse"], [16], [2]
     if a.reading:
-        x, w = np.polynomial.legendre.leggauss(a.mu)
-        mus = 0.5 * (x + 1)
+        mus = half_range_gauss(a.mu)[0]
         for tau, alb, light, _, _ in table_rows(a.taus, a.albedos, a.lights):
             for N in a.n:
                 e = reading_from_exact_nodes(tau, alb, light, N, mus)
@@ -208,8 +208,7 @@ def main(argv=None):
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    x, w = np.polynomial.legendre.leggauss(a.mu)
-    mus, wts = 0.5 * (x + 1), 0.5 * w
+    mus, wts = half_range_gauss(a.mu)
     po = a.phase_order if a.phase_order == "auto" else int(a.phase_order)
     rows = []
     for tau, alb, light, R_ad, T_ad in table_rows(a.taus, a.albedos, a.lights, a.g):
@@ -222,13 +221,9 @@ def main(argv=None):
         if a.g:
             top_x, bot_x, inc, direct = adding_doubling_radiance(
                 tau, alb, a.g, light, mus, azimuths=az if n_az > 1 else None)
-            xf, wf = np.polynomial.legendre.leggauss(48)
-            mf, wmf = 0.5 * (xf + 1), 0.5 * wf
-            tf, bf, _, _ = adding_doubling_radiance(tau, alb, a.g, light, mf)
-            R_x, T_x = flux(tf, mf, wmf) / inc, (flux(bf, mf, wmf) + direct) / inc
         else:
             top_x, bot_x, inc, direct = exact_slab_radiance(tau, alb, light, mus)
-            R_x, T_x = exact_slab_rt(tau, alb, light)
+        R_x, T_x = exact_slab_rt(tau, alb, light, g=a.g)
         for M in a.m:
             for N in a.n:
                 top, bot, secs, model, lf = camera_slab(

@@ -78,13 +78,9 @@ def test_adding_doubling_matches_the_table_and_single_scattering_for_henyey_gree
     albedo the single-scattering radiance in closed form, per azimuth under the 60° sun (the
     cameras' azimuth from the sun's, so that 0 is the sun's side: back-scattering there)."""
     table = isotropic_slab_rows(0.85)
-    xf, wf = np.polynomial.legendre.leggauss(48)
-    mf, wmf = 0.5 * (xf + 1), 0.5 * wf
     for tau, albedo in ((1.0, 0.9), (16.0, 0.99)):
         for light in ("diffuse", "coll0", "coll60"):
-            top, bot, inc, direct = adding_doubling_radiance(tau, albedo, 0.85, light, mf)
-            R = 2 * math.pi * np.sum(wmf * mf * top) / inc
-            T = (2 * math.pi * np.sum(wmf * mf * bot) + direct) / inc
+            R, T = exact_slab_rt(tau, albedo, light, g=0.85)
             R_ad, T_ad = table[(tau, albedo, light)]
             assert R == pytest.approx(R_ad, rel=1e-4) and T == pytest.approx(T_ad, rel=1e-4)
     g, a, mu0 = 0.85, 1e-5, 0.5

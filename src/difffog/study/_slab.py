@@ -169,8 +169,7 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     isotropic source then varies linearly across each cell, q + slope·t for t ∈ [−½, ½].
     """
     s = np.asarray(sigma_t, np.float64)
-    x, w = np.polynomial.legendre.leggauss(n_mu)
-    mu, wmu = 0.5 * (x + 1.0), 0.5 * w
+    mu, wmu = half_range_gauss(n_mu)
     q = np.asarray(source, np.float64)
     if q.ndim == 2:  # anisotropic: the source towards +μ (up) and −μ (down), azimuth-averaged
         phi = 2 * math.pi * (np.arange(n_phi) + 0.5) / n_phi
@@ -237,6 +236,17 @@ def slab_reflectance(sigma_t, source, sun_fluence, margin: int, h: float, *, sky
     return flux_up / incident, flux_down / incident
 
 
+def half_range_gauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(μ, w): the ``n``-point Gauss–Legendre rule on (0, 1), weights summing to 1."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    return 0.5 * (x + 1.0), 0.5 * w
+
+
+def sun_cosine(light: str) -> float | None:
+    """μ₀ of the sun a slab ``light`` names ("collZ": zenith Z degrees), None for "diffuse"."""
+    return None if light == "diffuse" else math.cos(math.radians(float(light[4:])))
+
+
 def _e3(x):
     from scipy.special import expn
 
@@ -260,10 +270,10 @@ def exact_slab_collided(tau: float, albedo: float, light: str, *,
     col[0] = (2 * d - 1 + 2 * _e3(d)) / (2 * d)
     col[1:] = (_e3((m[1:] + 1) * d) + _e3((m[1:] - 1) * d) - 2 * _e3(m[1:] * d)) / (2 * d)
     K = col[np.abs(m[:, None] - m[None, :])]
-    if light == "diffuse":  # J₀ of a downward isotropic radiance 1: E₂(t)/2, cell-averaged
+    sun = sun_cosine(light)
+    if sun is None:  # J₀ of a downward isotropic radiance 1: E₂(t)/2, cell-averaged
         j0 = 0.5 * (_e3(t[:-1]) - _e3(t[1:])) / d
     else:  # F e^(−t/μ₀)/4π, cell-averaged
-        sun = math.cos(math.radians(float(light[4:])))
         j0 = sun * (np.exp(-t[:-1] / sun) - np.exp(-t[1:] / sun)) / d / (4 * math.pi)
     return t, np.linalg.solve(np.eye(n) - albedo * K, albedo * K @ j0)
 
@@ -285,7 +295,7 @@ def exact_slab_radiance(tau: float, albedo: float, light: str, mus, *,
     """
     t, J = exact_slab_collided(tau, albedo, light, cells_per_tau=cells_per_tau,
                                min_cells=min_cells)
-    sun = None if light == "diffuse" else math.cos(math.radians(float(light[4:])))
+    sun = sun_cosine(light)
     mus = np.asarray(mus, np.float64)
     et = np.exp(-t[None, :] / mus[:, None])
     eb = np.exp(-(tau - t[None, :]) / mus[:, None])
@@ -301,8 +311,7 @@ def exact_slab_radiance(tau: float, albedo: float, light: str, mus, *,
                             tau / mus[:, None] * np.exp(-tau / mus[:, None]))
 
     if sun is None:
-        x, w = np.polynomial.legendre.leggauss(400)
-        mp, wp = 0.5 * (x + 1), 0.5 * w
+        mp, wp = half_range_gauss(400)
         a_ = 1 / mp[None, :] + 1 / mus[:, None]
         top += albedo / 2 * (wp[None] * (1 - np.exp(-tau * a_)) / (mus[:, None] * a_)).sum(1)
         bot += albedo / 2 * (wp[None] * through(1 / mp[None, :])).sum(1)
@@ -342,10 +351,9 @@ def adding_doubling_radiance(tau: float, albedo: float, g: float, light: str, mu
     modes; without it, their azimuthal mean.  Against ``exact_slab_radiance`` (g = 0): within
     0.2% at μ = 0.034 and 0.05% elsewhere; its R and T against the adding-doubling table's
     g = 0.85 rows (iadpython) within 0.001% (tests/test_slab_cameras.py)."""
-    x, w = np.polynomial.legendre.leggauss(n_quad)
-    mq, wq = 0.5 * (x + 1), 0.5 * w
+    mq, wq = half_range_gauss(n_quad)
     mus = np.asarray(mus, np.float64)
-    sun = None if light == "diffuse" else math.cos(math.radians(float(light[4:])))
+    sun = sun_cosine(light)
     eps = 1e-40  # the extra cosines' weight: they read the field without feeding it
     mu = np.concatenate([mq, mus, [] if sun is None else [sun]])
     wt = np.concatenate([wq, np.full(mu.size - n_quad, eps)])
@@ -409,11 +417,13 @@ def isotropic_slab_rows(g: float = 0.0) -> dict[tuple[float, float, str], tuple[
 
 
 def exact_slab_rt(tau: float, albedo: float, light: str, n_mu: int = 48,
-                  cells_per_tau: float = 64.0) -> tuple[float, float]:
-    """R, T of ``exact_slab_radiance``'s slab by an ``n_mu``-point Gauss–Legendre μ rule."""
-    x, w = np.polynomial.legendre.leggauss(n_mu)
-    mu, wmu = 0.5 * (x + 1), 0.5 * w
-    top, bot, inc, direct = exact_slab_radiance(tau, albedo, light, mu,
-                                                cells_per_tau=cells_per_tau)
+                  cells_per_tau: float = 64.0, g: float = 0.0) -> tuple[float, float]:
+    """R, T of the exact slab by an ``n_mu``-point Gauss–Legendre μ rule over its radiance:
+    ``exact_slab_radiance``'s (isotropic), or ``adding_doubling_radiance``'s azimuthal mean
+    for a Henyey–Greenstein ``g`` ≠ 0."""
+    mu, wmu = half_range_gauss(n_mu)
+    top, bot, inc, direct = (adding_doubling_radiance(tau, albedo, g, light, mu) if g else
+                             exact_slab_radiance(tau, albedo, light, mu,
+                                                 cells_per_tau=cells_per_tau))
     return (2 * math.pi * float(np.sum(wmu * mu * top)) / inc,
             (2 * math.pi * float(np.sum(wmu * mu * bot)) + direct) / inc)
