@@ -28,15 +28,13 @@ reflection from the bottom, A·e^(−κz) + B·e^(κ(z − τ))).
 from __future__ import annotations
 
 import argparse
+import functools
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 
 import _common as C
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 
 def _lattice_vectors(M: int):
@@ -49,34 +47,38 @@ def _lattice_vectors(M: int):
     return v / np.max(np.abs(v), axis=1, keepdims=True) * M, ds.weights.reshape(-1)
 
 
-def scheme_ratio(x: float, sth: float, M: int, g_slope=math.sinh) -> float:
-    """Λ/(4πq) of the linear scheme for q ∝ e^(κz): x = κh, sth = σ_t·h; the slope's z
-    component G_z/q = ``g_slope(x)`` (central differences: sinh x)."""
+@functools.lru_cache(maxsize=None)
+def _segments(sth: float, M: int):
+    """Per direction of the lattice (each face's share): (m = L_z, the half-segment terms em,
+    (1 − φ)/2, φ, ψ of ``linear_source_terms`` at τ = σ_t·h·|L|/2, the weight), float64."""
+    import jax
+    import jax.numpy as jnp
+
     from difffog._numerics import linear_source_terms
 
     V, W = _lattice_vectors(M)
-    total = 0.0
-    for L, w in zip(V, W):
-        m = float(L[2])
-        if m == 0.0:  # in the plane: an infinite layer, R̄ = q
-            total += w
-            continue
-        th = 0.5 * sth * float(np.linalg.norm(L))  # each half of the node's segment
-        phi, psi = (float(t) for t in linear_source_terms(th)[:2])
-        em = math.expm1(-th)
-        s = m * g_slope(x)
+    th = 0.5 * sth * np.linalg.norm(V, axis=1)  # each half of the node's segment
+    with jax.enable_x64(True):
+        phi, psi = (np.asarray(t, np.float64) for t in linear_source_terms(jnp.asarray(th))[:2])
+    return V[:, 2], np.expm1(-th), 0.5 * (1.0 - phi), phi, psi, W
 
-        def through(c):  # r_out and R̄ per q_k when the node's entering radiance is c·q_(k−1)
-            r_mid = c * math.exp(-m * x)
-            a = r_mid - 1.0 + 0.5 * s
-            r_node = r_mid + em * a + 0.5 * (1.0 - phi) * s
-            b = r_node - 1.0
-            return (r_node + em * b + 0.5 * (1.0 - phi) * s,
-                    1.0 + 0.5 * phi * (a + b) - 0.5 * psi * s)
 
-        o0, o1 = through(0.0)[0], through(1.0)[0]
-        total += w * through(o0 / (1.0 - (o1 - o0)))[1]  # the chain's fixed point
-    return total / (4.0 * math.pi)
+def scheme_ratio(x: float, sth: float, M: int, g_slope=math.sinh) -> float:
+    """Λ/(4πq) of the linear scheme for q ∝ e^(κz): x = κh, sth = σ_t·h; the slope's z
+    component G_z/q = ``g_slope(x)`` (central differences: sinh x).  Each direction's node
+    update is the kernel's own (``_kernel._linear_node``); the radiance a node receives is its
+    chain's previous node's, c·q_(k−1), and c is the chain's fixed point (for a direction in
+    the plane, m = 0, an infinite layer: c = 1, R̄ = q)."""
+    from difffog.forward.sweep._kernel import _linear_node
+
+    m, em, omp_half, phi, psi, W = _segments(float(sth), int(M))
+    s = m * g_slope(x)
+
+    def through(c):  # (r_node, r_out, R̄) per q_k when the node receives c·q_(k−1)
+        return _linear_node(c * np.exp(-m * x), 1.0, s, em, omp_half, phi, psi)
+
+    o0, o1 = through(0.0)[1], through(1.0)[1]  # r_out is affine in c
+    return float(np.sum(W * through(o0 / (1.0 - (o1 - o0)))[2])) / (4.0 * math.pi)
 
 
 def _root(f, lo: float, hi: float, n: int = 400) -> float:
