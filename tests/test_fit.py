@@ -192,12 +192,21 @@ def test_jacobian_tangent_solves_start_from_the_given_tangents():
     light state at u, where the model error's finer renders start).  With a
     loose tangent tolerance, each Jacobian started from the last one's tangents at the same
     point is closer to the converged one: from zero twice gives the same J to the bit (the
-    guess would be ignored), from the tangents it moves, by less each time."""
+    guess would be ignored), from the tangents it moves, by less each time.  So with one
+    GMRES per unknown (``block_tangents=False``); the block solve (the default) reaches the
+    converged J to float32 rounding from zero already at this tolerance, so it can only be
+    seen to move, within the tolerance."""
+    for block in (False, True):
+        _start_from_tangents(block)
+
+
+def _start_from_tangents(block):
     scene = _small_scene()
     small = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(8, 6))
                                         for c in scene.cameras))
     fwd = SweepModel(small, resolution=10, supersample=1,
-                     solver=SweepSolver(M=2, max_iterations=500, tol=1e-6, adjoint_rtol=3e-2))
+                     solver=SweepSolver(M=2, max_iterations=500, tol=1e-6, adjoint_rtol=3e-2,
+                                        block_tangents=block))
     coords = (Coordinate("fog.scattering", 0.0, math.inf),
               Coordinate("shape.walls.albedo", 0.0, 1.0))
     pb = FitProblem(fwd.scene, coords, ("top", "oblique"), "linear")
@@ -217,7 +226,37 @@ def test_jacobian_tangent_solves_start_from_the_given_tangents():
     J0, J0b, J1, J2 = (np.asarray(a, np.float64) for a in (J0, J0b, J1, J2))
     assert np.array_equal(J0, J0b)
     first, second = np.abs(J1 - J0).max(), np.abs(J2 - J1).max()
-    assert 0 < second < 0.5 * first <= 0.05 * np.abs(J0).max()
+    if block:
+        assert 0 < first <= 0.05 * np.abs(J0).max() and 0 < second <= 0.05 * np.abs(J0).max()
+    else:
+        assert 0 < second < 0.5 * first <= 0.05 * np.abs(J0).max()
+
+
+def test_block_tangent_solves_give_the_jacobian_of_one_solve_per_unknown():
+    """The fit's tangent solves, one per unknown, run as one block GMRES
+    (``SweepSolver(block_tangents=True)``, the default) or one GMRES each in lockstep
+    (False): the same Jacobian to the solves' tolerance, but not the same rounding (the
+    block solve is the one that ran).  From the last Jacobian's tangents: the next test."""
+    scene = _small_scene()
+    small = scene.replace(cameras=tuple(dataclasses.replace(c, resolution=(8, 6))
+                                        for c in scene.cameras))
+    solver = SweepSolver(M=2, max_iterations=500, tol=1e-6, adjoint_rtol=1e-5)
+    fwd = SweepModel(small, resolution=10, supersample=1, solver=solver)
+    each = eqx.tree_at(lambda m: m.solver, fwd,
+                       dataclasses.replace(solver, block_tangents=False))
+    coords = tuple(Coordinate(p, 0.0, 1.0 if "albedo" in p else math.inf) for p in TRUTH)
+    pb = FitProblem(fwd.scene, coords, ("top", "oblique"), "linear")
+    base = fwd.params(jnp.float32)
+    u = jnp.asarray([c.to_u(v) for c, v in zip(coords, TRUTH.values())], jnp.float32)
+    jac = eqx.filter_jit(pb.jacobian_and_tangents)
+    _, J, code, _, _ = jac(fwd, u, base, None)
+    _, J1, code1, _, _ = jac(each, u, base, None)
+    assert int(code) == int(code1) == df.RESULTS.successful
+    J, J1 = np.asarray(J, np.float64), np.asarray(J1, np.float64)
+    assert np.abs(J).min(axis=0).max() > 0 and not np.array_equal(J, J1)
+    assert np.abs(J - J1).max(axis=0).max() <= 1e-3 * np.abs(J1).max(axis=0).min()
+    with pytest.raises(df.DifffogError, match="block_tangents"):
+        SweepSolver(block_tangents="yes")
 
 
 def test_an_unconverged_tangent_solve_is_a_result_code_and_the_step_has_no_callback():

@@ -309,6 +309,50 @@ def test_gmres_starts_from_a_guess(x64):
     assert int(exact[2]) < int(near[2]) < int(cold[2]), (exact[2], near[2], cold[2])
 
 
+def test_block_gmres_solves_several_right_hand_sides_at_once(x64):
+    """``_krylov.block_gmres`` (a fit's tangent solves, one per unknown, together) against
+    dense solves: every column to its tolerance, in fewer products than the columns' own
+    GMRES solves run in lockstep take (p × the slowest), also restarted, flexibly
+    preconditioned, with a zero column and a near-duplicate one; from the solution it stops
+    after its residual and one step; cut short, its error estimate says so."""
+    from difffog.forward.sweep._krylov import block_gmres, gmres
+
+    rng = np.random.default_rng(7)
+    n, p = 120, 3
+    K = 0.7 * rng.standard_normal((n, n)) / np.sqrt(n)
+    A = jnp.asarray(np.eye(n) - K)
+    B = rng.standard_normal((p, n))
+    B[2] = B[0] + 1e-3 * B[1]
+    X = np.linalg.solve(np.asarray(A), B.T).T
+
+    def apply_a(U):
+        return U @ A.T
+
+    def singles(restart):
+        return [int(gmres(lambda u, w, b=b: u - A @ u + jnp.where(w, b, 0.0), (n,),
+                          jnp.float64, restart=restart, max_matvecs=2000, tol=1e-8)[2])
+                for b in jnp.asarray(B)]
+
+    pre = jnp.asarray(np.linalg.inv(np.eye(n) - 0.5 * K))  # an approximate inverse
+    for restart, precondition in ((40, None), (8, None), (8, lambda U: U @ pre.T)):
+        out, k, err = block_gmres(apply_a, jnp.asarray(B), restart=restart, max_matvecs=2000,
+                                  tol=1e-8, precondition=precondition)
+        assert np.all(np.asarray(err) <= 1e-8), (restart, err)
+        assert np.abs(np.asarray(out) - X).max(1).max() <= 1e-7 * np.abs(X).max()
+        if precondition is None:
+            assert int(k) < p * max(singles(restart)), (restart, int(k), singles(restart))
+    B0 = B.copy()
+    B0[1] = 0.0
+    out, k, err = block_gmres(apply_a, jnp.asarray(B0), restart=40, max_matvecs=2000, tol=1e-8)
+    assert np.all(np.asarray(out)[1] == 0) and float(err[1]) == 0.0
+    assert np.abs(np.asarray(out)[0] - X[0]).max() <= 1e-7 * np.abs(X[0]).max()
+    _, k, err = block_gmres(apply_a, jnp.asarray(B), restart=40, max_matvecs=2000, tol=1e-8,
+                            X0=jnp.asarray(X))
+    assert int(k) == 2 * p and np.all(np.asarray(err) <= 1e-8)  # its residual, one step
+    _, k, err = block_gmres(apply_a, jnp.asarray(B), restart=40, max_matvecs=2 * p, tol=1e-8)
+    assert int(k) == 2 * p and np.all(np.asarray(err) > 1e-8)
+
+
 def test_light_solve_from_a_nearby_state(fog_balls, x64):
     """``SweepSolver.solve(..., init=light.state)``: the light of a nearby problem started
     from a solved one's state takes fewer iterations to the same tolerance and agrees with

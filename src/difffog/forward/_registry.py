@@ -86,8 +86,8 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                  sky_quadrature=None, restart: int = 30, progress=None, throw: bool = True,
                  supersample: int = 2, precondition: str = "auto", kernel: str = "auto",
                  phase_order="auto", scheme: str = "auto", tangents: str = "matrix-free",
-                 sweep_residuals: str = "auto", first_collision: str = "beam",
-                 adjoint: str = "auto", edge_samples: int = EDGE_SAMPLES,
+                 block_tangents: bool = True, sweep_residuals: str = "auto",
+                 first_collision: str = "beam", adjoint: str = "auto", edge_samples: int = EDGE_SAMPLES,
                  once_M: int | None = None):
     from .sweep._model import SweepModel
     from .sweep._solver import SweepSolver
@@ -97,6 +97,7 @@ def _build_sweep(scene, *, cameras=None, resolution: int = 64, M: int = 3, tol: 
                          sky_quadrature=sky_quadrature, restart=restart, progress=progress,
                          throw=throw, precondition=precondition, kernel=kernel,
                          phase_order=phase_order, scheme=scheme, tangents=tangents,
+                         block_tangents=block_tangents,
                          sweep_residuals=sweep_residuals, first_collision=first_collision,
                          adjoint=adjoint, once_M=once_M)
     return SweepModel(scene, resolution=resolution, solver=solver, supersample=supersample,

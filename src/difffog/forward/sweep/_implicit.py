@@ -42,7 +42,7 @@ import lineax as lx
 import numpy as np
 
 from ..._errors import AdjointWarning
-from ._krylov import gmres
+from ._krylov import block_gmres, gmres
 from ._march import in_forward_mode
 
 _BY_VALUE = contextvars.ContextVar("difffog_solves_by_value", default=False)
@@ -89,6 +89,57 @@ def _solve_by_value(operator, vector, linear_solver, options):
 
     return jax.lax.custom_linear_solve(operator.mv, vector, solve, transpose_solve,
                                        symmetric=True)
+
+
+def _by_value(sol, ok):
+    return jax.tree.map(lambda a: jnp.where(ok, a, jnp.nan), sol)
+
+
+def _solve_forward(operator, vector, linear_solver, options):
+    """(∂G/∂x)⁻¹·vector in forward mode (a fit's Jacobian), NaN where it did not converge,
+    with no host callback (see :func:`solves_by_value`).  Vmapped over right-hand sides (the
+    Jacobian's columns, ``jax.vmap`` over the unknowns) with the operator itself not batched,
+    a :class:`KrylovSolver` with ``block=True`` solves them together by block GMRES
+    (``KrylovSolver.compute_block``) instead of one GMRES each in lockstep
+    (``jax.custom_batching.custom_vmap``).  Not transposable: forward mode only."""
+    inner = linear_solver.inner if isinstance(linear_solver, CheckedSolver) else linear_solver
+    dyn, static = eqx.partition((operator, options.get("preconditioner")), eqx.is_array)
+    y0 = options.get("y0")
+
+    def opts_of(pre, y0):
+        return {**({} if pre is None else {"preconditioner": pre}),
+                **({} if y0 is None else {"y0": y0})}
+
+    def one(dyn, b, y0):
+        op, pre = eqx.combine(dyn, static)
+        opts = opts_of(pre, y0)
+        sol, result, _ = inner.compute(inner.init(op, opts), b, opts)
+        return _by_value(sol, result == lx.RESULTS.successful)
+
+    if not (isinstance(inner, KrylovSolver) and inner.block):
+        return one(dyn, vector, y0)
+    solve = jax.custom_batching.custom_vmap(one)
+
+    @solve.def_vmap
+    def _rule(axis_size, in_batched, dyn, b, y0):
+        dyn_b, b_b, y0_b = in_batched
+        axes = jax.tree.map(lambda t: 0 if t else None, in_batched)
+        if any(jax.tree.leaves(dyn_b)):  # the operator itself is batched: a solve each
+            out = jax.vmap(one, in_axes=tuple(axes))(dyn, b, y0)
+            return out, jax.tree.map(lambda _: True, out)
+
+        def batched(tree, flags):
+            return jax.tree.map(lambda a, f: a if f else jnp.broadcast_to(a, (axis_size,)
+                                                                           + a.shape),
+                                tree, flags)
+
+        op, pre = eqx.combine(dyn, static)
+        opts = opts_of(pre, None if y0 is None else batched(y0, y0_b))
+        out, ok = inner.compute_block(inner.init(op, opts), batched(b, b_b), opts)
+        out = jax.vmap(_by_value)(out, ok)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return solve(dyn, vector, y0)
 
 
 def fixed_point(solve: Callable, rewrite: Callable, inputs, linear_solver: lx.AbstractLinearSolver,
@@ -171,7 +222,11 @@ def _fixed_point_jvp(primals, tangents):
     start = _start(t_guess, root)
     if start is not None:  # the solve is for −(the root's tangent)
         options["y0"] = start
-    if in_forward_mode() or _BY_VALUE.get():
+    if in_forward_mode() and not _BY_VALUE.get():
+        # a fit's Jacobian: by value as below, and its columns' solves (vmapped over the
+        # unknowns) as one block solve
+        x_dot = _solve_forward(operator, g_dot, linear_solver, options)
+    elif _BY_VALUE.get():
         # a fit's Jacobian (forward mode) and the density fit's gradient: a solve that did not
         # converge gives NaN (their callers turn that into a result code or ``adjoint_failed``)
         # instead of a check at run time, whose host callback would keep XLA's persistent cache
@@ -309,6 +364,7 @@ class KrylovSolver(lx.AbstractLinearSolver):
     restart: int = eqx.field(static=True, default=40)
     max_matvecs: int = eqx.field(static=True, default=400)
     native: bool = eqx.field(static=True, default=True)
+    block: bool = eqx.field(static=True, default=True)
 
     def init(self, operator, options):
         pre = options.get("preconditioner")
@@ -339,6 +395,39 @@ class KrylovSolver(lx.AbstractLinearSolver):
         ok = (err <= self.rtol) & jnp.all(jnp.isfinite(x))
         result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
         return unravel(x), result, {"num_steps": k}
+
+    def compute_block(self, state, vectors, options):
+        """p solves with one operator at once by block GMRES (``_krylov.block_gmres``):
+        ``vectors`` and ``options["y0"]`` (if any) carry a leading axis of p right-hand sides
+        and starts.  Returns (solutions with that axis, converged (p,) bool): a column
+        converged where its error estimate reached ``rtol`` and it is finite."""
+        operator = state
+        first = jax.tree.map(lambda a: a[0], vectors)
+        unravel = jax.flatten_util.ravel_pytree(first)[1]
+
+        def flat(tree):
+            return jax.vmap(lambda t: jax.flatten_util.ravel_pytree(t)[0])(tree)
+
+        B = flat(vectors)
+        pre = options.get("preconditioner")
+
+        def apply_a(U):
+            return flat(jax.vmap(lambda u: operator.mv(unravel(u)))(U))
+
+        def precondition(U):
+            return flat(jax.vmap(lambda u: pre.apply(unravel(u)))(U))
+
+        y0 = options.get("y0")
+        X0 = None if y0 is None else flat(y0).astype(B.dtype)
+        p = B.shape[0]
+        # the basis as large as one single solve's (restart + 1 vectors), not p of them:
+        # ⌈restart/p⌉ block steps a cycle, at least 8
+        X, _, err = block_gmres(apply_a, B, restart=max(-(-self.restart // p), 8),
+                                max_matvecs=self.max_matvecs * p, tol=self.rtol,
+                                precondition=None if pre is None else precondition, X0=X0,
+                                native=self.native)
+        ok = (err <= self.rtol) & jnp.all(jnp.isfinite(X), axis=1)
+        return jax.vmap(unravel)(X), ok
 
     def transpose(self, state, options):
         pre = options.get("preconditioner")
