@@ -291,12 +291,19 @@ def test_closed_conservative_emitting_box_is_an_error():
         m.images(m.params())  # host-side check of concrete parameters, before any work
     with pytest.raises(SolverError, match="no steady state"):
         df.render(m)
-    # inside a trace the check runs at run time (equinox's error_if), with the same message;
-    # the matrix's compiled function for the furnace (its albedo a traced parameter) serves
+    # inside a trace it is the light solve's result code (no host callback in the program,
+    # which XLA's persistent cache would not store), and a throwing model raises with it; the
+    # matrix's compiled function for the furnace (its albedo a traced parameter) serves
     c = _case("sweep", "furnace", "float32")
     p1 = _with(c.model.params(jnp.float32), albedo=1.0)
+    _, light, _, _ = c.fwd(p1)
+    assert int(light.result) == df.RESULTS.no_steady_state
+    assert "albedo below 1" in df.RESULTS.no_steady_state.message
+    throwing = SOLVERS["sweep"](scene, 8)
     with pytest.raises(Exception, match="no steady state"):
-        c.fwd(p1)
+        eqx.filter_jit(lambda m, p: m(p))(throwing, p1)
+    text = eqx.filter_jit(lambda m, p: m.light(p).result).lower(throwing, p1).as_text()
+    assert "callback" not in text.lower()
     # absorbing fog inside: a steady state exists, and it is finite
     imgs, light, _, _ = c.fwd(set_param(p1, scene, "fog.absorption", 0.5))
     assert int(light.result) == df.RESULTS.successful
@@ -314,6 +321,8 @@ def test_terms_guard_names_the_dropped_term():
         m.images(p)
     with pytest.raises(SolverError, match="terms='all'"):
         df.render(m, p)
+    light = eqx.filter_jit(lambda m, p: m.light(p))(m, p)  # traced: the result code
+    assert int(light.result) == df.RESULTS.terms_dropped
     full = SOLVERS["sweep"](scene, 10, terms="all")
     x = _images(full(set_param(full.params(), scene, "fog.scattering", 1.0)))
     assert np.all(np.isfinite(x)) and x.min() >= 0

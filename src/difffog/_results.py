@@ -24,6 +24,8 @@ class RESULTS(enum.IntEnum):
     stagnated = 2
     nonfinite = 3
     tangent_unconverged = 4
+    no_steady_state = 5
+    terms_dropped = 6
 
     @property
     def message(self) -> str:
@@ -47,6 +49,15 @@ _MESSAGES = {
         "a tangent light solve of the fit's Jacobian (the derivative of the light) did not "
         "converge, or the Jacobian was not finite, so the Jacobian and the standard errors "
         "from it are not reliable; raise the solver's max_iterations or adjoint_rtol"),
+    RESULTS.no_steady_state: (
+        "no steady state: an enclosed region whose surfaces reflect everything (albedo 1), "
+        "with fog (if any) that does not absorb, contains emission, so its light grows without "
+        "bound; lower an albedo below 1, add fog absorption, or open the enclosure"),
+    RESULTS.terms_dropped: (
+        "a parameter is non-zero whose term the solver's terms dropped because the scene had "
+        "none of it (fog, fog scattering, the sky or surface reflection), so the light leaves "
+        "it out; build the solver with terms='all' (SweepSolver(terms='all')) to keep every "
+        "term, or set it non-zero in the scene"),
 }
 
 

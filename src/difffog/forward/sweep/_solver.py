@@ -33,7 +33,7 @@ from ..._errors import DeviceWarning, SceneError, SolverError
 from ..._numerics import FOUR_PI, safe_div
 from .._camera import forward_peak_kernel
 from ..._progress import AbstractProgressMeter, NoProgress, as_meter
-from ..._results import RESULTS
+from ..._results import RESULTS, combine
 from . import _native
 from ._implicit import CheckedSolver, KrylovSolver, fixed_point
 from ._dsa import DiffusionPreconditioner, neighbour, on_fluence
@@ -1555,8 +1555,7 @@ class SweepSolver(eqx.Module):
         its derivatives do not depend on it (it is a constant of the solve).  Traced inside
         ``forward_mode()``, ``init``'s tangent is where the tangent solve starts (a guess of
         the state's tangent: a fit's last step's), and ``state`` keeps its tangent."""
-        if geom.terms is not None:
-            params = _check_terms(geom.terms, params)
+        terms_code = None if geom.terms is None else _check_terms(geom.terms, params)
         pb = self.problem(geom, params)
         guess = None
         if init is not None:
@@ -1629,7 +1628,10 @@ class SweepSolver(eqx.Module):
             residuals=hist,
             iterations=k,
             error_estimate=err,
-            result=_result_code(root, k, err, self.tol, self.max_iterations),
+            result=(_result_code(root, k, err, self.tol, self.max_iterations)
+                    if terms_code is None else
+                    combine(terms_code, _result_code(root, k, err, self.tol,
+                                                     self.max_iterations))),
             dip=dip,
             sun_peak=pb.sun_peak,
             state=root_state,
@@ -1708,22 +1710,26 @@ def _result_code(root, k, err, tol: float, max_iterations: int):
     return jnp.where(finite, code, RESULTS.nonfinite).astype(jnp.int32)
 
 
-def _check_terms(p: Terms, params: Params) -> Params:
+def _check_terms(p: Terms, params: Params):
     """Parameters that need a term the terms dropped, or a cavity with no steady state: a
-    SolverError for concrete values; inside a trace, ``eqx.error_if`` at run time."""
+    SolverError for concrete values; inside a trace, the light solve's result code (int32:
+    ``RESULTS.terms_dropped`` or ``no_steady_state`` where one holds, else successful; None
+    where no check applies), which ``render`` and a throwing model raise with, and a fit reads
+    as a failed light solve.  (Until stop 79 it was an ``eqx.error_if``, whose host callback
+    kept XLA's persistent cache from storing ring-box's light program.)"""
     v = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
     if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(params)):
         msg = terms_violation(p, {k: np.asarray(a) for k, a in v.items()})
         if msg:
             raise SolverError(msg)
-        return params
+        return None
     conds = terms_violation(p, v, xp=jnp)
     if not conds:
-        return params
-    x = params.scattering
-    for cond, msg in conds:
-        x = eqx.error_if(x, cond, msg)
-    return eqx.tree_at(lambda q: q.scattering, params, x)
+        return None
+    code = jnp.asarray(RESULTS.successful, jnp.int32)
+    for cond, _, c in reversed(conds):  # the first that holds
+        code = jnp.where(cond, jnp.int32(c), code)
+    return code
 
 
 def net_flux(geom: SweepGeometry, pb: _Problem, light: LightField, axis: int = 2):

@@ -189,25 +189,29 @@ def check_terms(p: Terms, params) -> None:
 
 def terms_violation(p: Terms, v: dict, xp=np):
     """The reason these parameter values do not fit the terms, or None.  With ``xp=jax.numpy``
-    returns a list of (traced bool, message) pairs instead, for ``eqx.error_if``."""
+    returns a list of (traced bool, message, result code) triples instead: the light solve's
+    result code where the bool holds (``RESULTS.terms_dropped`` or ``no_steady_state``)."""
+    from ..._results import RESULTS
+
     conds = []
     rebuild = ("; build the solver with terms='all' (SweepSolver(terms='all')) to keep every "
                "term, or set it non-zero in the scene")
     if not p.volume_source:
         conds.append((xp.any(v["scattering"] != 0),
                       "fog.scattering is non-zero but the terms dropped fog scattering (the scene "
-                      "has none)" + rebuild))
+                      "has none)" + rebuild, RESULTS.terms_dropped))
     if not p.fog:
         conds.append((xp.any(v["absorption"] != 0) | xp.any(v["scattering"] != 0),
                       "the fog coefficients are non-zero but the terms dropped the fog (the scene "
-                      "has none)" + rebuild))
+                      "has none)" + rebuild, RESULTS.terms_dropped))
     if p.sky == "none":
         conds.append((xp.any(v["sky_radiance"] != 0),
-                      "sky.radiance is non-zero but the scene has no [sky] table" + rebuild))
+                      "sky.radiance is non-zero but the scene has no [sky] table" + rebuild,
+                      RESULTS.terms_dropped))
     if not p.iterate:
         conds.append((xp.any(v["albedo"] != 0),
                       "a surface albedo is non-zero but the terms dropped reflection (every albedo "
-                      "is 0 in the scene)" + rebuild))
+                      "is 0 in the scene)" + rebuild, RESULTS.terms_dropped))
     for shapes, has_fog in zip(p.cavities, p.cavity_fog):
         if not shapes:
             continue
@@ -220,7 +224,8 @@ def terms_violation(p: Terms, v: dict, xp=np):
                       "no steady state: an enclosed region whose surfaces reflect everything "
                       "(albedo 1)" + (" and whose fog does not absorb" if has_fog else "")
                       + " contains emission, so its light grows without bound; lower an albedo "
-                      "below 1, add fog absorption, or open the enclosure"))
+                      "below 1, add fog absorption, or open the enclosure",
+                      RESULTS.no_steady_state))
     if xp is np:
-        return next((m for c, m in conds if bool(c)), None)
+        return next((m for c, m, _ in conds if bool(c)), None)
     return conds
