@@ -328,7 +328,7 @@ def test_block_gmres_solves_several_right_hand_sides_at_once(x64):
     def apply_a(U):
         return U @ A.T
 
-    def singles(restart):
+    def singles(restart):  # the columns' own GMRES: the lockstep runs p × the slowest
         return [int(gmres(lambda u, w, b=b: u - A @ u + jnp.where(w, b, 0.0), (n,),
                           jnp.float64, restart=restart, max_matvecs=2000, tol=1e-8)[2])
                 for b in jnp.asarray(B)]
@@ -340,7 +340,8 @@ def test_block_gmres_solves_several_right_hand_sides_at_once(x64):
         assert np.all(np.asarray(err) <= 1e-8), (restart, err)
         assert np.abs(np.asarray(out) - X).max(1).max() <= 1e-7 * np.abs(X).max()
         if precondition is None:
-            assert int(k) < p * max(singles(restart)), (restart, int(k), singles(restart))
+            lockstep = p * max(singles(restart))
+            assert int(k) < lockstep, (restart, int(k), lockstep)
     B0 = B.copy()
     B0[1] = 0.0
     out, k, err = block_gmres(apply_a, jnp.asarray(B0), restart=40, max_matvecs=2000, tol=1e-8)
