@@ -68,6 +68,11 @@ def solves_by_value():
         _BY_VALUE.reset(token)
 
 
+def _by_value(sol, ok):
+    """``sol`` where ``ok``, NaN elsewhere (a solve that did not converge, by its value)."""
+    return jax.tree.map(lambda a: jnp.where(ok, a, jnp.nan), sol)
+
+
 def _solve_by_value(operator, vector, linear_solver, options):
     """(∂G/∂x)⁻¹·vector by ``linear_solver``'s own solve (its ``CheckedSolver`` check left
     out), NaN where it did not converge, transposed (reverse mode) by the solver's transposed
@@ -77,8 +82,7 @@ def _solve_by_value(operator, vector, linear_solver, options):
 
     def by_value(out):
         sol, result, _ = out
-        return jax.tree.map(lambda a: jnp.where(result == lx.RESULTS.successful, a, jnp.nan),
-                            sol)
+        return _by_value(sol, result == lx.RESULTS.successful)
 
     def solve(_, b):
         return by_value(inner.compute(state, b, options))
@@ -89,10 +93,6 @@ def _solve_by_value(operator, vector, linear_solver, options):
 
     return jax.lax.custom_linear_solve(operator.mv, vector, solve, transpose_solve,
                                        symmetric=True)
-
-
-def _by_value(sol, ok):
-    return jax.tree.map(lambda a: jnp.where(ok, a, jnp.nan), sol)
 
 
 def _solve_forward(operator, vector, linear_solver, options):

@@ -1579,11 +1579,11 @@ class SweepSolver(eqx.Module):
         # meshes (2,1,1), (1,2,1), (1,2,2) (fog-balls N = 11, float64, stop 62;
         # ``benchmarks/mesh_solves.py``), so the budget is the same everywhere.
         cycles = 4
+        one_device = math.prod(self.layout()) == 1
         linear_solver = CheckedSolver(KrylovSolver(
             rtol=self.adjoint_rtol, restart=40,
             max_matvecs=max(40 * cycles, 2 * self.max_iterations) + 2,
-            native=math.prod(self.layout()) == 1,
-            block=self.block_tangents and math.prod(self.layout()) == 1), throw=self.throw)
+            native=one_device, block=self.block_tangents and one_device), throw=self.throw)
         matrix_free = self.tangents == "matrix-free"
         root, (hist, k, err) = fixed_point(
             _solve_fixed_point, _rewrite, pb, linear_solver, precondition=_preconditioner,
@@ -1609,6 +1609,9 @@ class SweepSolver(eqx.Module):
             f_slope = _fluence_slope(lam[..., 0] if geom.channels else lam, pb, sun=False)
         if geom.channels:
             lam, moments = lam[..., 0], lam[..., 1:]
+        code = _result_code(root, k, err, self.tol, self.max_iterations)
+        if terms_code is not None:  # the terms' violation first: it is why the solve failed
+            code = combine(terms_code, code)
         if geom.channels or geom.linear:
             q = q[..., 0]  # the isotropic part (with the sun's, as if it scattered isotropically)
             if pb.sun_phase is not None:
@@ -1628,10 +1631,7 @@ class SweepSolver(eqx.Module):
             residuals=hist,
             iterations=k,
             error_estimate=err,
-            result=(_result_code(root, k, err, self.tol, self.max_iterations)
-                    if terms_code is None else
-                    combine(terms_code, _result_code(root, k, err, self.tol,
-                                                     self.max_iterations))),
+            result=code,
             dip=dip,
             sun_peak=pb.sun_peak,
             state=root_state,
