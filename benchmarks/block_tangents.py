@@ -82,6 +82,16 @@ def _systems(scene_name, unknowns, names, N, points):
     return out
 
 
+def _rows_preconditioner(pre, unravel):
+    """The light solve's preconditioner (or None) on the rows of a (n, size) block."""
+    import jax
+
+    if pre is None:
+        return None
+    return lambda U: jax.vmap(lambda v: jax.flatten_util.ravel_pytree(
+        pre.apply(unravel(v)))[0])(U)
+
+
 def _solve_both(apply_a, B, tol, pre, unravel, X0, repeat):
     """((lockstep products per column, seconds, X), (block products, seconds, X))."""
     import jax
@@ -90,10 +100,7 @@ def _solve_both(apply_a, B, tol, pre, unravel, X0, repeat):
     from difffog.forward.sweep._krylov import block_gmres, gmres
 
     n = B.shape[0]
-    precondition = None
-    if pre is not None:
-        def precondition(U):
-            return jax.vmap(lambda v: jax.flatten_util.ravel_pytree(pre.apply(unravel(v)))[0])(U)
+    precondition = _rows_preconditioner(pre, unravel)
 
     def one(b, x0):
         def apply_k(v, with_sources):
@@ -128,10 +135,7 @@ def _reference(apply_a, B, tol, pre, unravel):
 
     from difffog.forward.sweep._krylov import block_gmres
 
-    precondition = None
-    if pre is not None:
-        def precondition(U):
-            return jax.vmap(lambda v: jax.flatten_util.ravel_pytree(pre.apply(unravel(v)))[0])(U)
+    precondition = _rows_preconditioner(pre, unravel)
     return jax.jit(lambda B: block_gmres(apply_a, B, restart=40, max_matvecs=4000,
                                          tol=tol * 1e-3, precondition=precondition))(B)[0]
 

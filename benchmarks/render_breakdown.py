@@ -47,7 +47,6 @@ def _case(spec, K, tmp):
     first = _render(args, cache, Path(tmp) / "first")
     cached = _render(args, cache, Path(tmp) / "cached")
     j1 = _render(args + ["--method", "jacobi", "--iterations", "1"], cache, Path(tmp) / "j1")
-    j1 = _render(args + ["--method", "jacobi", "--iterations", "1"], cache, Path(tmp) / "j1")
     jk = _render(args + ["--method", "jacobi", "--iterations", str(K)], cache, Path(tmp) / "jk")
     per_it = (jk["timings_s"]["light_s"] - j1["timings_s"]["light_s"]) / (K - 1)
     fixed = j1["timings_s"]["light_s"] - per_it
