@@ -2,8 +2,8 @@
 
 The light has already been solved on a regular lattice (node ``(i, j, k)`` at
 ``origin + (idx + 0.5)·h``).  A camera ray is clipped to the lattice box and marched with fixed
-steps (``lax.scan`` over a static step count, vectorised over rays, ``lax.map`` over chunks of
-rays) through trilinearly interpolated fields, integrating
+steps (a loop over each chunk's own step count, the longest of its rays', up to a static
+count, vectorised over rays, ``lax.map`` over chunks of rays) through trilinearly interpolated fields, integrating
 
     dL/ds = -σ_t L + j_iso + j_sun · p_HG(cos θ)
 
@@ -15,12 +15,12 @@ a ray that leaves the box without a hit adds the transmitted sky if it points up
 
 Conventions: see ``forward/_camera.py``.
 
-Gradients: the march has a custom VJP (``_march``) — a reverse scan that re-gathers each step's
+Gradients: the march has a custom VJP (``_march``) — a reverse loop that re-gathers each step's
 samples, applies the step's hand-written adjoint and scatter-adds into one table accumulator —
 because JAX's transpose of a gather inside a scan adds a dense table-sized cotangent per step.
-It is checked against JAX's autodiff of the plain scan in the tests.  A custom VJP has no
-forward mode: marches traced inside :func:`forward_mode` (a fit's Jacobian columns, one
-``jax.jvp`` per unknown) run the plain scan, which ``jax.jvp`` differentiates as it goes,
+It is checked against JAX's autodiff of the plain scan (``every_step``) in the tests.  A custom
+VJP has no forward mode: marches traced inside :func:`forward_mode` (a fit's Jacobian columns,
+one ``jax.jvp`` per unknown) run the plain loop, which ``jax.jvp`` differentiates as it goes,
 keeping nothing (until stop 60 those columns were the transpose of the VJP: three of them
 took 7× a forward render).
 """
@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
+import os
 from functools import partial
 from typing import NamedTuple
 
@@ -65,6 +66,11 @@ HIT_BACKOFF = 1e-2
 # the linear scheme's slope channels: x, y, z towards a node's upper neighbours, then towards
 # its lower ones (``LatticeFields.j_slope``)
 SLOPE_CHANNELS = 6
+#: how many marches a model's cameras are grouped into on a CPU (``march_lanes``): XLA runs
+#: independent loops side by side on the cores, so two marches take both of a 2-core CPU's
+#: cores (fog-balls N = 32, M = 3, stop 80: its two cameras 0.27 s as two marches against
+#: 0.42 s as one); each lane is one more march to compile, so at most 4 however many cores
+MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
 #: longest march in a periodic-xy domain, in domain diagonals, unless ``max_length`` is given
 PERIODIC_MAX_DIAGONALS = 8.0
 
@@ -75,7 +81,7 @@ _FORWARD_MODE = contextvars.ContextVar("difffog_march_forward_mode", default=Fal
 def forward_mode():
     """Within this context, camera marches that are traced (``trace_rays`` and what calls it)
     are differentiable by forward mode (``jax.jvp``) and not by reverse mode: they run the
-    plain scan instead of the march with its hand-written reverse pass, which has no JVP.
+    plain loop instead of the march with its hand-written reverse pass, which has no JVP.
     The choice is made when a march is traced (a static argument of its compiled program),
     so a function compiled inside the context keeps it.  Light solves traced inside it
     (``SweepSolver.solve``) keep their ``init``'s tangent as where their tangent solve starts,
@@ -653,10 +659,24 @@ def _point_coords(o, d, t0, t_end, k, cfg: _MarchConfig):
     return _coords(o + _step_times(t0, t_end, k, cfg.step)[:, None] * d, cfg.geo)
 
 
-def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: bool = False):
-    """The march, the samples gathered inside the scan.  Returns the final carry
-    (T, L, alive, t_hit), and with ``trajectory`` also (T_k, alive_k) (n_steps, R) before
-    each step (for the backward pass)."""
+def _live_steps(t0, t_end, cfg: _MarchConfig):
+    """How many of the march's steps have a positive length for some ray of the chunk (at most
+    ``cfg.n_steps``): the steps after them change nothing (``_march_step`` skips ds = 0), so the
+    loops stop there.  One more than the longest segment's ceil(length / step), so that no
+    rounding of t0 + k·step against that division drops a last short step."""
+    longest = jnp.max(jnp.where(t_end > t0, t_end - t0, 0.0), initial=0.0)
+    n = jnp.ceil(longest / jnp.asarray(cfg.step, t0.dtype)) + 1.0
+    return jnp.minimum(n, cfg.n_steps).astype(jnp.int32)
+
+
+def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: bool = False,
+                 every_step: bool = False):
+    """The march, the samples gathered inside the loop; ``_live_steps`` steps (a while loop: the
+    chunk's own step count, not the longest camera's), or with ``every_step`` all
+    ``cfg.n_steps`` (a scan, which reverse-mode autodiff can take: the tests' reference).
+    Returns the final carry (T, L, alive, t_hit), and with ``trajectory`` also (T_k, alive_k)
+    (n_steps, R) before each step (for the backward pass; rows past the live steps are not
+    written)."""
 
     def coords(k):
         return _point_coords(o, d, t0, t_end, k, cfg)
@@ -666,18 +686,22 @@ def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: b
 
     first = sample(coords(0))
 
-    def body(c, k):
-        carry, c_a, u_b = c  # u_b: point k + 1's coordinates, made by the iteration before
+    def body(i, c):
+        carry, c_a, u_b, traj = c  # u_b: point k + 1's coordinates, made by the iteration before
+        k = jnp.asarray(i, t0.dtype)  # (a Python int op by op, under jax.disable_jit)
         ta = _step_times(t0, t_end, k, cfg.step)
         tb = _step_times(t0, t_end, k + 1, cfg.step)
         c_b = sample(u_b)
         a, b = _mix(c_a, phase, cfg), _mix(c_b, phase, cfg)
-        out = (carry[0], carry[2]) if trajectory else None
-        return (_march_step(carry, ta, tb, a, b), c_b, coords(k + 2)), out
+        if trajectory:
+            traj = (traj[0].at[i].set(carry[0]), traj[1].at[i].set(carry[2]))
+        return _march_step(carry, ta, tb, a, b), c_b, coords(k + 2), traj
 
-    ks = jnp.arange(cfg.n_steps, dtype=t0.dtype)
-    init = (_march_init(t0, t_end, _mix(first, phase, cfg)[2]), first, coords(1))
-    (carry, _, _), traj = jax.lax.scan(body, init, ks)
+    traj = ((jnp.zeros((cfg.n_steps,) + t0.shape, t0.dtype),
+             jnp.zeros((cfg.n_steps,) + t0.shape, bool)) if trajectory else None)
+    init = (_march_init(t0, t_end, _mix(first, phase, cfg)[2]), first, coords(1), traj)
+    n = cfg.n_steps if every_step else _live_steps(t0, t_end, cfg)
+    carry, _, _, traj = jax.lax.fori_loop(0, n, body, init)
     return (carry, traj) if trajectory else carry
 
 
@@ -691,10 +715,10 @@ def _march(table, phase, o, d, t0, t_end, cfg: _MarchConfig):
     Differentiable in ``table`` and ``phase``; the march points do not depend on them, so
     ``o, d, t0, t_end`` get no cotangent.
 
-    The backward pass is a reverse scan over the steps: re-gather the samples of one step,
+    The backward pass is a reverse loop over the steps: re-gather the samples of one step,
     apply the step's adjoint (``_march_step_vjp``, given the transmittance before it from a
     recomputed forward), scatter-add the samples' cotangents into one table accumulator
-    carried by the scan.  JAX's own transpose of the forward scan would add a
+    carried by the loop.  JAX's own transpose of the forward scan would add a
     dense table-sized cotangent at every step (10x slower on a 64³ lattice).
     """
     T, L, _, t_hit = _march_fused(table, phase, o, d, t0, t_end, cfg)
@@ -718,10 +742,13 @@ def _march_bwd(cfg, res, ct):
             acc = acc.at[i].add(w * g, mode="promise_in_bounds")
         return acc
 
-    def body(carry, x):
+    n = _live_steps(t0, t_end, cfg)
+
+    def body(i, carry):
         # u_a, u_b: points k and k + 1's coordinates, made by the iterations before
         lam_T, lam_hit, c_b, u_b, u_a, g_b_next, g_phase, acc = carry
-        k, T_a, alive = x
+        j = n - 1 - i  # the steps in reverse
+        k, T_a, alive = jnp.asarray(j, t0.dtype), T_k[j], alive_k[j]
         ta = _step_times(t0, t_end, k, cfg.step)
         tb = _step_times(t0, t_end, k + 1, cfg.step)
         c_a = _sample(table, u_a, cfg.geo, cfg.slope_at)
@@ -731,16 +758,14 @@ def _march_bwd(cfg, res, ct):
         g_b, g_ph_b = _unmix_ct(g_b, c_b, phase, cfg)
         acc = scatter(acc, u_b, g_b + g_b_next)  # point k+1 ends step k and starts step k+1
         return (lam_T, lam_hit, c_a, u_a, coords(k - 1), g_a, g_phase + g_ph_a + g_ph_b,
-                acc), None
+                acc)
 
-    n = cfg.n_steps
-    ks = jnp.arange(n, dtype=t0.dtype)
-    u_last = coords(n)
+    nf = n.astype(t0.dtype)
+    u_last = coords(nf)
     c_last = _sample(table, u_last, cfg.geo, cfg.slope_at)
-    init = (g_T, g_hit, c_last, u_last, coords(n - 1), jnp.zeros_like(c_last),
+    init = (g_T, g_hit, c_last, u_last, coords(nf - 1), jnp.zeros_like(c_last),
             jnp.zeros_like(phase), jnp.zeros_like(table))
-    (_, _, _, u_first, _, g_first, g_phase, acc), _ = jax.lax.scan(
-        body, init, (ks, T_k, alive_k), reverse=True)
+    _, _, _, u_first, _, g_first, g_phase, acc = jax.lax.fori_loop(0, n, body, init)
     return scatter(acc, u_first, g_first), g_phase, None, None, None, None
 
 
@@ -748,8 +773,8 @@ _march.defvjp(_march_fwd, _march_bwd)
 
 
 def _march_jvp_able(table, phase, o, d, t0, t_end, cfg: _MarchConfig):
-    """``_march`` as the plain scan (``forward_mode``): the same values, differentiable by
-    ``jax.jvp``."""
+    """``_march`` as the plain loop (``forward_mode``): the same values, differentiable by
+    ``jax.jvp`` (not by reverse mode: the loop's trip count is the chunk's own)."""
     T, L, _, t_hit = _march_fused(table, phase, o, d, t0, t_end, cfg)
     return T, L, t_hit
 
@@ -1018,17 +1043,83 @@ def render_camera(fields: LatticeFields, camera: Camera, *, supersample: int = 2
     """Box-filtered image (H, W) of a camera: the mean of :func:`render_rays` over the
     supersample² stratified sub-pixel rays of :func:`camera_rays`, or with ``hits`` (from
     :func:`camera_hits`, which chose the rays) over its rays, per pixel.  Row 0 is the top."""
+    return render_cameras(fields, [camera], supersample=supersample, step=step, chunk=chunk,
+                          max_length=max_length, hits=None if hits is None else [hits])[0]
+
+
+def _joined_hits(hits) -> RayHits:
+    """Several cameras' RayHits as one (their rays one after the other; the longest segment of
+    them all).  Materialised once (an optimisation barrier): XLA would otherwise fuse the
+    concatenation into every march step that reads the rays."""
+    if len(hits) == 1:
+        return hits[0]
+    lengths = [h.max_length for h in hits]
+    arrays = {f: jnp.concatenate([getattr(h, f) for h in hits])
+              for f in ("origins", "directions", "pixel", "weight", "t", "normal", "shape",
+                        "sun_cos", "sun_depth")}
+    arrays = jax.lax.optimization_barrier(arrays)
+    return RayHits(**arrays, max_length=None if None in lengths else max(lengths))
+
+
+def march_lanes(costs, lanes: int | None = None) -> list[list[int]]:
+    """The cameras (their march costs, rays × steps) in at most ``lanes`` groups, each group one
+    march of its cameras' rays together: the largest first, each to the group with the least
+    so far (each group's cameras in their own order).  ``lanes`` None: ``MARCH_LANES`` on a
+    CPU, 1 elsewhere."""
+    if lanes is None:
+        lanes = MARCH_LANES if jax.default_backend() == "cpu" else 1
+    n = max(1, min(int(lanes), len(costs)))
+    groups, load = [[] for _ in range(n)], [0.0] * n
+    for i in sorted(range(len(costs)), key=lambda i: -costs[i]):
+        k = load.index(min(load))
+        groups[k].append(i)
+        load[k] += costs[i]
+    return [sorted(g) for g in groups if g]
+
+
+def render_cameras(fields: LatticeFields, cameras, *, supersample: int = 2,
+                   step: float | None = None, chunk: int = 16384,
+                   max_length: float | None = None, hits=None,
+                   lanes: int | None = None) -> list:
+    """:func:`render_camera` of each of ``cameras`` (``hits``: None, or a RayHits per camera),
+    their rays marched in at most ``lanes`` marches (``march_lanes``), each of several cameras'
+    rays together: the compiled program holds that many marches however many cameras, and
+    XLA runs them side by side on a CPU's cores.  Each chunk of rays takes its own rays' step
+    count (``_live_steps``), so a camera whose paths are shorter pays no more steps for being
+    marched with one whose paths are longer."""
+    step_len = march_step(fields.h, step)
     if hits is not None:
-        W, H = (int(v) for v in camera.resolution)
-        rad = render_rays(fields, hits.origins, hits.directions, step=step, chunk=chunk,
-                          max_length=max_length, hits=hits)
-        img = jax.ops.segment_sum(rad * hits.weight.astype(rad.dtype), hits.pixel,
-                                  num_segments=H * W)
-        return img.reshape(H, W)
-    o, d = camera_rays(camera, supersample)
-    H, W, S, _ = o.shape
-    rad = render_rays(fields, o, d, step=step, chunk=chunk, max_length=max_length, hits=hits)
-    return rad.reshape(H, W, S).mean(axis=-1)
+        rays = [h.pixel.shape[0] for h in hits]
+        costs = [r * march_steps(fields, step_len, max_length=h.max_length if max_length is None else max_length)
+                 for r, h in zip(rays, hits)]
+    else:
+        od = [camera_rays(camera, supersample) for camera in cameras]
+        rays = [o.shape[0] * o.shape[1] * o.shape[2] for o, _ in od]
+        costs = [r * march_steps(fields, step_len, o, d, max_length)
+                 for r, (o, d) in zip(rays, od)]
+    images = [None] * len(cameras)
+    for group in march_lanes(costs, lanes):
+        if hits is not None:
+            joined = _joined_hits([hits[i] for i in group])
+            rad = render_rays(fields, joined.origins, joined.directions, step=step,
+                              chunk=chunk, max_length=max_length, hits=joined)
+        else:
+            o = np.concatenate([od[i][0].reshape(-1, 3) for i in group])
+            d = np.concatenate([od[i][1].reshape(-1, 3) for i in group])
+            rad = render_rays(fields, o, d, step=step, chunk=chunk, max_length=max_length)
+        a = 0
+        for i in group:
+            r = rad[a:a + rays[i]]
+            a += rays[i]
+            if hits is not None:
+                W, H = (int(v) for v in cameras[i].resolution)
+                img = jax.ops.segment_sum(r * hits[i].weight.astype(r.dtype), hits[i].pixel,
+                                          num_segments=H * W)
+                images[i] = img.reshape(H, W)
+            else:
+                H, W, S, _ = od[i][0].shape
+                images[i] = r.reshape(H, W, S).mean(axis=-1)
+    return images
 
 
 #: normals closer than this (cosine) count as one surface when looking for edges

@@ -26,7 +26,7 @@ from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
 from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _flat_table, _interp, camera_hits,
-                     edge_pixels, march_step, render_camera, step_count)
+                     edge_pixels, march_step, render_cameras, step_count)
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth, zero_state
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
@@ -963,9 +963,8 @@ class SweepModel(AbstractForwardModel):
         geom, cg, density, hits = self._with_density(params)
         _, cg, hits = self._with_sun(params, geom, cg, hits)
         f = camera_fields(cg, density, light, params)
-        hits = hits if hits is not None else (None,) * len(self.cameras)
-        return {c.name: render_camera(f, c, supersample=self.supersample, hits=h)
-                for c, h in zip(self.cameras, hits)}
+        images = render_cameras(f, self.cameras, supersample=self.supersample, hits=hits)
+        return {c.name: img for c, img in zip(self.cameras, images)}
 
     def settings(self) -> dict:
         lat = self.lattice
