@@ -379,14 +379,10 @@ def test_forward_mode_march_gives_the_reverse_modes_jacobian(x64):
         jax.jvp(image, (x,), (x,))
 
 
-def test_cameras_marched_together_equal_each_alone(x64):
-    """``render_cameras`` marches several cameras' rays together in at most ``lanes`` marches
-    (one compiled march body per lane however many cameras), each chunk of rays for its own
-    rays' step count: the images, with exact hits and without, and the gradient equal those of
-    each camera marched alone (its own static step count), though the second camera's paths
-    are longer and the first's chunk stops well short of them."""
+def _two_cameras():
+    """(fields, fields_at, cameras, hits) of ``_exact_hit_case``'s scene seen by a camera whose
+    rays end soon (on the floor) and one that looks across the box."""
     import difffog as df
-    from difffog.forward.sweep import _march as cm
 
     base, _, _, fields_at = _exact_hit_case(True)
     scene = df.Scene(title="t", domain=df.Domain((0, 0, 0), (1.0, 0.9, 0.8)),
@@ -394,18 +390,46 @@ def test_cameras_marched_together_equal_each_alone(x64):
                      shapes=[df.Sphere("ball", center=(0.5, 0.45, 0.3), radius=0.2),
                              df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05),
                                                        (1, 0.9, 0.05), (0, 0.9, 0.05)))])
-    cam = persp(position=(0.15, 0.15, 0.3), look_at=(0.15, 0.2, 0.0), fov=30, res=(6, 5))
-    far = persp(position=(0.95, 0.85, 0.75), look_at=(0.1, 0.1, 0.1), fov=40, res=(5, 4))
-    hits, far_hits = (camera_hits(scene, c, 2, np.asarray(base.sigma_t), (0, 0, 0), 0.1,
-                                  (10, 9, 8)) for c in (cam, far))
-    assert far_hits.max_length > 3 * hits.max_length  # the far camera marches longer
-    cams, both = [cam, far], [hits, far_hits]
-    alone = [render_camera(base, c, supersample=2, hits=h) for c, h in zip(cams, both)]
+    cams = [persp(position=(0.15, 0.15, 0.3), look_at=(0.15, 0.2, 0.0), fov=30, res=(6, 5)),
+            persp(position=(0.95, 0.85, 0.75), look_at=(0.1, 0.1, 0.1), fov=40, res=(5, 4))]
+    hits = [camera_hits(scene, c, 2, np.asarray(base.sigma_t), (0, 0, 0), 0.1, (10, 9, 8))
+            for c in cams]
+    assert hits[1].max_length > 3 * hits[0].max_length  # the far camera marches longer
+    return base, fields_at, cams, hits
+
+
+def test_cameras_marched_together_equal_each_alone(x64):
+    """``render_cameras`` marches several cameras' rays together in at most ``lanes`` marches
+    (one compiled march body per lane however many cameras), each chunk of rays for its own
+    rays' step count: the images equal those of each camera marched alone (its own static step
+    count), though the second camera's paths are longer than the first's, whose chunk stops
+    well short of them.  (Without exact hits, and the gradient: the slow test below.)"""
+    from difffog.forward.sweep import _march as cm
+
+    base, _, cams, hits = _two_cameras()
+    alone = [render_camera(base, c, supersample=2, hits=h) for c, h in zip(cams, hits)]
     for lanes in (1, 2):
-        together = cm.render_cameras(base, cams, supersample=2, hits=both, lanes=lanes)
+        together = cm.render_cameras(base, cams, supersample=2, hits=hits, lanes=lanes)
         for a, b in zip(together, alone):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
-    plain = cm.render_cameras(base, cams, supersample=1, lanes=1)  # the lattice's sdf, no hits
+    # the near camera's rays end long before the far one's: its chunk takes fewer steps
+    near = hits[0]
+    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), 0.1, (10, 9, 8), False), 0,
+                          cm.step_count(hits[1].max_length, 0.05), 0.05)
+    t0 = jnp.zeros(near.t.shape[0])
+    assert int(cm._live_steps(t0, jnp.minimum(near.t, near.max_length), cfg)) < cfg.n_steps
+    assert cm.march_lanes([5.0, 1.0, 1.0, 1.0, 4.0], 2) == [[0, 2], [1, 3, 4]]
+    assert sorted(cm.march_lanes([1.0, 2.0], 4)) == [[0], [1]]  # no more lanes than cameras
+
+
+@pytest.mark.slow  # ~25 s: four more marches to compile, two of them gradients
+def test_cameras_marched_together_without_hits_and_their_gradient(x64):
+    """As above, without exact hits (the lattice's sdf), and the gradient through one lane of
+    both cameras against the sum of each camera's alone."""
+    from difffog.forward.sweep import _march as cm
+
+    base, fields_at, cams, hits = _two_cameras()
+    plain = cm.render_cameras(base, cams, supersample=1, lanes=1)
     for a, c in zip(plain, cams):
         np.testing.assert_allclose(a, render_camera(base, c, supersample=1), rtol=1e-12,
                                    atol=1e-14)
@@ -413,20 +437,12 @@ def test_cameras_marched_together_equal_each_alone(x64):
     def loss(x, together):
         f = fields_at(*x)
         if together:
-            return sum(i.sum() for i in cm.render_cameras(f, cams, hits=both, lanes=1))
-        return sum(render_camera(f, c, hits=h).sum() for c, h in zip(cams, both))
+            return sum(i.sum() for i in cm.render_cameras(f, cams, hits=hits, lanes=1))
+        return sum(render_camera(f, c, hits=h).sum() for c, h in zip(cams, hits))
     x = jnp.ones(4)
     g1, g2 = (jax.jit(jax.grad(lambda x, t=t: loss(x, t)))(x) for t in (True, False))
     assert float(jnp.min(jnp.abs(g2))) > 1e-3
     np.testing.assert_allclose(g1, g2, rtol=1e-10)
-    # the near camera's rays end long before the far one's: its chunk takes fewer steps
-    d = hits.directions
-    t0 = jnp.zeros(d.shape[0])
-    cfg = cm._MarchConfig(((0.0, 0.0, 0.0), 0.1, (10, 9, 8), False), 0,
-                          cm.step_count(far_hits.max_length, 0.05), 0.05)
-    assert int(cm._live_steps(t0, jnp.minimum(hits.t, hits.max_length), cfg)) < cfg.n_steps
-    assert cm.march_lanes([5.0, 1.0, 1.0, 1.0, 4.0], 2) == [[0, 2], [1, 3, 4]]
-    assert sorted(cm.march_lanes([1.0, 2.0], 4)) == [[0], [1]]  # no more lanes than cameras
 
 
 # ------------------------------------------------------------------------------------------

@@ -232,6 +232,11 @@ def _start_from_tangents(block):
         assert 0 < second < 0.5 * first <= 0.05 * np.abs(J0).max()
 
 
+# slow since stop 80 (the default suite's 12-minute budget on 2 cores: ~40 s there, two tangent
+# programs to compile); by default the block solve runs in every fit's Jacobian, is checked
+# against dense solves in test_sweep.py's block GMRES test and, started from given tangents,
+# in the test above
+@pytest.mark.slow
 def test_block_tangent_solves_give_the_tangents_of_one_solve_per_unknown():
     """The fit's tangent solves, one per unknown (the light state's tangents, ``jax.vmap``
     of ``jax.jvp`` inside ``forward_mode()``, as ``FitProblem.jacobian_and_tangents`` takes

@@ -377,6 +377,10 @@ def test_light_solve_from_a_nearby_state(fog_balls, x64):
         solver.solve(geom, p1, (zeros[0][:-1], zeros[1]))
 
 
+# slow since stop 80 (the default suite's 12-minute budget on 2 cores: ~30 s there); by default
+# test_fit.py's test_jacobian_tangent_solves_start_from_the_given_tangents checks the same start
+# where a fit takes it (FitProblem.jacobian_and_tangents, both tangent solvers)
+@pytest.mark.slow
 def test_tangent_solve_starts_from_the_inits_tangent(fog_balls, x64):
     """Inside ``forward_mode()`` a light solve's tangent solve starts from ``init``'s tangent
     (a fit's Jacobian from the last step's tangents) and ``state`` carries its tangent: from
