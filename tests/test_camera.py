@@ -398,7 +398,7 @@ def _two_cameras():
     return base, fields_at, cams, hits
 
 
-def test_cameras_marched_together_equal_each_alone(x64):
+def test_cameras_marched_together_equal_each_alone(x64, monkeypatch):
     """``render_cameras`` marches several cameras' rays together in at most ``lanes`` marches
     (one compiled march body per lane however many cameras), each chunk of rays for its own
     rays' step count: the images equal those of each camera marched alone (its own static step
@@ -420,12 +420,19 @@ def test_cameras_marched_together_equal_each_alone(x64):
     assert int(cm._live_steps(t0, jnp.minimum(near.t, near.max_length), cfg)) < cfg.n_steps
     assert cm.march_lanes([5.0, 1.0, 1.0, 1.0, 4.0], 2) == [[0, 2], [1, 3, 4]]
     assert sorted(cm.march_lanes([1.0, 2.0], 4)) == [[0], [1]]  # no more lanes than cameras
+    # off a CPU (a GPU): one march per camera over its static step count, the same images
+    # (another chunk size: a new trace, which reads the backend's choice)
+    monkeypatch.setattr(cm, "_chunk_steps", lambda: False)
+    assert cm.march_lanes([5.0, 1.0, 4.0]) == [[0], [2], [1]]
+    for a, b in zip(cm.render_cameras(base, cams, supersample=2, hits=hits, chunk=4096), alone):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.slow  # ~25 s: four more marches to compile, two of them gradients
-def test_cameras_marched_together_without_hits_and_their_gradient(x64):
+def test_cameras_marched_together_without_hits_and_their_gradient(x64, monkeypatch):
     """As above, without exact hits (the lattice's sdf), and the gradient through one lane of
-    both cameras against the sum of each camera's alone."""
+    both cameras against the sum of each camera's alone; and off a CPU's choice (one march per
+    camera over its static step count) the same gradient."""
     from difffog.forward.sweep import _march as cm
 
     base, fields_at, cams, hits = _two_cameras()
@@ -443,6 +450,10 @@ def test_cameras_marched_together_without_hits_and_their_gradient(x64):
     g1, g2 = (jax.jit(jax.grad(lambda x, t=t: loss(x, t)))(x) for t in (True, False))
     assert float(jnp.min(jnp.abs(g2))) > 1e-3
     np.testing.assert_allclose(g1, g2, rtol=1e-10)
+    monkeypatch.setattr(cm, "_chunk_steps", lambda: False)
+    g3 = jax.jit(jax.grad(lambda x: sum(
+        i.sum() for i in cm.render_cameras(fields_at(*x), cams, hits=hits, chunk=4096))))(x)
+    np.testing.assert_allclose(g3, g2, rtol=1e-10)
 
 
 # ------------------------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 The light has already been solved on a regular lattice (node ``(i, j, k)`` at
 ``origin + (idx + 0.5)·h``).  A camera ray is clipped to the lattice box and marched with fixed
 steps (a loop over each chunk's own step count, the longest of its rays', up to a static
-count, vectorised over rays, ``lax.map`` over chunks of rays) through trilinearly interpolated fields, integrating
+count, vectorised over rays, ``lax.map`` over chunks of rays) through trilinearly
+interpolated fields, integrating
 
     dL/ds = -σ_t L + j_iso + j_sun · p_HG(cos θ)
 
@@ -69,7 +70,10 @@ SLOPE_CHANNELS = 6
 #: how many marches a model's cameras are grouped into on a CPU (``march_lanes``): XLA runs
 #: independent loops side by side on the cores, so two marches take both of a 2-core CPU's
 #: cores (fog-balls N = 32, M = 3, stop 80: its two cameras 0.27 s as two marches against
-#: 0.42 s as one); each lane is one more march to compile, so at most 4 however many cores
+#: 0.42 s as one); each lane is one more march to compile, so at most 4 however many cores.
+#: Elsewhere (a GPU) each camera keeps its own march over its static step count, as before
+#: stop 80: a loop whose trip count only the device knows makes the host wait on each step's
+#: test there, which no GPU has yet measured (``_chunk_steps``)
 MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
 #: longest march in a periodic-xy domain, in domain diagonals, unless ``max_length`` is given
 PERIODIC_MAX_DIAGONALS = 8.0
@@ -659,6 +663,11 @@ def _point_coords(o, d, t0, t_end, k, cfg: _MarchConfig):
     return _coords(o + _step_times(t0, t_end, k, cfg.step)[:, None] * d, cfg.geo)
 
 
+def _chunk_steps() -> bool:
+    """Whether marches stop at their chunk's own step count (``_live_steps``): on a CPU."""
+    return jax.default_backend() == "cpu"
+
+
 def _live_steps(t0, t_end, cfg: _MarchConfig):
     """How many of the march's steps have a positive length for some ray of the chunk (at most
     ``cfg.n_steps``): the steps after them change nothing (``_march_step`` skips ds = 0), so the
@@ -700,7 +709,8 @@ def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: b
     traj = ((jnp.zeros((cfg.n_steps,) + t0.shape, t0.dtype),
              jnp.zeros((cfg.n_steps,) + t0.shape, bool)) if trajectory else None)
     init = (_march_init(t0, t_end, _mix(first, phase, cfg)[2]), first, coords(1), traj)
-    n = cfg.n_steps if every_step else _live_steps(t0, t_end, cfg)
+    live = not every_step and _chunk_steps()
+    n = _live_steps(t0, t_end, cfg) if live else cfg.n_steps
     carry, _, _, traj = jax.lax.fori_loop(0, n, body, init)
     return (carry, traj) if trajectory else carry
 
@@ -742,7 +752,7 @@ def _march_bwd(cfg, res, ct):
             acc = acc.at[i].add(w * g, mode="promise_in_bounds")
         return acc
 
-    n = _live_steps(t0, t_end, cfg)
+    n = _live_steps(t0, t_end, cfg) if _chunk_steps() else cfg.n_steps
 
     def body(i, carry):
         # u_a, u_b: points k and k + 1's coordinates, made by the iterations before
@@ -760,7 +770,7 @@ def _march_bwd(cfg, res, ct):
         return (lam_T, lam_hit, c_a, u_a, coords(k - 1), g_a, g_phase + g_ph_a + g_ph_b,
                 acc)
 
-    nf = n.astype(t0.dtype)
+    nf = jnp.asarray(n, t0.dtype)
     u_last = coords(nf)
     c_last = _sample(table, u_last, cfg.geo, cfg.slope_at)
     init = (g_T, g_hit, c_last, u_last, coords(nf - 1), jnp.zeros_like(c_last),
@@ -1065,9 +1075,9 @@ def march_lanes(costs, lanes: int | None = None) -> list[list[int]]:
     """The cameras (their march costs, rays × steps) in at most ``lanes`` groups, each group one
     march of its cameras' rays together: the largest first, each to the group with the least
     so far (each group's cameras in their own order).  ``lanes`` None: ``MARCH_LANES`` on a
-    CPU, 1 elsewhere."""
+    CPU, one per camera elsewhere (``_chunk_steps``)."""
     if lanes is None:
-        lanes = MARCH_LANES if jax.default_backend() == "cpu" else 1
+        lanes = MARCH_LANES if _chunk_steps() else len(costs)
     n = max(1, min(int(lanes), len(costs)))
     groups, load = [[] for _ in range(n)], [0.0] * n
     for i in sorted(range(len(costs)), key=lambda i: -costs[i]):
@@ -1090,7 +1100,8 @@ def render_cameras(fields: LatticeFields, cameras, *, supersample: int = 2,
     step_len = march_step(fields.h, step)
     if hits is not None:
         rays = [h.pixel.shape[0] for h in hits]
-        costs = [r * march_steps(fields, step_len, max_length=h.max_length if max_length is None else max_length)
+        costs = [r * march_steps(fields, step_len,
+                                 max_length=h.max_length if max_length is None else max_length)
                  for r, h in zip(rays, hits)]
     else:
         od = [camera_rays(camera, supersample) for camera in cameras]
