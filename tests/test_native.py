@@ -691,6 +691,10 @@ def test_native_sky_pass_equals_the_xla_program(dtype, harm, slope, x64, monkeyp
             np.testing.assert_array_equal(r[k], runs[0][k])
 
 
+# slow since stop 80 (the default suite's 12-minute budget on 2 cores: ~25 s there); by default
+# the sky's first collision is differentiated through this kernel in test_sweep.py's gradients
+# against differences (fog-balls has a sky; the step scheme, no moments or slopes)
+@pytest.mark.slow
 @needs_compiler
 def test_native_sky_pass_derivatives_match_differences(x64):
     """A loss of the sky's first collision through the native kernel (whose derivative rule is

@@ -26,19 +26,30 @@ def test_image_loss_gradient_matches_finite_differences(x64):
     image_loss_gradient_matches_fd(m, scene, PATHS)  # m(p) raises if a light solve failed
 
 
-def test_renders_and_gradients_repeat_bit_for_bit():
-    """Deterministic: the same model renders the same images, and its loss gradient is the
-    same, bit for bit, each time (the native kernel shares its work between the CPU's cores in
-    a fixed split; a reduction whose order followed the threads' timing would not be)."""
+def test_renders_repeat_bit_for_bit():
+    """Deterministic: the same model renders the same images, bit for bit, each time (the
+    native kernel shares its work between the CPU's cores in a fixed split; a reduction whose
+    order followed the threads' timing would not be).  The gradient: the slow test below."""
     import numpy as np
 
     m = build_model("sweep", small_scene())
-    p = m.params()
     first = {k: np.asarray(v) for k, v in df.render(m).images.items()}
     again = {k: np.asarray(v) for k, v in df.render(m).images.items()}
     assert first.keys() == again.keys() and all(
         np.array_equal(first[k], again[k]) for k in first)
     assert all(np.all(v > 0) for v in first.values())  # a lit scene, not two blank images
+
+
+# slow since stop 80 (the default suite's 12-minute budget on 2 cores: ~25 s there, the
+# gradient's programs to compile)
+@pytest.mark.slow
+def test_gradients_repeat_bit_for_bit():
+    """The loss gradient of the same model is the same, bit for bit, each time (the adjoint's
+    transposed sweeps share the cores in the same fixed split)."""
+    import numpy as np
+
+    m = build_model("sweep", small_scene())
+    p = m.params()
 
     def loss(q):
         return sum(jnp.sum(v * v) for v in m(q).values())

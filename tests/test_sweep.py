@@ -8,6 +8,7 @@ without fog under ``terms="all"``) share one compiled program.
 
 import math
 import warnings
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -328,29 +329,36 @@ def test_block_gmres_solves_several_right_hand_sides_at_once(x64):
     def apply_a(U):
         return U @ A.T
 
+    @partial(jax.jit, static_argnums=1)  # one program per restart for the three columns
+    def single(b, restart):
+        return gmres(lambda u, w: u - A @ u + jnp.where(w, b, 0.0), (n,), jnp.float64,
+                     restart=restart, max_matvecs=2000, tol=1e-8)[2]
+
     def singles(restart):  # the columns' own GMRES: the lockstep runs p × the slowest
-        return [int(gmres(lambda u, w, b=b: u - A @ u + jnp.where(w, b, 0.0), (n,),
-                          jnp.float64, restart=restart, max_matvecs=2000, tol=1e-8)[2])
-                for b in jnp.asarray(B)]
+        return [int(single(b, restart)) for b in jnp.asarray(B)]
 
     pre = jnp.asarray(np.linalg.inv(np.eye(n) - 0.5 * K))  # an approximate inverse
-    for restart, precondition in ((40, None), (8, None), (8, lambda U: U @ pre.T)):
-        out, k, err = block_gmres(apply_a, jnp.asarray(B), restart=restart, max_matvecs=2000,
-                                  tol=1e-8, precondition=precondition)
+
+    @partial(jax.jit, static_argnames=("restart", "max_matvecs", "flexible"))
+    def block(B, X0=None, *, restart=40, max_matvecs=2000, flexible=False):
+        return block_gmres(apply_a, B, restart=restart, max_matvecs=max_matvecs, tol=1e-8,
+                           precondition=(lambda U: U @ pre.T) if flexible else None, X0=X0)
+
+    for restart, flexible in ((40, False), (8, False), (8, True)):
+        out, k, err = block(jnp.asarray(B), restart=restart, flexible=flexible)
         assert np.all(np.asarray(err) <= 1e-8), (restart, err)
         assert np.abs(np.asarray(out) - X).max(1).max() <= 1e-7 * np.abs(X).max()
-        if precondition is None:
+        if not flexible:
             lockstep = p * max(singles(restart))
             assert int(k) < lockstep, (restart, int(k), lockstep)
     B0 = B.copy()
     B0[1] = 0.0
-    out, k, err = block_gmres(apply_a, jnp.asarray(B0), restart=40, max_matvecs=2000, tol=1e-8)
+    out, k, err = block(jnp.asarray(B0))
     assert np.all(np.asarray(out)[1] == 0) and float(err[1]) == 0.0
     assert np.abs(np.asarray(out)[0] - X[0]).max() <= 1e-7 * np.abs(X[0]).max()
-    _, k, err = block_gmres(apply_a, jnp.asarray(B), restart=40, max_matvecs=2000, tol=1e-8,
-                            X0=jnp.asarray(X))
+    _, k, err = block(jnp.asarray(B), jnp.asarray(X))
     assert int(k) == 2 * p and np.all(np.asarray(err) <= 1e-8)  # its residual, one step
-    _, k, err = block_gmres(apply_a, jnp.asarray(B), restart=40, max_matvecs=2 * p, tol=1e-8)
+    _, k, err = block(jnp.asarray(B), max_matvecs=2 * p)
     assert int(k) == 2 * p and np.all(np.asarray(err) > 1e-8)
 
 
