@@ -44,8 +44,11 @@ def test_pallas_face_sweep_equals_the_batched_program(M, surfaces, periodic, vol
         assert float(jnp.max(jnp.abs(lam))) == 0.0
 
 
-@pytest.mark.parametrize("linear,order,sun", [(True, 0, False), (False, 1, True),
-                                               (True, 1, True)])
+# (True, 1, True) has all three forms at once; the other two alone run with -m slow since stop
+# 80 (~10 s each there: the default suite's 12-minute budget on 2 cores)
+@pytest.mark.parametrize("linear,order,sun", [
+    pytest.param(True, 0, False, marks=pytest.mark.slow),
+    pytest.param(False, 1, True, marks=pytest.mark.slow), (True, 1, True)])
 def test_pallas_face_sweep_with_moments_and_slopes(linear, order, sun, x64):
     """The anisotropic and linear-source forms: a source per direction from the moments'
     channels (``order``: the δ-M order's basis) and the sun's phase channel, the slope
