@@ -298,20 +298,25 @@ def test_gradients_match_finite_differences(x64):
         assert np.isfinite(getattr(gf, name)).all(), name
 
 
+def _exact_hit_scene():
+    """The small scene of ``_exact_hit_case``: a sphere and a floor under a sun."""
+    import difffog as df
+
+    return df.Scene(title="t", domain=df.Domain((0, 0, 0), (1.0, 0.9, 0.8)),
+                    sun=df.Sun(2.0, 30.0, 40.0),
+                    shapes=[df.Sphere("ball", center=(0.5, 0.45, 0.3), radius=0.2),
+                            df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05),
+                                                      (1, 0.9, 0.05), (0, 0.9, 0.05)))])
+
+
 def _exact_hit_case(sun_apart: bool):
     """(fields, camera, hits, fields_at): a small scene's exact hits (a sphere, a floor, the
     sky) through random fields in float64, camera inside the fog; fields_at(a, e, alb, em)
     scales σ_t (and the sun's extinction and depth), the irradiance, the albedos and the
     emissions."""
-    import difffog as df
-
     rng = np.random.default_rng(1)
     n, h = (10, 9, 8), 0.1
-    scene = df.Scene(title="t", domain=df.Domain((0, 0, 0), (1.0, 0.9, 0.8)),
-                     sun=df.Sun(2.0, 30.0, 40.0),
-                     shapes=[df.Sphere("ball", center=(0.5, 0.45, 0.3), radius=0.2),
-                             df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05),
-                                                       (1, 0.9, 0.05), (0, 0.9, 0.05)))])
+    scene = _exact_hit_scene()
     cam = persp(position=(0.2, 0.1, 0.6), look_at=(0.5, 0.45, 0.2), fov=70, res=(6, 5))
     density = 0.5 + rng.random(n)
     hits = camera_hits(scene, cam, 2, density, (0, 0, 0), h, n)
@@ -382,14 +387,8 @@ def test_forward_mode_march_gives_the_reverse_modes_jacobian(x64):
 def _two_cameras():
     """(fields, fields_at, cameras, hits) of ``_exact_hit_case``'s scene seen by a camera whose
     rays end soon (on the floor) and one that looks across the box."""
-    import difffog as df
-
     base, _, _, fields_at = _exact_hit_case(True)
-    scene = df.Scene(title="t", domain=df.Domain((0, 0, 0), (1.0, 0.9, 0.8)),
-                     sun=df.Sun(2.0, 30.0, 40.0),
-                     shapes=[df.Sphere("ball", center=(0.5, 0.45, 0.3), radius=0.2),
-                             df.Quad("floor", corners=((0, 0, 0.05), (1, 0, 0.05),
-                                                       (1, 0.9, 0.05), (0, 0.9, 0.05)))])
+    scene = _exact_hit_scene()
     cams = [persp(position=(0.15, 0.15, 0.3), look_at=(0.15, 0.2, 0.0), fov=30, res=(6, 5)),
             persp(position=(0.95, 0.85, 0.75), look_at=(0.1, 0.1, 0.1), fov=40, res=(5, 4))]
     hits = [camera_hits(scene, c, 2, np.asarray(base.sigma_t), (0, 0, 0), 0.1, (10, 9, 8))
@@ -401,9 +400,9 @@ def _two_cameras():
 def test_cameras_marched_together_equal_each_alone(x64, monkeypatch):
     """``render_cameras`` marches several cameras' rays together in at most ``lanes`` marches
     (one compiled march body per lane however many cameras), each chunk of rays for its own
-    rays' step count: the images equal those of each camera marched alone (its own static step
-    count), though the second camera's paths are longer than the first's, whose chunk stops
-    well short of them.  (Without exact hits, and the gradient: the slow test below.)"""
+    rays' step count: the images equal those of each camera marched alone (capped at its own
+    longest path), though the second camera's paths are longer than the first's, whose chunk
+    stops well short of them.  (Without exact hits, and the gradient: the slow test below.)"""
     from difffog.forward.sweep import _march as cm
 
     base, _, cams, hits = _two_cameras()

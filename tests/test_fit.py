@@ -198,6 +198,8 @@ def test_jacobian_tangent_solves_start_from_the_given_tangents():
     seen to move, within the tolerance."""
     for block in (False, True):
         _start_from_tangents(block)
+    with pytest.raises(df.DifffogError, match="block_tangents"):
+        SweepSolver(block_tangents="yes")
 
 
 def _start_from_tangents(block):
@@ -269,8 +271,6 @@ def test_block_tangent_solves_give_the_tangents_of_one_solve_per_unknown():
         scale = np.abs(b).reshape(len(coords), -1).max(axis=1)
         assert scale.min() > 0 and np.isfinite(a).all() and not np.array_equal(a, b)
         assert np.abs(a - b).reshape(len(coords), -1).max(axis=1).max() <= 1e-3 * scale.min()
-    with pytest.raises(df.DifffogError, match="block_tangents"):
-        SweepSolver(block_tangents="yes")
 
 
 def test_an_unconverged_tangent_solve_is_a_result_code_and_the_step_has_no_callback():

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import dataclasses
 import math
 import os
 from functools import partial
@@ -678,6 +679,12 @@ def _live_steps(t0, t_end, cfg: _MarchConfig):
     return jnp.minimum(n, cfg.n_steps).astype(jnp.int32)
 
 
+def _step_count(t0, t_end, cfg: _MarchConfig, every_step: bool = False):
+    """The steps a march of the chunk runs, forward and back alike: its live steps where
+    ``_chunk_steps`` (a traced count), else (or with ``every_step``) all ``cfg.n_steps``."""
+    return cfg.n_steps if every_step or not _chunk_steps() else _live_steps(t0, t_end, cfg)
+
+
 def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: bool = False,
                  every_step: bool = False):
     """The march, the samples gathered inside the loop; ``_live_steps`` steps (a while loop: the
@@ -709,8 +716,7 @@ def _march_fused(table, phase, o, d, t0, t_end, cfg: _MarchConfig, trajectory: b
     traj = ((jnp.zeros((cfg.n_steps,) + t0.shape, t0.dtype),
              jnp.zeros((cfg.n_steps,) + t0.shape, bool)) if trajectory else None)
     init = (_march_init(t0, t_end, _mix(first, phase, cfg)[2]), first, coords(1), traj)
-    live = not every_step and _chunk_steps()
-    n = _live_steps(t0, t_end, cfg) if live else cfg.n_steps
+    n = _step_count(t0, t_end, cfg, every_step)
     carry, _, _, traj = jax.lax.fori_loop(0, n, body, init)
     return (carry, traj) if trajectory else carry
 
@@ -752,7 +758,7 @@ def _march_bwd(cfg, res, ct):
             acc = acc.at[i].add(w * g, mode="promise_in_bounds")
         return acc
 
-    n = _live_steps(t0, t_end, cfg) if _chunk_steps() else cfg.n_steps
+    n = _step_count(t0, t_end, cfg)
 
     def body(i, carry):
         # u_a, u_b: points k and k + 1's coordinates, made by the iterations before
@@ -1064,9 +1070,8 @@ def _joined_hits(hits) -> RayHits:
     if len(hits) == 1:
         return hits[0]
     lengths = [h.max_length for h in hits]
-    arrays = {f: jnp.concatenate([getattr(h, f) for h in hits])
-              for f in ("origins", "directions", "pixel", "weight", "t", "normal", "shape",
-                        "sun_cos", "sun_depth")}
+    arrays = {f.name: jnp.concatenate([getattr(h, f.name) for h in hits])
+              for f in dataclasses.fields(RayHits) if f.name != "max_length"}
     arrays = jax.lax.optimization_barrier(arrays)
     return RayHits(**arrays, max_length=None if None in lengths else max(lengths))
 
