@@ -1,5 +1,6 @@
 """The command line: outputs on disk, exit codes and one-line errors."""
 
+import gc
 import json
 import math
 import re
@@ -14,7 +15,9 @@ from difffog.cli import main
 
 
 def test_info_summarizes_scene(capsys):
+    frozen = gc.get_freeze_count()
     assert main(["info", "fog-balls", "-N", "24", "-M", "2"]) == 0
+    assert gc.get_freeze_count() == frozen  # only the program itself freezes its imports
     out = capsys.readouterr().out
     assert "24x24x24 nodes" not in out  # the lattice carries the vacuum margin around open sides
     assert "30x30x30 nodes" in out
@@ -238,6 +241,18 @@ def test_max_iterations_and_iterations_are_exclusive(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--max-iterations" in err[0] and "--iterations" in err[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_the_command_line_imports_only_what_it_uses():
+    # SciPy's optimizers (a density fit), trimesh (the splat's shapes) and matplotlib (plots)
+    # cost a command ~0.7 s to import; a render of spheres needs none of them
+    code = ("import sys, difffog.cli; from difffog.cli._main import main; "
+            "assert main(['info', 'fog-balls', '-N', '8', '-M', '1']) == 0; "
+            "print(sorted(m for m in ('scipy.optimize', 'trimesh', 'matplotlib') "
+            "if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "[]"
 
 
 def test_console_script_entry_point():

@@ -5,6 +5,7 @@ nothing is left half-written (outputs go through ``difffog._output.atomic_folder
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import sys
 import warnings
@@ -126,6 +127,11 @@ def _host_devices(n: int) -> None:
 
 
 def main(argv=None) -> int:
+    if argv is None:  # run as the program (not called from Python with its own arguments)
+        # the ~170,000 objects the imports made (JAX, SciPy, difffog) live as long as the
+        # process: out of the collector's way, each full collection while JAX traces and
+        # lowers the programs scans only what came after (a cached render: 0.15-0.2 s less)
+        gc.freeze()
     parser = build_parser()
     args = parser.parse_args(argv)
     _host_devices(getattr(args, "devices", None) or 1)

@@ -31,7 +31,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.optimize
 
 from .._errors import AdjointWarning, DifffogError, SceneError
 from .._progress import as_meter
@@ -768,6 +767,8 @@ def _lbfgs_pass(loss, x, x_cap, lev, pass_, n_steps, rtol, history, first_call, 
     spent, stopped = count[0] >= n_steps, False
     try:
         if not spent:
+            import scipy.optimize  # 0.3-0.5 s to import; only a density fit needs it
+
             x0 = np.asarray(x, np.float64)
             scipy.optimize.minimize(fun, x0, jac=True, method="L-BFGS-B",
                                     bounds=scipy.optimize.Bounds(-np.inf, np.full(x0.shape, x_cap)),

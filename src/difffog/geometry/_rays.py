@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
 from ..scene._description import Box, Mesh, OpenBox, Quad, Scene, Sphere, Torus
 
@@ -49,6 +48,8 @@ class Triangles:
 
 
 def _rotation_z_to(axis) -> np.ndarray:
+    import trimesh
+
     a = np.asarray(axis, float)
     a = a / np.linalg.norm(a)
     return trimesh.geometry.align_vectors([0.0, 0.0, 1.0], a)
@@ -56,6 +57,8 @@ def _rotation_z_to(axis) -> np.ndarray:
 
 def _shape_meshes(s, sphere_subdivisions: int, torus_sections: tuple[int, int]):
     """[(trimesh.Trimesh, smooth)] of one shape."""
+    import trimesh  # 0.15 s to import: only the splat's shapes need it, when built
+
     if isinstance(s, Sphere):
         m = trimesh.creation.icosphere(subdivisions=sphere_subdivisions, radius=s.radius)
         m.apply_translation(s.center)
