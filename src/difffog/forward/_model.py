@@ -122,6 +122,11 @@ class AbstractForwardModel(eqx.Module):
         None."""
         return None
 
+    def for_one_render(self) -> "AbstractForwardModel":
+        """This model as a single render runs it best: programs that compile in less time,
+        even where they run a little longer (:func:`render` takes it).  Default: itself."""
+        return self
+
     def zero_light_state(self, dtype):
         """A light state of zeros (the shape of ``light.state``) for a model whose ``light``
         takes ``init`` (a warm start, see ``SweepModel.light``), else None.  Default: None."""
@@ -250,7 +255,9 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     throw: raise a one-line :class:`SolverError` if the light solve did not converge
         (naming its estimated error and iterations); False returns the result in
         ``Rendered.result`` instead.
-    Compilation is timed apart from the run (``*_compile_s``); non-finite images raise.
+    Compilation is timed apart from the run (``*_compile_s``); non-finite images raise.  The
+    programs are the model's :meth:`~AbstractForwardModel.for_one_render` (one render: those
+    that compile fastest).
     """
     if isinstance(model, Scene):
         from ._registry import forward_model
@@ -267,6 +274,7 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     warn_thick_steps(model, params, stacklevel=3)
     if layer := model.layer_warning(params):
         warnings.warn(layer, ThinLayerWarning, stacklevel=2)
+    model = model.for_one_render()
     timings = dict(model.settings().get("setup_s", {}))
     t = time.perf_counter()
     light_fn = light_jit.lower(model, params).compile()

@@ -25,8 +25,8 @@ from ...scene._params import SUN_PATHS, Params, get_param, sun_direction_of
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
-from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _flat_table, _interp, camera_hits,
-                     edge_pixels, march_step, render_cameras, step_count)
+from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _chunk_steps, _flat_table, _interp,
+                     camera_hits, edge_pixels, march_step, render_cameras, step_count)
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth, zero_state
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
@@ -566,6 +566,9 @@ class SweepModel(AbstractForwardModel):
     supersample: int = eqx.field(static=True)
     edge_samples: int = eqx.field(static=True)
     host: HostInfo = eqx.field(static=True)
+    # the cameras' marches (``render_cameras``' lanes): None, as many as the CPU has cores
+    # (at most 4; one per camera on a GPU); ``for_one_render`` takes 1
+    march_lanes: int | None = eqx.field(static=True)
 
     def __init__(self, scene: Scene, *, resolution: int = 64, solver: SweepSolver | None = None,
                  supersample: int = 2, cameras=None, edge_samples: int = EDGE_SAMPLES):
@@ -617,9 +620,20 @@ class SweepModel(AbstractForwardModel):
             lattice, self.hits, self.camera_geometry.sun_dir, self.camera_geometry.fog_box,
             hit_fog))
         self.sun_lin = None
+        self.march_lanes = None
         self.host = HostInfo(lattice=lattice, hit_fog=hit_fog, setup_s={
             "voxelize_s": voxelize_s, "prepare_s": prepare_s,
             "camera_hits_s": time.perf_counter() - t})
+
+    def for_one_render(self) -> "SweepModel":
+        """This model with its cameras marched in one lane on a CPU: a program that compiles
+        in about half the time for a few percent more run time (fog-balls' two cameras:
+        1.2-1.3 s to compile against 2.7-3.3 s, 0.75-0.86 s to run against 0.60-0.87 s;
+        ``benchmarks/results/camera_lanes.md``), which pays where the program runs once.
+        Derivatives keep the lanes (a fit runs them at every step).  On a GPU: itself."""
+        if not _chunk_steps() or self.march_lanes == 1:
+            return self
+        return _with_static(self, march_lanes=1)
 
     def at_resolution(self, resolution: int) -> "SweepModel":
         """The same model (scene, cameras, solver, supersampling) on another lattice."""
@@ -963,7 +977,8 @@ class SweepModel(AbstractForwardModel):
         geom, cg, density, hits = self._with_density(params)
         _, cg, hits = self._with_sun(params, geom, cg, hits)
         f = camera_fields(cg, density, light, params)
-        images = render_cameras(f, self.cameras, supersample=self.supersample, hits=hits)
+        images = render_cameras(f, self.cameras, supersample=self.supersample, hits=hits,
+                                lanes=self.march_lanes)
         return {c.name: img for c, img in zip(self.cameras, images)}
 
     def settings(self) -> dict:
@@ -990,6 +1005,7 @@ class SweepModel(AbstractForwardModel):
             "node_counts": lat.counts(),
             "supersample": self.supersample,
             "edge_samples": self.edge_samples,
+            "march_lanes": self.march_lanes,  # None: MARCH_LANES on a CPU
             "sun_derivative_step_deg": (None if self.sun_lin is None
                                         else float(self.sun_lin.step)),
             "cameras": [c.name for c in self.cameras],
