@@ -14,7 +14,9 @@ for the cameras, given a solved light:
 Each: XLA compile seconds (cold) and the best of ``--repeat`` warm runs.  The first tree is the
 reference; each other tree's images, tangents and gradient are compared with its (max |Δ| over
 max |ref|).  To compare with an earlier commit: ``git worktree add /tmp/old <commit>`` and
-``--trees /tmp/old .``.
+``--trees /tmp/old .``.  ``--variants CHUNK:LANES ...`` runs each tree also with other march
+chunks and lanes on a CPU (``_march.MARCH_CHUNK_CPU``, ``MARCH_LANES``; the rays a march
+takes at a time, and how many marches run side by side).
 
     PYTHONPATH=src python benchmarks/camera_march.py --trees /tmp/old .  # results/camera_march.md
 """
@@ -39,9 +41,14 @@ import json, sys, time
 import numpy as np
 import equinox as eqx, jax, jax.numpy as jnp
 import difffog as df
+from difffog.forward.sweep import _march
 from difffog.forward.sweep._march import forward_mode
 scene, N, M, n_unk, repeat, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), \
     int(sys.argv[4]), int(sys.argv[5]), sys.argv[6]
+if sys.argv[7] != "-":  # a variant: the CPU's march chunk and lanes
+    _march.MARCH_CHUNK_CPU = int(sys.argv[7])
+if sys.argv[8] != "-":
+    _march.MARCH_LANES = int(sys.argv[8])
 kw = {} if N == 0 else {"resolution": N, "M": M}
 m = df.forward_model(df.load_scene(scene), "sweep", **kw)
 p = m.params()
@@ -88,11 +95,11 @@ print(json.dumps(res))
 """
 
 
-def _run(tree, scene, N, M, unknowns, repeat, out):
+def _run(tree, scene, N, M, unknowns, repeat, out, variant=("-", "-")):
     env = dict(os.environ, PYTHONPATH=str(Path(tree).resolve() / "src"),
                DIFFFOG_CACHE_DIR="off")
     r = subprocess.run([sys.executable, "-c", CHILD, scene, str(N), str(M), str(unknowns),
-                        str(repeat), out], env=env, capture_output=True, text=True)
+                        str(repeat), out, *variant], env=env, capture_output=True, text=True)
     if r.returncode:
         raise SystemExit(f"{tree} {scene}: the child failed:\n{r.stderr[-3000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -115,24 +122,36 @@ def main(argv=None):
     ap.add_argument("--unknowns", type=int, default=3)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--variants", nargs="+", default=["-:-"], metavar="CHUNK:LANES",
+                    help="on a CPU, each tree also with these march chunks and lanes "
+                         "(_march.MARCH_CHUNK_CPU, MARCH_LANES; '-': the tree's own), e.g. "
+                         "16384:2 4096:1")
     ap.add_argument("--out", default=str(C.RESULTS / "camera_march.md"))
     a = ap.parse_args(argv)
+    runs = [(tree, tuple(v.split(":"))) for tree in a.trees for v in a.variants]
     info = C.machine()
     got = {}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(a.rounds):
             for scene in a.scenes:
-                for i, tree in enumerate(a.trees):
+                order = list(enumerate(runs))
+                for i, (tree, variant) in (order if r % 2 == 0 else order[::-1]):
                     out = str(Path(tmp) / f"{scene}_{i}_{r}.npz")
-                    res = _run(tree, scene, a.N, a.M, a.unknowns, a.repeat, out)
-                    res["diff"] = _diff(str(Path(tmp) / f"{scene}_0_{r}.npz"), out)
-                    got.setdefault((scene, tree), []).append(res)
-                    print(scene, tree, res, flush=True)
+                    res = _run(tree, scene, a.N, a.M, a.unknowns, a.repeat, out, variant)
+                    got.setdefault((scene, tree, ":".join(variant)), []).append((res, out))
+                    print(scene, tree, variant, res, flush=True)
+                for i in range(len(runs)):  # against the first run of the round
+                    key = (scene, runs[i][0], ":".join(runs[i][1]))
+                    got[key][-1][0]["diff"] = _diff(str(Path(tmp) / f"{scene}_0_{r}.npz"),
+                                                    got[key][-1][1])
     rows = []
-    for (scene, tree), rs in got.items():
+    for (scene, tree, variant), rs in got.items():
+        rs = [x for x, _ in rs]
+
         def med(name, k):
             return st.median(x[name][k] for x in rs)
-        rows.append([scene, str(rs[0]["cameras"]), str(rs[0]["rays"]), tree,
+        rows.append([scene, str(rs[0]["cameras"]), str(rs[0]["rays"]),
+                     tree if variant == "-:-" else f"{tree} (chunk:lanes {variant})",
                      *(f"{med(n, 0):.2f} / {med(n, 1):.3f}" for n in ("images", "jvp", "vjp")),
                      f"{max(x['diff'] for x in rs):.1e}"])
     lines = ["# The cameras' march: compile and run seconds", "",

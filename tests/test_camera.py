@@ -419,11 +419,18 @@ def test_cameras_marched_together_equal_each_alone(x64, monkeypatch):
     assert int(cm._live_steps(t0, jnp.minimum(near.t, near.max_length), cfg)) < cfg.n_steps
     assert cm.march_lanes([5.0, 1.0, 1.0, 1.0, 4.0], 2) == [[0, 2], [1, 3, 4]]
     assert sorted(cm.march_lanes([1.0, 2.0], 4)) == [[0], [1]]  # no more lanes than cameras
+    # the rays a march takes at a time: the backend's (``MARCH_CHUNK_CPU`` here), or as given;
+    # the same images in many small chunks (the last one padded), each with its own steps
+    assert cm.march_chunk() == cm.MARCH_CHUNK_CPU and cm.march_chunk(100) == 100
+    assert sum(h.pixel.shape[0] for h in hits) < cm.MARCH_CHUNK_CPU
+    small = cm.render_cameras(base, cams, supersample=2, hits=hits, lanes=1, chunk=7)
+    for a, b in zip(small, alone):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
     # off a CPU (a GPU): one march per camera over its static step count, the same images
     # (another chunk size: a new trace, which reads the backend's choice)
     monkeypatch.setattr(cm, "_chunk_steps", lambda: False)
     assert cm.march_lanes([5.0, 1.0, 4.0]) == [[0], [2], [1]]
-    for a, b in zip(cm.render_cameras(base, cams, supersample=2, hits=hits, chunk=4096), alone):
+    for a, b in zip(cm.render_cameras(base, cams, supersample=2, hits=hits, chunk=2048), alone):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
@@ -451,7 +458,7 @@ def test_cameras_marched_together_without_hits_and_their_gradient(x64, monkeypat
     np.testing.assert_allclose(g1, g2, rtol=1e-10)
     monkeypatch.setattr(cm, "_chunk_steps", lambda: False)
     g3 = jax.jit(jax.grad(lambda x: sum(
-        i.sum() for i in cm.render_cameras(fields_at(*x), cams, hits=hits, chunk=4096))))(x)
+        i.sum() for i in cm.render_cameras(fields_at(*x), cams, hits=hits, chunk=2048))))(x)
     np.testing.assert_allclose(g3, g2, rtol=1e-10)
 
 

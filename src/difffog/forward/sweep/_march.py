@@ -76,6 +76,15 @@ SLOPE_CHANNELS = 6
 #: stop 80: a loop whose trip count only the device knows makes the host wait on each step's
 #: test there, which no GPU has yet measured (``_chunk_steps``)
 MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
+#: rays marched together (a chunk; ``lax.map`` over the chunks) on a CPU and elsewhere
+#: (``march_chunk``).  On a CPU a chunk's per-ray state at each step (its rays, hits, radiance,
+#: transmittance, tangents) should stay in a core's L2 cache (1 MiB here): fog-balls' images
+#: in one process, interleaved (stop 81, ``benchmarks/results/stop81_speed/chunks.md``) ran
+#: 0.36-0.38 s in chunks of 4096 or 8192 rays against 0.91 s in chunks of 16384 (one
+#: lane), translucent-cube 0.20 against 0.27 s, cloud-tomo and cloud-plane the same to the
+#: noise.  A GPU keeps large chunks (its parallelism is within a step).
+MARCH_CHUNK_CPU = 4096
+MARCH_CHUNK_GPU = 16384
 #: longest march in a periodic-xy domain, in domain diagonals, unless ``max_length`` is given
 PERIODIC_MAX_DIAGONALS = 8.0
 
@@ -664,6 +673,13 @@ def _point_coords(o, d, t0, t_end, k, cfg: _MarchConfig):
     return _coords(o + _step_times(t0, t_end, k, cfg.step)[:, None] * d, cfg.geo)
 
 
+def march_chunk(chunk: int | None = None) -> int:
+    """The rays a march takes at a time: ``chunk``, else the backend's default."""
+    if chunk is None:
+        return MARCH_CHUNK_CPU if jax.default_backend() == "cpu" else MARCH_CHUNK_GPU
+    return int(chunk)
+
+
 def _chunk_steps() -> bool:
     """Whether marches stop at their chunk's own step count (``_live_steps``): on a CPU."""
     return jax.default_backend() == "cpu"
@@ -1000,7 +1016,7 @@ def _trace_jit(fields, origins, directions, *, n_steps: int, step: float, chunk:
 
 
 def trace_rays(fields: LatticeFields, origins, directions, *, step: float | None = None,
-               chunk: int = 16384, max_length: float | None = None,
+               chunk: int | None = None, max_length: float | None = None,
                hits: RayHits | None = None) -> TraceResult:
     """March rays through the lattice; see :func:`render_rays`.  Returns a TraceResult (N,)."""
     step = march_step(fields.h, step)
@@ -1016,14 +1032,14 @@ def trace_rays(fields: LatticeFields, origins, directions, *, step: float | None
     forward = _FORWARD_MODE.get()
     if hits is not None:
         return _trace_exact_jit(fields, o, d, hits, n_steps=n_steps, step=step,
-                                chunk=int(chunk), forward=forward)
-    return _trace_jit(fields, o, d, n_steps=n_steps, step=step, chunk=int(chunk),
+                                chunk=march_chunk(chunk), forward=forward)
+    return _trace_jit(fields, o, d, n_steps=n_steps, step=step, chunk=march_chunk(chunk),
                       forward=forward)
 
 
 def render_rays(fields: LatticeFields, origins: Float[Array, "... 3"],
                 directions: Float[Array, "... 3"], *, step: float | None = None,
-                chunk: int = 16384, max_length: float | None = None,
+                chunk: int | None = None, max_length: float | None = None,
                 hits: RayHits | None = None) -> Float[Array, " N"]:
     """Radiance (N,) arriving at each ray origin along -direction (rays flattened to N).
 
@@ -1053,7 +1069,7 @@ def render_rays(fields: LatticeFields, origins: Float[Array, "... 3"],
 
 
 def render_camera(fields: LatticeFields, camera: Camera, *, supersample: int = 2,
-                  step: float | None = None, chunk: int = 16384,
+                  step: float | None = None, chunk: int | None = None,
                   max_length: float | None = None,
                   hits: RayHits | None = None) -> Float[Array, "H W"]:
     """Box-filtered image (H, W) of a camera: the mean of :func:`render_rays` over the
@@ -1093,7 +1109,7 @@ def march_lanes(costs, lanes: int | None = None) -> list[list[int]]:
 
 
 def render_cameras(fields: LatticeFields, cameras, *, supersample: int = 2,
-                   step: float | None = None, chunk: int = 16384,
+                   step: float | None = None, chunk: int | None = None,
                    max_length: float | None = None, hits=None,
                    lanes: int | None = None) -> list:
     """:func:`render_camera` of each of ``cameras`` (``hits``: None, or a RayHits per camera),
