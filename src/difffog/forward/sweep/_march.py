@@ -79,10 +79,11 @@ MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
 #: rays marched together (a chunk; ``lax.map`` over the chunks) on a CPU and elsewhere
 #: (``march_chunk``).  On a CPU a chunk's per-ray state at each step (its rays, hits, radiance,
 #: transmittance, tangents) should stay in a core's L2 cache (1 MiB here): fog-balls' images
-#: in one process, interleaved (stop 81, ``benchmarks/results/stop81_speed/chunks.md``) ran
-#: 0.36-0.38 s in chunks of 4096 or 8192 rays against 0.91 s in chunks of 16384 (one
-#: lane), translucent-cube 0.20 against 0.27 s, cloud-tomo and cloud-plane the same to the
-#: noise.  A GPU keeps large chunks (its parallelism is within a step).
+#: in one process, runs interleaved (stop 81, ``benchmarks/results/stop81_speed/chunks.md``),
+#: 0.325 / 0.344 s in chunks of 4096 / 8192 rays against 0.879 s in chunks of 16384 (one
+#: lane), translucent-cube 0.179 against 0.267 s; cloud-tomo and cloud-plane, whose time
+#: goes to their long paths through the lattice's tables, within 3%.  A GPU keeps large
+#: chunks (its parallelism is within a step).
 MARCH_CHUNK_CPU = 4096
 MARCH_CHUNK_GPU = 16384
 #: longest march in a periodic-xy domain, in domain diagonals, unless ``max_length`` is given

@@ -627,10 +627,12 @@ class SweepModel(AbstractForwardModel):
 
     def for_one_render(self) -> "SweepModel":
         """This model with its cameras marched in one lane on a CPU: a program that compiles
-        in about half the time for a few percent more run time (fog-balls' two cameras:
-        1.2-1.3 s to compile against 2.7-3.3 s, 0.75-0.86 s to run against 0.60-0.87 s;
-        ``benchmarks/results/camera_lanes.md``), which pays where the program runs once.
-        Derivatives keep the lanes (a fit runs them at every step).  On a GPU: itself."""
+        in about half the time and runs about as fast (fog-balls' two cameras: 1.29 s to
+        compile against 2.37 s, 0.325 s to run against 0.304 s;
+        ``benchmarks/results/stop81_speed/chunks.md``), which pays where the program runs
+        once.  Derivatives keep the lanes (a fit runs them at every step; fog-balls'
+        gradient 3.1 s against 4.6 s in one lane, ``benchmarks/results/camera_lanes.md``).
+        On a GPU: itself."""
         if not _chunk_steps() or self.march_lanes == 1:
             return self
         return _with_static(self, march_lanes=1)
