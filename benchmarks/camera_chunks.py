@@ -1,15 +1,19 @@
-"""The cameras' images program for several march chunks and lanes, in one process, its runs
+"""The cameras' programs for several march chunks and lanes, in one process, their runs
 interleaved: which chunk of rays a CPU should march at a time.
 
 Per scene (its default preset), the light is solved once; then for each CHUNK:LANES variant
-(``_march.MARCH_CHUNK_CPU``, the model's ``march_lanes``) the images program
-(``SweepModel.images_from``) is compiled, and the programs are run in turn ``--rounds`` times
+(``_march.MARCH_CHUNK_CPU``, the model's ``march_lanes``) the program ``--program`` is
+compiled: ``images`` (``SweepModel.images_from``, a render's), ``jvp`` (the images' tangents
+along ζ, γ and the sky at once, in forward mode: a fit's Jacobian columns) or ``vjp`` (the
+gradient of the images' sum, the light held: a density fit's), and the programs are run in
+turn ``--rounds`` times
 (interleaved, so that the host's load changes hit them alike).  Reported: compile seconds and
 the median and best run.  One process for all variants: the differences are the programs',
 not the host's hour (a 2-core VM whose neighbours' load moves a run by ±50%).
 
     PYTHONPATH=src python benchmarks/camera_chunks.py --scenes fog-balls translucent-cube \\
         cloud-tomo cloud-plane --variants 16384:2 16384:1 8192:1 4096:1 4096:2
+    PYTHONPATH=src python benchmarks/camera_chunks.py --program vjp --variants 16384:2 4096:2
 """
 
 from __future__ import annotations
@@ -23,20 +27,46 @@ import _common as C
 
 CHILD = r"""
 import json, sys, time, statistics
-import jax, difffog
+import jax, jax.numpy as jnp, difffog
 from difffog.forward.sweep import _march, _model
 from difffog.forward._model import light_jit
-scene, rounds = sys.argv[1], int(sys.argv[2])
-variants = [tuple(map(int, v.split(":"))) for v in sys.argv[3:]]
+scene, rounds, program = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+variants = [tuple(map(int, v.split(":"))) for v in sys.argv[4:]]
 base = difffog.forward_model(difffog.load_scene(scene))
 params = base.params()
 light = light_jit(base, params)
+paths = ["fog.scattering", "fog.absorption", "sky.radiance"]
+
+
+def at(x):
+    q = params
+    for i, path in enumerate(paths):
+        q = difffog.set_param(q, base.scene, path, x[i])
+    return q
+
+
+def images(m, l, p):
+    return m.images_from(l, p)
+
+
+def jvp(m, l, p):
+    x = jnp.asarray([float(difffog.get_param(params, base.scene, q)) for q in paths])
+    with _march.forward_mode():
+        return jax.vmap(lambda e: jax.jvp(lambda y: m.images_from(l, at(y)), (x,), (e,))[1])(
+            jnp.eye(len(paths), dtype=x.dtype))
+
+
+def vjp(m, l, p):
+    return jax.grad(lambda r: sum(jnp.sum(v) for v in m.images_from(l, r).values()))(p)
+
+
+fn = {"images": images, "jvp": jvp, "vjp": vjp}[program]
 progs = []
 for chunk, lanes in variants:
     _march.MARCH_CHUNK_CPU = chunk  # read when the program is traced
     m = _model._with_static(base, march_lanes=lanes)
     t = time.perf_counter()
-    c = jax.jit(lambda m, l, p: m.images_from(l, p)).lower(m, light, params).compile()
+    c = jax.jit(fn).lower(m, light, params).compile()
     progs.append((chunk, lanes, m, c, time.perf_counter() - t, []))
     jax.block_until_ready(c(m, light, params))
 for _ in range(rounds):
@@ -57,24 +87,28 @@ def main(argv=None):
     ap.add_argument("--variants", nargs="+", default=["16384:2", "16384:1", "4096:1", "4096:2"],
                     metavar="CHUNK:LANES")
     ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--program", default="images", choices=["images", "jvp", "vjp"])
     ap.add_argument("--out", default=str(C.RESULTS / "camera_chunks.md"))
     a = ap.parse_args(argv)
     info = C.machine()
     rows = []
     for scene in a.scenes:
-        r = subprocess.run([sys.executable, "-c", CHILD, scene, str(a.rounds), *a.variants],
+        r = subprocess.run([sys.executable, "-c", CHILD, scene, str(a.rounds), a.program,
+                            *a.variants],
                            capture_output=True, text=True)
         if r.returncode:
             raise SystemExit(f"{scene}: the child failed:\n{r.stderr[-3000:]}")
         for v in json.loads(r.stdout.strip().splitlines()[-1]):
-            rows.append([scene, str(v["chunk"]), str(v["lanes"]), f"{v['compile']:.2f}",
+            rows.append([scene, a.program, str(v["chunk"]), str(v["lanes"]),
+                         f"{v['compile']:.2f}",
                          f"{st.median(v['runs']):.3f}", f"{min(v['runs']):.3f}"])
             print(rows[-1], flush=True)
-    lines = ["# The cameras' images program by march chunk and lanes", "",
+    lines = ["# The cameras' programs by march chunk and lanes", "",
              f"`PYTHONPATH=src python benchmarks/camera_chunks.py` (see its docstring); default "
              f"presets, one process per scene, {a.rounds} interleaved runs of each program", "",
              *C.machine_lines(info), "",
-             *C.md_table(["scene", "chunk (rays)", "lanes", "compile s", "run s, median",
+             *C.md_table(["scene", "program", "chunk (rays)", "lanes", "compile s",
+                          "run s, median",
                           "run s, best"], rows)]
     C.write_text(a.out, lines)
 

@@ -407,8 +407,13 @@ def test_cameras_marched_together_equal_each_alone(x64, monkeypatch):
 
     base, _, cams, hits = _two_cameras()
     alone = [render_camera(base, c, supersample=2, hits=h) for c, h in zip(cams, hits)]
-    for lanes in (1, 2):
-        together = cm.render_cameras(base, cams, supersample=2, hits=hits, lanes=lanes)
+    # one lane in many small chunks (the last one padded, each with its own steps), and two
+    # lanes in the backend's chunks (``MARCH_CHUNK_CPU`` here, or as given)
+    assert cm.march_chunk() == cm.MARCH_CHUNK_CPU and cm.march_chunk(100) == 100
+    assert sum(h.pixel.shape[0] for h in hits) < cm.MARCH_CHUNK_CPU
+    for lanes, chunk in ((1, 7), (2, None)):
+        together = cm.render_cameras(base, cams, supersample=2, hits=hits, lanes=lanes,
+                                     chunk=chunk)
         for a, b in zip(together, alone):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
     # the near camera's rays end long before the far one's: its chunk takes fewer steps
@@ -419,13 +424,6 @@ def test_cameras_marched_together_equal_each_alone(x64, monkeypatch):
     assert int(cm._live_steps(t0, jnp.minimum(near.t, near.max_length), cfg)) < cfg.n_steps
     assert cm.march_lanes([5.0, 1.0, 1.0, 1.0, 4.0], 2) == [[0, 2], [1, 3, 4]]
     assert sorted(cm.march_lanes([1.0, 2.0], 4)) == [[0], [1]]  # no more lanes than cameras
-    # the rays a march takes at a time: the backend's (``MARCH_CHUNK_CPU`` here), or as given;
-    # the same images in many small chunks (the last one padded), each with its own steps
-    assert cm.march_chunk() == cm.MARCH_CHUNK_CPU and cm.march_chunk(100) == 100
-    assert sum(h.pixel.shape[0] for h in hits) < cm.MARCH_CHUNK_CPU
-    small = cm.render_cameras(base, cams, supersample=2, hits=hits, lanes=1, chunk=7)
-    for a, b in zip(small, alone):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
     # off a CPU (a GPU): one march per camera over its static step count, the same images
     # (another chunk size: a new trace, which reads the backend's choice)
     monkeypatch.setattr(cm, "_chunk_steps", lambda: False)
