@@ -24,55 +24,38 @@ import subprocess
 import sys
 
 import _common as C
+from camera_march import PROGRAMS
 
 CHILD = r"""
-import json, sys, time, statistics
-import jax, jax.numpy as jnp, difffog
+import json, sys, time
+import jax, jax.numpy as jnp
+import difffog as df
 from difffog.forward.sweep import _march, _model
+from difffog.forward.sweep._march import forward_mode
 from difffog.forward._model import light_jit
 scene, rounds, program = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 variants = [tuple(map(int, v.split(":"))) for v in sys.argv[4:]]
-base = difffog.forward_model(difffog.load_scene(scene))
-params = base.params()
-light = light_jit(base, params)
+m = df.forward_model(df.load_scene(scene))
+p = m.params()
+light = light_jit(m, p)
 paths = ["fog.scattering", "fog.absorption", "sky.radiance"]
-
-
-def at(x):
-    q = params
-    for i, path in enumerate(paths):
-        q = difffog.set_param(q, base.scene, path, x[i])
-    return q
-
-
-def images(m, l, p):
-    return m.images_from(l, p)
-
-
-def jvp(m, l, p):
-    x = jnp.asarray([float(difffog.get_param(params, base.scene, q)) for q in paths])
-    with _march.forward_mode():
-        return jax.vmap(lambda e: jax.jvp(lambda y: m.images_from(l, at(y)), (x,), (e,))[1])(
-            jnp.eye(len(paths), dtype=x.dtype))
-
-
-def vjp(m, l, p):
-    return jax.grad(lambda r: sum(jnp.sum(v) for v in m.images_from(l, r).values()))(p)
-
-
-fn = {"images": images, "jvp": jvp, "vjp": vjp}[program]
+z = jnp.asarray([float(df.get_param(p, m.scene, q)) for q in paths])
+""" + PROGRAMS + r"""
+fn, arg = {"images": (images, p), "jvp": (jvp, z), "vjp": (vjp, p)}[program]
 progs = []
 for chunk, lanes in variants:
     _march.MARCH_CHUNK_CPU = chunk  # read when the program is traced
-    m = _model._with_static(base, march_lanes=lanes)
+    mv = _model._with_static(m, march_lanes=lanes)
     t = time.perf_counter()
-    c = jax.jit(fn).lower(m, light, params).compile()
-    progs.append((chunk, lanes, m, c, time.perf_counter() - t, []))
-    jax.block_until_ready(c(m, light, params))
+    # a new function each time: jax.jit's cache would serve the first variant's program (the
+    # chunk is read when tracing, and the model's pytree does not hold it)
+    c = jax.jit(lambda m, l, a: fn(m, l, a)).lower(mv, light, arg).compile()
+    progs.append((chunk, lanes, mv, c, time.perf_counter() - t, []))
+    jax.block_until_ready(c(mv, light, arg))
 for _ in range(rounds):
-    for chunk, lanes, m, c, _, ts in progs:
+    for chunk, lanes, mv, c, _, ts in progs:
         t = time.perf_counter()
-        jax.block_until_ready(c(m, light, params))
+        jax.block_until_ready(c(mv, light, arg))
         ts.append(time.perf_counter() - t)
 print(json.dumps([dict(chunk=ch, lanes=la, compile=tc, runs=ts)
                   for ch, la, _, _, tc, ts in progs]))

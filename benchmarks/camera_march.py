@@ -36,6 +36,27 @@ import _common as C
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# the cameras' programs, each called (model, light, arg): ``images`` and ``vjp`` take the
+# parameters ``p``, ``jvp`` the unknowns' values ``z`` (global: the model ``m``, ``paths``)
+PROGRAMS = r"""
+def at(x):
+    q = p
+    for i, path in enumerate(paths):
+        q = df.set_param(q, m.scene, path, x[i])
+    return q
+
+def images(m, l, q):
+    return m.images_from(l, q)
+
+def jvp(m, l, x):
+    with forward_mode():
+        return jax.vmap(lambda e: jax.jvp(lambda y: m.images_from(l, at(y)), (x,), (e,))[1])(
+            jnp.eye(len(paths), dtype=x.dtype))
+
+def vjp(m, l, q):
+    return jax.grad(lambda r: sum(jnp.sum(v) for v in m.images_from(l, r).values()))(q)
+"""
+
 CHILD = r"""
 import json, sys, time
 import numpy as np
@@ -55,24 +76,7 @@ p = m.params()
 light = m.light(p)
 paths = ["fog.scattering", "fog.absorption", "sky.radiance"][:n_unk]
 z = jnp.asarray([float(df.get_param(p, m.scene, q)) for q in paths])
-
-def at(x):
-    q = p
-    for i, path in enumerate(paths):
-        q = df.set_param(q, m.scene, path, x[i])
-    return q
-
-def images(m, l, q):
-    return m.images_from(l, q)
-
-def jvp(m, l, x):
-    with forward_mode():
-        return jax.vmap(lambda e: jax.jvp(lambda y: m.images_from(l, at(y)), (x,), (e,))[1])(
-            jnp.eye(len(paths), dtype=x.dtype))
-
-def vjp(m, l, q):
-    return jax.grad(lambda r: sum(jnp.sum(v) for v in m.images_from(l, r).values()))(q)
-
+""" + PROGRAMS + r"""
 res, arrays = {}, {}
 for name, fn, arg in (("images", images, p), ("jvp", jvp, z), ("vjp", vjp, p)):
     t = time.perf_counter()

@@ -1097,9 +1097,14 @@ def march_lanes(costs, lanes: int | None = None) -> list[list[int]]:
     """The cameras (their march costs, rays × steps) in at most ``lanes`` groups, each group one
     march of its cameras' rays together: the largest first, each to the group with the least
     so far (each group's cameras in their own order).  ``lanes`` None: ``MARCH_LANES`` on a
-    CPU, one per camera elsewhere (``_chunk_steps``)."""
+    CPU, one inside ``forward_mode()`` there (a fit's Jacobian columns: in chunks of 4096 rays
+    one lane ran them as fast as two and compiled in 35-40% less time, fog-balls 1.61 / 2.13 s
+    against 1.60 / 3.38 s run / compile, cloud-tomo 4.13 / 3.34 against 4.19 / 5.24;
+    ``benchmarks/results/stop81_speed/chunks_jvp.md``), one per camera elsewhere
+    (``_chunk_steps``)."""
     if lanes is None:
-        lanes = MARCH_LANES if _chunk_steps() else len(costs)
+        lanes = (len(costs) if not _chunk_steps() else 1 if in_forward_mode()
+                 else MARCH_LANES)
     n = max(1, min(int(lanes), len(costs)))
     groups, load = [[] for _ in range(n)], [0.0] * n
     for i in sorted(range(len(costs)), key=lambda i: -costs[i]):
