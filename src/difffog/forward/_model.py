@@ -256,8 +256,9 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
         (naming its estimated error and iterations); False returns the result in
         ``Rendered.result`` instead.
     Compilation is timed apart from the run (``*_compile_s``); non-finite images raise.  The
-    programs are the model's :meth:`~AbstractForwardModel.for_one_render` (one render: those
-    that compile fastest).
+    cameras' program is the model's :meth:`~AbstractForwardModel.for_one_render`'s (one render:
+    the one that compiles fastest); the light's is the model's own, shared with its other
+    uses in this process.
     """
     if isinstance(model, Scene):
         from ._registry import forward_model
@@ -274,7 +275,6 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     warn_thick_steps(model, params, stacklevel=3)
     if layer := model.layer_warning(params):
         warnings.warn(layer, ThinLayerWarning, stacklevel=2)
-    model = model.for_one_render()
     timings = dict(model.settings().get("setup_s", {}))
     t = time.perf_counter()
     light_fn = light_jit.lower(model, params).compile()
@@ -286,10 +286,11 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     if progress is not None:
         progress.close()
     t = time.perf_counter()
-    img_fn = images_from_jit.lower(model, light, params).compile()
+    once = model.for_one_render()
+    img_fn = images_from_jit.lower(once, light, params).compile()
     timings["images_compile_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    imgs = jax.block_until_ready(img_fn(model, light, params))
+    imgs = jax.block_until_ready(img_fn(once, light, params))
     timings["images_s"] = time.perf_counter() - t
     result = RESULTS(int(light.result))
     if throw:
@@ -307,7 +308,7 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
                                   f"float64: jax_enable_x64; otherwise please report the scene "
                                   f"and settings)")
     return Rendered(images=images, light=light, result=result, timings=timings,
-                    settings=model.settings())
+                    settings=once.settings())
 
 
 # ------------------------------------------------------------------------------------------
