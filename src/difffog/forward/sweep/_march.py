@@ -78,7 +78,8 @@ SLOPE_CHANNELS = 6
 MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
 #: rays marched together (a chunk; ``lax.map`` over the chunks) on a CPU and elsewhere
 #: (``march_chunk``).  On a CPU a chunk's per-ray state at each step (its rays, hits, radiance,
-#: transmittance, tangents) should stay in a core's L2 cache (1 MiB here): fog-balls' images
+#: transmittance, tangents) should stay in a core's L2 cache (1 MiB here; the likely cause of
+#: what follows, not profiled): fog-balls' images
 #: in one process, runs interleaved (stop 81, ``benchmarks/results/stop81_speed/chunks.md``),
 #: 0.325 / 0.344 s in chunks of 4096 / 8192 rays against 0.879 s in chunks of 16384 (one
 #: lane), translucent-cube 0.179 against 0.267 s; cloud-tomo and cloud-plane, whose time
