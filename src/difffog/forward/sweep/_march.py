@@ -83,7 +83,8 @@ MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
 #: in one process, runs interleaved (stop 81, ``benchmarks/results/stop81_speed/chunks.md``),
 #: 0.325 / 0.344 s in chunks of 4096 / 8192 rays against 0.879 s in chunks of 16384 (one
 #: lane), translucent-cube 0.179 against 0.267 s; cloud-tomo and cloud-plane, whose time
-#: goes to their long paths through the lattice's tables, within 3%.  A GPU keeps large
+#: goes to their long paths through the lattice's tables, within 3% in one lane (in two,
+#: cloud-plane 2.52 against 2.29 s, cloud-tomo 1.63 against 1.42 s).  A GPU keeps large
 #: chunks (its parallelism is within a step).
 MARCH_CHUNK_CPU = 4096
 MARCH_CHUNK_GPU = 16384
