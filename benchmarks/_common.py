@@ -220,6 +220,20 @@ def write_text(path, text: str) -> Path:
 
 
 # ----------------------------------------------------------------------------- workers
+def cli_render(args, out, cache, src=None) -> tuple[dict, float]:
+    """``python -m difffog render ARGS --out OUT --quiet`` in a new process with
+    ``DIFFFOG_CACHE_DIR=cache`` (and ``PYTHONPATH=src`` where given: another source tree);
+    returns (its report.json, the command's wall seconds)."""
+    env = dict(os.environ, DIFFFOG_CACHE_DIR=str(cache))
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "difffog", "render", *args, "--out", str(out),
+                    "--quiet"], env=env, check=True, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    return json.loads((Path(out) / "report.json").read_text()), wall
+
+
 def emit_result(row: dict) -> None:
     """What a worker process prints for :func:`run_worker`."""
     print("RESULT " + json.dumps(row), flush=True)

@@ -23,11 +23,7 @@ over its seconds, and its ratio to the 2-thread copy's roofline (8 bytes an upda
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import shlex
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
@@ -35,10 +31,7 @@ import _common as C
 
 
 def _render(args, cache, out):
-    env = dict(os.environ, DIFFFOG_CACHE_DIR=str(cache))
-    cmd = [sys.executable, "-m", "difffog", "render", *args, "--out", str(out), "--quiet"]
-    subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
-    return json.loads((Path(out) / "report.json").read_text())
+    return C.cli_render(args, out, cache)[0]
 
 
 def _case(spec, K, tmp):

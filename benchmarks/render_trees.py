@@ -17,14 +17,9 @@ of the light and of the images (``report.json``), the images' run and the whole 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import shutil
 import statistics as st
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _render(tree: Path, scene: str, cache: Path, out: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(tree / "src"), DIFFFOG_CACHE_DIR=str(cache))
-    t = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "difffog", "render", scene, "--out", str(out),
-                    "--quiet"], env=env, check=True, capture_output=True)
-    wall = time.perf_counter() - t
-    rep = json.loads((out / "report.json").read_text())
+    rep, wall = C.cli_render([scene], out, cache, src=tree / "src")
     t = rep["timings_s"]
     return dict(wall=wall, light_compile=t["light_compile_s"],
                 images_compile=t["images_compile_s"], images=t["images_s"],
