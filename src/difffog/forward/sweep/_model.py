@@ -630,9 +630,10 @@ class SweepModel(AbstractForwardModel):
         in about half the time and runs about as fast (fog-balls' two cameras: 1.29 s to
         compile against 2.37 s, 0.325 s to run against 0.304 s;
         ``benchmarks/results/stop81_speed/chunks.md``), which pays where the program runs
-        once.  Derivatives keep the lanes (a fit runs them at every step; fog-balls'
-        gradient 3.1 s against 4.6 s in one lane, ``benchmarks/results/camera_lanes.md``).
-        On a GPU: itself."""
+        once.  A gradient keeps the lanes (a fit runs it at every step; fog-balls' gradient
+        3.1 s against 4.6 s in one lane, ``benchmarks/results/camera_lanes.md``); a fit's
+        Jacobian columns take one lane anyway (``march_lanes`` in ``forward_mode()``).  On a
+        GPU: itself."""
         if not _chunk_steps() or self.march_lanes == 1:
             return self
         return _with_static(self, march_lanes=1)
