@@ -15,8 +15,9 @@ Each: XLA compile seconds (cold) and the best of ``--repeat`` warm runs.  The fi
 reference; each other tree's images, tangents and gradient are compared with its (max |Δ| over
 max |ref|).  To compare with an earlier commit: ``git worktree add /tmp/old <commit>`` and
 ``--trees /tmp/old .``.  ``--variants CHUNK:LANES ...`` runs each tree also with other march
-chunks and lanes on a CPU (``_march.MARCH_CHUNK_CPU``, ``MARCH_LANES``; the rays a march
-takes at a time, and how many marches run side by side).
+chunks and lanes on a CPU (``_march.MARCH_CHUNK_CPU``, the model's ``march_lanes``, or
+``MARCH_LANES`` in a tree of stops 80-81; the rays a march takes at a time, and how many
+marches run side by side).
 
     PYTHONPATH=src python benchmarks/camera_march.py --trees /tmp/old .  # results/camera_march.md
 """
@@ -68,10 +69,13 @@ scene, N, M, n_unk, repeat, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]
     int(sys.argv[4]), int(sys.argv[5]), sys.argv[6]
 if sys.argv[7] != "-":  # a variant: the CPU's march chunk and lanes
     _march.MARCH_CHUNK_CPU = int(sys.argv[7])
-if sys.argv[8] != "-":
+if sys.argv[8] != "-" and hasattr(_march, "MARCH_LANES"):  # a tree of stops 80-81
     _march.MARCH_LANES = int(sys.argv[8])
 kw = {} if N == 0 else {"resolution": N, "M": M}
 m = df.forward_model(df.load_scene(scene), "sweep", **kw)
+if sys.argv[8] != "-" and hasattr(m, "march_lanes"):  # the model's lanes (stop 81 on)
+    from difffog.forward.sweep._model import _with_static
+    m = _with_static(m, march_lanes=int(sys.argv[8]))
 p = m.params()
 light = m.light(p)
 paths = ["fog.scattering", "fog.absorption", "sky.radiance"][:n_unk]
@@ -128,7 +132,8 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--variants", nargs="+", default=["-:-"], metavar="CHUNK:LANES",
                     help="on a CPU, each tree also with these march chunks and lanes "
-                         "(_march.MARCH_CHUNK_CPU, MARCH_LANES; '-': the tree's own), e.g. "
+                         "(_march.MARCH_CHUNK_CPU, the model's march_lanes; '-': the tree's own), "
+                         "e.g. "
                          "16384:2 4096:1")
     ap.add_argument("--out", default=str(C.RESULTS / "camera_march.md"))
     a = ap.parse_args(argv)

@@ -39,12 +39,11 @@ def test_renders_repeat_bit_for_bit():
     assert first.keys() == again.keys() and all(
         np.array_equal(first[k], again[k]) for k in first)
     assert all(np.all(v > 0) for v in first.values())  # a lit scene, not two blank images
-    # a render marches its cameras in one lane on a CPU (``for_one_render``: a program that
-    # compiles in half the time); the model itself keeps a lane per core (one lane's images
-    # equal the lanes': test_camera.py's test_cameras_marched_together_equal_each_alone)
+    # the cameras in one march on a CPU (half the compile of a march per core), one each on a
+    # GPU (one lane's images equal the lanes': test_camera.py's
+    # test_cameras_marched_together_equal_each_alone)
     cpu = jax.default_backend() == "cpu"
-    assert out.settings["march_lanes"] == (1 if cpu else None)
-    assert m.settings()["march_lanes"] is None and len(m.cameras) == 2
+    assert len(m.cameras) == 2 and out.settings["march_lanes"] == (1 if cpu else 2)
 
 
 # slow since stop 80 (the default suite's 12-minute budget on 2 cores: ~25 s there, the

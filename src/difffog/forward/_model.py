@@ -122,11 +122,6 @@ class AbstractForwardModel(eqx.Module):
         None."""
         return None
 
-    def for_one_render(self) -> "AbstractForwardModel":
-        """This model as a single render runs it best: programs that compile in less time,
-        even where they run a little longer (:func:`render` takes it).  Default: itself."""
-        return self
-
     def zero_light_state(self, dtype):
         """A light state of zeros (the shape of ``light.state``) for a model whose ``light``
         takes ``init`` (a warm start, see ``SweepModel.light``), else None.  Default: None."""
@@ -255,10 +250,7 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     throw: raise a one-line :class:`SolverError` if the light solve did not converge
         (naming its estimated error and iterations); False returns the result in
         ``Rendered.result`` instead.
-    Compilation is timed apart from the run (``*_compile_s``); non-finite images raise.  The
-    cameras' program is the model's :meth:`~AbstractForwardModel.for_one_render`'s (one render:
-    the one that compiles fastest); the light's is the model's own, shared with its other
-    uses in this process.
+    Compilation is timed apart from the run (``*_compile_s``); non-finite images raise.
     """
     if isinstance(model, Scene):
         from ._registry import forward_model
@@ -286,11 +278,10 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
     if progress is not None:
         progress.close()
     t = time.perf_counter()
-    once = model.for_one_render()
-    img_fn = images_from_jit.lower(once, light, params).compile()
+    img_fn = images_from_jit.lower(model, light, params).compile()
     timings["images_compile_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    imgs = jax.block_until_ready(img_fn(once, light, params))
+    imgs = jax.block_until_ready(img_fn(model, light, params))
     timings["images_s"] = time.perf_counter() - t
     result = RESULTS(int(light.result))
     if throw:
@@ -308,7 +299,7 @@ def render(model, params: Params | None = None, *, throw: bool = True, **build) 
                                   f"float64: jax_enable_x64; otherwise please report the scene "
                                   f"and settings)")
     return Rendered(images=images, light=light, result=result, timings=timings,
-                    settings=once.settings())
+                    settings=model.settings())
 
 
 # ------------------------------------------------------------------------------------------

@@ -32,7 +32,6 @@ import contextlib
 import contextvars
 import dataclasses
 import math
-import os
 from functools import partial
 from typing import NamedTuple
 
@@ -68,14 +67,16 @@ HIT_BACKOFF = 1e-2
 # the linear scheme's slope channels: x, y, z towards a node's upper neighbours, then towards
 # its lower ones (``LatticeFields.j_slope``)
 SLOPE_CHANNELS = 6
-#: how many marches a model's cameras are grouped into on a CPU (``march_lanes``): XLA runs
-#: independent loops side by side on the cores, so two marches take both of a 2-core CPU's
-#: cores (fog-balls N = 32, M = 3, stop 80: its two cameras 0.27 s as two marches against
-#: 0.42 s as one); each lane is one more march to compile, so at most 4 however many cores.
-#: Elsewhere (a GPU) each camera keeps its own march over its static step count, as before
-#: stop 80: a loop whose trip count only the device knows makes the host wait on each step's
-#: test there, which no GPU has yet measured (``_chunk_steps``)
-MARCH_LANES = max(1, min(4, os.cpu_count() or 1))
+# The cameras' rays are marched in one lane on a CPU (``march_lanes``): all cameras' rays
+# together, each 4096-ray chunk for its own step count.  Stop 80 grouped them into a march per
+# core, which XLA ran side by side; at 4096-ray chunks one lane runs within 11% of two
+# (images, a fit's Jacobian columns, a gradient) and compiles in half the time (fog-balls'
+# gradient 3.6 against 8.3 s, cloud-tomo's 6.5 against 12.1 s, stop 81,
+# ``benchmarks/results/stop81_speed/chunks*.md``; a whole fit before and after, stop 82,
+# ``benchmarks/results/stop82_lanes/``).  ``lanes=`` still groups them in more.
+# Elsewhere (a GPU) each camera keeps its own march over its static step count, as before
+# stop 80: a loop whose trip count only the device knows makes the host wait on each step's
+# test there, which no GPU has yet measured (``_chunk_steps``)
 #: rays marched together (a chunk; ``lax.map`` over the chunks) on a CPU and elsewhere
 #: (``march_chunk``).  On a CPU a chunk's per-ray state at each step (its rays, hits, radiance,
 #: transmittance, tangents) should stay in a core's L2 cache (1 MiB here; the likely cause of
@@ -1098,15 +1099,11 @@ def _joined_hits(hits) -> RayHits:
 def march_lanes(costs, lanes: int | None = None) -> list[list[int]]:
     """The cameras (their march costs, rays × steps) in at most ``lanes`` groups, each group one
     march of its cameras' rays together: the largest first, each to the group with the least
-    so far (each group's cameras in their own order).  ``lanes`` None: ``MARCH_LANES`` on a
-    CPU, one inside ``forward_mode()`` there (a fit's Jacobian columns: in chunks of 4096 rays
-    one lane ran them as fast as two and compiled in 35-40% less time, fog-balls 1.61 / 2.13 s
-    against 1.60 / 3.38 s run / compile, cloud-tomo 4.13 / 3.34 against 4.19 / 5.24;
-    ``benchmarks/results/stop81_speed/chunks_jvp.md``), one per camera elsewhere
+    so far (each group's cameras in their own order).  ``lanes`` None: one on a CPU (all the
+    cameras in one march, see the comment above ``MARCH_CHUNK_CPU``), one per camera elsewhere
     (``_chunk_steps``)."""
     if lanes is None:
-        lanes = (len(costs) if not _chunk_steps() else 1 if in_forward_mode()
-                 else MARCH_LANES)
+        lanes = 1 if _chunk_steps() else len(costs)
     n = max(1, min(int(lanes), len(costs)))
     groups, load = [[] for _ in range(n)], [0.0] * n
     for i in sorted(range(len(costs)), key=lambda i: -costs[i]):
@@ -1121,9 +1118,9 @@ def render_cameras(fields: LatticeFields, cameras, *, supersample: int = 2,
                    max_length: float | None = None, hits=None,
                    lanes: int | None = None) -> list:
     """:func:`render_camera` of each of ``cameras`` (``hits``: None, or a RayHits per camera),
-    their rays marched in at most ``lanes`` marches (``march_lanes``), each of several cameras'
-    rays together: the compiled program holds that many marches however many cameras, and
-    XLA runs them side by side on a CPU's cores.  Each chunk of rays takes its own rays' step
+    their rays marched in at most ``lanes`` marches (``march_lanes``: one on a CPU), each of
+    several cameras' rays together: the compiled program holds that many marches however many
+    cameras, which XLA runs side by side.  Each chunk of rays takes its own rays' step
     count (``_live_steps``), so a camera whose paths are shorter pays no more steps for being
     marched with one whose paths are longer."""
     step_len = march_step(fields.h, step)

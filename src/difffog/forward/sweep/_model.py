@@ -566,8 +566,8 @@ class SweepModel(AbstractForwardModel):
     supersample: int = eqx.field(static=True)
     edge_samples: int = eqx.field(static=True)
     host: HostInfo = eqx.field(static=True)
-    # the cameras' marches (``render_cameras``' lanes): None, as many as the CPU has cores
-    # (at most 4; one per camera on a GPU); ``for_one_render`` takes 1
+    # the cameras' marches (``render_cameras``' lanes): None, the backend's choice (one on a
+    # CPU, one per camera on a GPU; ``march_lanes``); a benchmark may ask for more
     march_lanes: int | None = eqx.field(static=True)
 
     def __init__(self, scene: Scene, *, resolution: int = 64, solver: SweepSolver | None = None,
@@ -624,19 +624,6 @@ class SweepModel(AbstractForwardModel):
         self.host = HostInfo(lattice=lattice, hit_fog=hit_fog, setup_s={
             "voxelize_s": voxelize_s, "prepare_s": prepare_s,
             "camera_hits_s": time.perf_counter() - t})
-
-    def for_one_render(self) -> "SweepModel":
-        """This model with its cameras marched in one lane on a CPU: a program that compiles
-        in about half the time and runs about as fast (fog-balls' two cameras: 1.29 s to
-        compile against 2.37 s, 0.325 s to run against 0.304 s;
-        ``benchmarks/results/stop81_speed/chunks.md``), which pays where the program runs
-        once.  A gradient keeps the lanes (a fit runs it at every step; fog-balls' gradient
-        3.1 s against 4.6 s in one lane, ``benchmarks/results/camera_lanes.md``); a fit's
-        Jacobian columns take one lane anyway (``march_lanes`` in ``forward_mode()``).  On a
-        GPU: itself."""
-        if not _chunk_steps() or self.march_lanes == 1:
-            return self
-        return _with_static(self, march_lanes=1)
 
     def at_resolution(self, resolution: int) -> "SweepModel":
         """The same model (scene, cameras, solver, supersampling) on another lattice."""
@@ -1008,7 +995,9 @@ class SweepModel(AbstractForwardModel):
             "node_counts": lat.counts(),
             "supersample": self.supersample,
             "edge_samples": self.edge_samples,
-            "march_lanes": self.march_lanes,  # None: MARCH_LANES on a CPU
+            # the cameras' marches: one on a CPU, one per camera on a GPU, unless asked
+            "march_lanes": (self.march_lanes if self.march_lanes is not None
+                            else 1 if _chunk_steps() else len(self.cameras)),
             "sun_derivative_step_deg": (None if self.sun_lin is None
                                         else float(self.sun_lin.step)),
             "cameras": [c.name for c in self.cameras],
