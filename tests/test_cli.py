@@ -19,8 +19,8 @@ def test_info_summarizes_scene(capsys):
     assert main(["info", "fog-balls", "-N", "24", "-M", "2"]) == 0
     assert gc.get_freeze_count() == frozen  # only the program itself freezes its imports
     out = capsys.readouterr().out
-    assert "24x24x24 nodes" not in out  # the lattice carries the vacuum margin around open sides
-    assert "30x30x30 nodes" in out
+    # the lattice carries two vacuum nodes around open sides (VACUUM_MARGIN)
+    assert "24x24x24 nodes" not in out and "28x28x28 nodes" in out
     for needle in ("free", "surface", "solid", "opt.depth", "sun", "camera     top",
                    "anisotropic phase: no", "sun: yes"):
         assert needle in out
@@ -38,20 +38,20 @@ def test_info_names_the_phase_order_of_a_forward_scattering_fog(capsys):
 
 
 def test_info_names_the_once_scattered_sweep(capsys):
-    """--once-M: the lattice's margin follows the larger direction set, and info says what
-    the extra sweep costs; an isotropic fog has nothing to refine (no line, no margin)."""
+    """--once-M: info says what the extra sweep costs (the lattice keeps its two vacuum
+    nodes); an isotropic fog has nothing to refine (no line)."""
     assert main(["info", "cloud-plane", "-N", "16", "-M", "2", "--once-M", "5"]) == 0
     out = capsys.readouterr().out
-    assert "28x28x28 nodes" in out and "6 vacuum nodes" in out
+    assert "20x20x20 nodes" in out and "2 vacuum nodes" in out
     assert "once-scattered light on M = 5 (121 directions per face" in out
     assert main(["info", "fog-balls", "-N", "24", "-M", "2", "--once-M", "5"]) == 0
     out = capsys.readouterr().out
-    assert "30x30x30 nodes" in out and "once-scattered" not in out
+    assert "28x28x28 nodes" in out and "once-scattered" not in out
 
 
 def test_info_periodic_slab_has_no_lateral_margin(capsys):
     assert main(["info", "slab", "-N", "16", "-M", "2"]) == 0
-    assert "16x16x22 nodes" in capsys.readouterr().out
+    assert "16x16x20 nodes" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(

@@ -134,7 +134,9 @@ def test_the_estimate_counts_the_once_scattered_sweep():
     base = df.estimate(scene, "sweep", resolution=32)
     once = df.estimate(scene, "sweep", resolution=32, once_M=6)
     assert base.once_s == 0 and once.once_s > 0
-    assert all(a > b for a, b in zip(once.shape, base.shape))  # the margin of M = 6 + 1
+    # the same lattice: its vacuum margin is VACUUM_MARGIN whatever the direction sets (it
+    # followed the larger one until stop 82)
+    assert once.shape == base.shape
     assert once.solve_s > base.solve_s
     assert "once-scattered sweep" in once.memory
     iso = df.estimate(load_scene("fog-balls"), "sweep", resolution=32, once_M=6)

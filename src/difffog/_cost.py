@@ -394,7 +394,7 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     scheme: the transport scheme ("auto": the solver's rule, judged from the scene);
     tangents, sweep_residuals, once_M: as ``SweepSolver``'s (once_M: one more sub-stepped
         sweep per solve on that direction set, ``ONCE_S_PER_CROSSING``; the lattice's shell
-        and margin follow it);
+        follows it);
     devices, mesh: as ``SweepSolver``'s.  On a CPU the host devices share the cores: a mesh
         of faces alone runs the native kernel per face in the face frame (``CPU_MESH_COST``
         times one device's iteration, no surface records), one that splits the plane runs
@@ -418,7 +418,9 @@ def estimate_sweep(scene, *, resolution: int = 64, M: int = 3, supersample: int 
     from .forward.sweep._solver import SweepSolver
 
     once = SweepSolver(M=M, phase_order=phase_order, once_M=once_M).resolved_once_M(scene)
-    shape = lattice_shape(scene, resolution, max(M, once) + 1)
+    from .geometry._lattice import VACUUM_MARGIN
+
+    shape = lattice_shape(scene, resolution, VACUUM_MARGIN)
     n = math.prod(shape)
     D = (2 * M + 1) ** 2
     rays = camera_rays(scene, cameras, int(supersample), int(edge_samples))

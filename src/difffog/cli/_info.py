@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from ..forward.sweep._terms import choose_terms
-from ..geometry._lattice import voxelize
+from ..geometry._lattice import VACUUM_MARGIN, voxelize
 from ..scene._description import Scene
 from ._main import add_scene_args
 
@@ -49,13 +49,13 @@ def scene_info(scene: Scene, *, resolution: int = 64, M: int = 3, phase_order="a
     lat = None
     if not big:
         t = time.perf_counter()
-        lat = voxelize(scene, resolution, shell, margin=shell + 1)
+        lat = voxelize(scene, resolution, shell, margin=VACUUM_MARGIN)
         tv = time.perf_counter() - t
     done = (f"voxelized in {tv:.2f} s" if lat is not None else
             f"not voxelized: {est.nodes:.3g} nodes (set-up ~{est.setup_text()})")
     lines.append(
         f"lattice    {sx}x{sy}x{sz} nodes, voxel {h:.4g}, M = {M} ({(2 * M + 1) ** 2} directions "
-        f"per face; {shell + 1} vacuum nodes around open sides), {done}"
+        f"per face; {VACUUM_MARGIN} vacuum nodes around open sides), {done}"
     )
     if est.once_s:
         lines.append(f"once       the sun's once-scattered light on M = {shell} "

@@ -19,7 +19,8 @@ from scipy import ndimage
 from ..._numerics import FOUR_PI
 from ...geometry._hits import casts_exactly
 from ..._errors import SceneError
-from ...geometry._lattice import SOLID, SURFACE, Lattice, apply_density_map, voxelize
+from ...geometry._lattice import (SOLID, SURFACE, VACUUM_MARGIN, Lattice, apply_density_map,
+                                 voxelize)
 from ...scene._description import Camera, Scene, sun_vector
 from ...scene._params import SUN_PATHS, Params, get_param, sun_direction_of
 from .._model import AbstractForwardModel, HostInfo, select_cameras
@@ -585,7 +586,7 @@ class SweepModel(AbstractForwardModel):
         t = time.perf_counter()
         M = self.solver.M
         shell = self.solver.lattice_M(scene)
-        lattice = voxelize(scene, resolution, shell, margin=shell + 1)
+        lattice = voxelize(scene, resolution, shell, margin=VACUUM_MARGIN)
         voxelize_s = time.perf_counter() - t
         t = time.perf_counter()
         self.geometry = self.solver.prepare(scene, lattice)
@@ -632,7 +633,7 @@ class SweepModel(AbstractForwardModel):
     def with_solver(self, solver: SweepSolver, resolution: int | None = None) -> "SweepModel":
         """The same model (scene, cameras, supersampling; its lattice resolution unless
         ``resolution`` is given) with another light solve, e.g. another direction set M (the
-        lattice is built anew: its vacuum margin and surface shell follow M)."""
+        lattice is built anew: its surface shell follows M)."""
         out = SweepModel(self.scene, resolution=self.resolution if resolution is None
                          else resolution, solver=solver, supersample=self.supersample,
                          cameras=self.cameras, edge_samples=self.edge_samples)
