@@ -12,6 +12,7 @@ of the light and of the images (``report.json``), the images' run and the whole 
 
     git worktree add /tmp/old <commit>
     python benchmarks/render_trees.py --trees /tmp/old . --scenes fog-balls cloud-tomo
+    python benchmarks/render_trees.py --trees /tmp/old . --scenes "fog-balls -N 128 -M 5"
 """
 
 from __future__ import annotations
@@ -30,23 +31,24 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _render(tree: Path, scene: str, cache: Path, out: Path) -> dict:
-    rep, wall = C.cli_render([scene], out, cache, src=tree / "src")
+    rep, wall = C.cli_render(scene.split(), out, cache, src=tree / "src")
     t = rep["timings_s"]
     return dict(wall=wall, light_compile=t["light_compile_s"],
-                images_compile=t["images_compile_s"], images=t["images_s"],
-                total=rep["total_s"])
+                images_compile=t["images_compile_s"], light=t["light_s"], images=t["images_s"],
+                total=rep["total_s"], lattice="×".join(map(str, rep["settings"]["lattice_shape"])))
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trees", nargs="+", default=[str(ROOT)])
-    ap.add_argument("--scenes", nargs="+", default=["fog-balls"])
+    ap.add_argument("--scenes", nargs="+", default=["fog-balls"],
+                    help="scenes, each with its render options if any: 'fog-balls -N 128 -M 5'")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--out", default=str(C.RESULTS / "render_trees.md"))
     a = ap.parse_args(argv)
     trees = [Path(t).resolve() for t in a.trees]
     info = C.machine()
-    keys = ("wall", "light_compile", "images_compile", "images", "total")
+    keys = ("wall", "light_compile", "images_compile", "light", "images", "total")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -67,17 +69,19 @@ def main(argv=None):
                            for k in ref)
                 for kind in ("cold", "cached"):
                     med = {k: st.median(x[k] for x in runs[i, kind]) for k in keys}
-                    rows.append([scene, str(tree), kind, f"{med['wall']:.2f}",
+                    rows.append([scene, str(tree), kind, runs[i, kind][0]["lattice"],
+                                 f"{med['wall']:.2f}",
                                  f"{med['light_compile']:.2f} + {med['images_compile']:.2f} = "
                                  f"{med['light_compile'] + med['images_compile']:.2f}",
-                                 f"{med['images']:.2f}", f"{med['total']:.2f}",
-                                 f"{diff:.1e}"])
+                                 f"{med['light']:.2f}", f"{med['images']:.2f}",
+                                 f"{med['total']:.2f}", f"{diff:.1e}"])
     lines = ["# A render through the command line, cold and from the cache", "",
              f"`python benchmarks/render_trees.py` (see its docstring); medians of "
              f"{a.rounds} rounds (new processes, the trees alternated)", "",
              *C.machine_lines(info), "",
-             *C.md_table(["scene", "tree", "run", "wall s", "compile s (light + images)",
-                          "images run s", "render s (total_s)",
+             *C.md_table(["scene", "tree", "run", "lattice", "wall s",
+                          "compile s (light + images)", "light run s", "images run s",
+                          "render s (total_s)",
                           "images: max rel. difference from the first tree"], rows)]
     C.write_text(a.out, lines)
 

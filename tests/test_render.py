@@ -64,3 +64,25 @@ def test_gradients_repeat_bit_for_bit():
     leaves1, leaves2 = jax.tree.leaves(g1), jax.tree.leaves(g2)
     assert all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(leaves1, leaves2))
     assert float(df.get_param(g1, m.scene, "fog.scattering")) != 0.0
+
+
+def test_the_vacuum_margin_changes_no_image(monkeypatch):
+    """Light that leaves the (convex) domain never comes back, so the lattice's vacuum margin
+    only serves what lies on the domain's boundary (the walls' outer faces and tops): the
+    default two nodes render fog-balls as M + 1 (the margin until stop 82) does, to float32
+    rounding, on a lattice 2·(M − 1) nodes narrower."""
+    import numpy as np
+
+    from difffog.forward.sweep import _model
+
+    scene = small_scene()
+    M = 2  # (the model of the test above: its programs are compiled already)
+    small = build_model("sweep", scene, M=M)
+    monkeypatch.setattr(_model, "VACUUM_MARGIN", M + 1)
+    wide = build_model("sweep", scene, M=M)
+    assert [n - 2 * (M + 1 - 2) for n in wide.lattice.shape] == list(small.lattice.shape)
+    a, b = df.render(small).images, df.render(wide).images
+    for k in a:
+        assert float(np.mean(a[k])) > 0.01
+        np.testing.assert_allclose(np.asarray(a[k]), np.asarray(b[k]), rtol=2e-5,
+                                   atol=2e-6 * float(np.mean(b[k])))

@@ -63,8 +63,11 @@ def _resample(lam, irr, src, dst):
     lo, cells = [], []
     for a in range(3):
         n = nt.shape[a]
-        x = (np.asarray(dst.origin, np.float64)[a] + (np.arange(dst.shape[a]) + 0.5) * dst.h
-             - src.origin[a]) / src.h - 0.5
+        # dst's node centres in src's index coordinates, the offset apart: a lattice onto
+        # itself (or onto one with the same spacing whole nodes apart) lands on integers
+        # exactly, not a rounding off them that mixes in a neighbour
+        x = ((float(dst.origin[a]) - float(src.origin[a])) / src.h
+             + (np.arange(dst.shape[a]) + 0.5) * (dst.h / src.h) - 0.5)
         if src.boundary == "periodic-xy" and a < 2:
             i0 = np.floor(x).astype(np.int64)
             lo.append((i0 % n, (i0 + 1) % n, x - i0))
