@@ -221,6 +221,9 @@ def hg_slab_rt(tau, albedo, g, n_fog, M, L, sun=None, once_M=None, scheme="auto"
     ss = None
     if sun:  # the exact single scattering, and the sun's beam as the solver attenuates it
         ss = sun_scatter_terms(light, albedo, tau, g, dens)
-    return slab_reflectance(np.asarray(sigma)[0, 0], np.asarray(q)[0, 0], None, margin, lat.h,
+    q, slope = np.asarray(q)[0, 0], None
+    if geom.linear:  # thick steps take the linear scheme: its slope channels (x, y, z) come last
+        q, slope = q[..., :-3], q[..., -1]
+    return slab_reflectance(np.asarray(sigma)[0, 0], q, None, margin, lat.h,
                             sky=0.0 if sun else 1.0, sun=sun, basis=basis(L, M),
-                            sun_scatter=ss)
+                            sun_scatter=ss, slope=slope)
