@@ -5,7 +5,7 @@
 #       extension: .py
 #       format_name: percent
 #       format_version: '1.3'
-#       jupytext_version: 1.19.6
+#       jupytext_version: 1.19.7
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -75,8 +75,9 @@ print("parameters:", ", ".join(df.param_paths(scene)))
 # A forward model, here the sweep's (`df.forward_model(scene, "sweep", ...)`, a `df.SweepModel`),
 # voxelizes the scene once when it is built (on the host, NumPy): each node is FREE (light travels
 # and scatters there), SURFACE (a shell M nodes thick around the solids, where light is reflected)
-# or SOLID. Open domains get a vacuum margin of M + 1 nodes so that light from the sky reaches the
-# walls' tops. Below: vertical slices through the three balls' centres.
+# or SOLID. Open domains get a vacuum margin of two nodes, so that the walls' tops and outer faces
+# are lit and seen as in open space (light that leaves the domain never comes back, so more
+# would change nothing). Below: vertical slices through the three balls' centres.
 
 # %%
 # accuracy=None: the solver's own defaults, with these settings on top (accuracy="draft",
