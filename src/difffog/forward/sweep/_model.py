@@ -26,8 +26,8 @@ from ...scene._params import SUN_PATHS, Params, get_param, sun_direction_of
 from .._model import AbstractForwardModel, HostInfo, select_cameras
 from ._lightfield import LightField
 from ._harmonics import moment_coefficients
-from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _chunk_steps, _flat_table, _interp,
-                     camera_hits, edge_pixels, march_step, render_cameras, step_count)
+from ._march import (EDGE_SAMPLES, LatticeFields, RayHits, _flat_table, _interp, camera_hits,
+                     edge_pixels, march_lanes, march_step, render_cameras, step_count)
 from ._solver import SweepGeometry, SweepSolver, check_point_sun, step_depth, zero_state
 from ._uncollided import NO_SUN_PATH, sun_path
 from ._terms import check_terms
@@ -999,9 +999,8 @@ class SweepModel(AbstractForwardModel):
             "node_counts": lat.counts(),
             "supersample": self.supersample,
             "edge_samples": self.edge_samples,
-            # the cameras' marches: one on a CPU, one per camera on a GPU, unless asked
-            "march_lanes": (self.march_lanes if self.march_lanes is not None
-                            else 1 if _chunk_steps() else len(self.cameras)),
+            # the cameras' marches as ``render_cameras`` groups them (``march_lanes``)
+            "march_lanes": len(march_lanes([1.0] * len(self.cameras), self.march_lanes)),
             "sun_derivative_step_deg": (None if self.sun_lin is None
                                         else float(self.sun_lin.step)),
             "cameras": [c.name for c in self.cameras],
