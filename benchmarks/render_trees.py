@@ -18,6 +18,7 @@ of the light and of the images (``report.json``), the images' run and the whole 
 from __future__ import annotations
 
 import argparse
+import shlex
 import shutil
 import statistics as st
 import tempfile
@@ -31,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _render(tree: Path, scene: str, cache: Path, out: Path) -> dict:
-    rep, wall = C.cli_render(scene.split(), out, cache, src=tree / "src")
+    rep, wall = C.cli_render(shlex.split(scene), out, cache, src=tree / "src")
     t = rep["timings_s"]
     return dict(wall=wall, light_compile=t["light_compile_s"],
                 images_compile=t["images_compile_s"], light=t["light_s"], images=t["images_s"],
