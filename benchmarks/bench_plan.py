@@ -40,8 +40,9 @@ def timed(solver, scene, lat, p):
 
 
 def case(title, scene_auto, scene_all, N, M):
-    lat_a = voxelize(scene_auto, N, M, margin=M + 1)
-    lat_f = voxelize(scene_all, N, M, margin=M + 1)
+    # the renderer's vacuum margin (VACUUM_MARGIN: two nodes since stop 82, M + 1 before)
+    lat_a = voxelize(scene_auto, N, M, margin=2)
+    lat_f = voxelize(scene_all, N, M, margin=2)
     pa = Params.from_scene(scene_auto, jnp.float32)
     pf = Params.from_scene(scene_all, jnp.float32)
     row = {"case": title}

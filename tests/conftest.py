@@ -10,7 +10,36 @@ from difffog._cache import release_if_crowded
 from helpers import MODELS, build_fit_model, build_model
 
 
+#: the marker expression of the default suite (pyproject.toml's addopts)
+DEFAULT_MARKS = "not slow and not bench"
+#: how the default suite asks XLA for its optimization level (read when JAX starts its CPU client)
+XLA_OPT_FLAG = "--xla_backend_optimization_level"
+
+
+def _xla_optimization(config) -> None:
+    """The default suite compiles XLA's own code at LLVM's -O0; ``-m slow`` / ``-m bench`` and
+    ``DIFFFOG_TEST_XLA_OPT=default`` keep XLA's default (-O3, what users run).
+
+    The default suite is bound by XLA's compiles (user time ~1,200 s on 2 cores against ~650 s
+    of wall time, most of it compiling small programs), and -O0 compiles them in about half the
+    time: the suite took 9:14 instead of 13:14 (the same tree, this 2-core CPU, an hour apart;
+    a fit's Jacobian program 5.6 s instead of 9.9 s) while warm renders ran 2-2.5x slower,
+    which its small lattices barely feel.  The native C++ kernels are built with -O3 either
+    way.  The values are the same to float32 rounding (three scenes' images and gradients at
+    both levels: at most 6e-6 apart), and ``test_camera.py::test_the_suites_xla_level_...``
+    holds the rounding-sensitive camera march at both levels to 1e-12 on every run, so that a
+    fault only -O3's code shows (the march's FMA rounding, stop 41) still fails the suite.
+    ``DIFFFOG_TEST_XLA_OPT=N`` asks for level N whatever the markers."""
+    opt = os.environ.get("DIFFFOG_TEST_XLA_OPT")
+    if opt is None:
+        opt = "0" if (config.getoption("markexpr", "") or "").strip() == DEFAULT_MARKS else ""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if opt and opt != "default" and XLA_OPT_FLAG not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {XLA_OPT_FLAG}={int(opt)}".strip()
+
+
 def pytest_configure(config):
+    _xla_optimization(config)
     # Tests build many small models whose compiled programs are identical (the same scene at
     # the same size in several modules, or in both pytest-xdist workers): a persistent
     # compilation cache shared by this session's processes turns every repeat compile into a

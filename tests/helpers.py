@@ -83,7 +83,11 @@ def host_devices_env(n: int) -> dict:
     """The environment of a subprocess that runs JAX on ``n`` host (CPU) devices: the CPU
     platform forced (on a GPU machine JAX would otherwise pick the one GPU), and this checkout's
     ``src`` first on the path."""
-    return dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={n}",
+    # XLA's optimization level as the suite set it (conftest.py), the device count replaced
+    keep = [f for f in os.environ.get("XLA_FLAGS", "").split()
+            if f.startswith("--xla_backend_optimization_level=")]
+    flags = " ".join([*keep, f"--xla_force_host_platform_device_count={n}"])
+    return dict(os.environ, XLA_FLAGS=flags,
                 JAX_PLATFORMS="cpu",
                 PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
 

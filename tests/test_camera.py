@@ -515,6 +515,28 @@ def test_the_compiled_march_equals_the_march_op_by_op(x64):
     np.testing.assert_allclose(compiled, plain, rtol=1e-12, atol=1e-14)
 
 
+def test_the_suites_xla_level_computes_what_users_run(x64):
+    """The default suite compiles XLA's code at LLVM's -O0 (conftest.py: it is bound by
+    compiles), users at XLA's default (-O3).  The two must compute the same values to rounding,
+    or the suite would pass code that users' builds get wrong: the rounding-sensitive march of
+    the test above (rays whose points fall on node planes, which -O3's FMA once read a whole
+    spacing off), compiled at each level, agrees to 1e-12."""
+    rng = np.random.default_rng(0)
+    n, h = (8, 7, 12), 1.0 / 12
+    f = LatticeFields(sigma_t=1.0 + 5 * rng.random(n), j_iso=rng.random(n), j_sun=rng.random(n),
+                      radiosity_ext=rng.random(n), sdf=np.full(n, 10.0), origin=(-0.25,) * 3,
+                      h=h, g=0.5, sun_dir=(0.3, -0.2, 0.9), sky=1.0,
+                      j_slope=rng.standard_normal(n + (6,)), sun_depth=3.0 * rng.random(n))
+    R = 24
+    o = np.column_stack([rng.uniform(-0.2, 0.3, (R, 2)), np.full(R, 1.5)])
+    d = np.tile([0.0, 0.0, -1.0], (R, 1))
+    march = {level: jax.jit(lambda f: render_rays(f, o, d),
+                            compiler_options={"xla_backend_optimization_level": level})(f)
+             for level in (0, 3)}
+    assert float(jnp.min(march[3])) > 0.02
+    np.testing.assert_allclose(march[0], march[3], rtol=1e-12, atol=1e-14)
+
+
 # slow since stop 56 (the default suite's 12-minute budget on 2 cores; the periodic case
 # before): by default the gradients against differences of test_sweep.py and test_camera.py
 # go through this backward
