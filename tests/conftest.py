@@ -22,9 +22,10 @@ def _xla_optimization(config) -> None:
 
     The default suite is bound by XLA's compiles (user time ~1,200 s on 2 cores against ~650 s
     of wall time, most of it compiling small programs), and -O0 compiles them in about half the
-    time: the suite took 9:14 instead of 13:14 (the same tree, this 2-core CPU, an hour apart;
-    a fit's Jacobian program 5.6 s instead of 9.9 s) while warm renders ran 2-2.5x slower,
-    which its small lattices barely feel.  The native C++ kernels are built with -O3 either
+    time (a fit's Jacobian program of the tests' 10-node model 5.6 s instead of 9.9 s): on a
+    clean clone the suite took 8:04 (user 868 s) instead of 10:41 (user 1167 s) 40 minutes
+    before, on this 2-core CPU, though warm renders run 2-2.5x slower at -O0 (the camera march
+    is XLA's code), which the tests' small lattices barely feel.  The native C++ kernels are built with -O3 either
     way.  The values are the same to float32 rounding (three scenes' images and gradients at
     both levels: at most 6e-6 apart), and ``test_camera.py::test_the_suites_xla_level_...``
     holds the rounding-sensitive camera march at both levels to 1e-12 on every run, so that a
