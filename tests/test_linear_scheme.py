@@ -161,7 +161,8 @@ def test_thin_slab_is_the_step_scheme(x64):
     assert a == pytest.approx(b, rel=1e-3)
 
 
-@pytest.mark.slow
+# default again since stop 83 (the suite compiles XLA's code at -O0: 15 s here): the clouds'
+# scheme's gradients against differences on every CI run
 def test_gradients_match_finite_differences(x64):
     """Image-free loss of a thick slab under sun and a first-collision sky (the slopes of
     both uncollided beams and of the collided light), in float64: jax.grad through the

@@ -67,7 +67,8 @@ def test_sub_steps_bring_the_thick_cube_closer_to_its_independent_value():
     assert m.settings()["solver_options"]["kernel"] == "loop"  # a CPU's direction loop
 
 
-@pytest.mark.slow
+# default again since stop 83 (the suite compiles XLA's code at -O0: 16 s here): the density
+# fit's scheme's gradients against differences on every CI run
 def test_gradients_match_finite_differences(x64):
     """A heterogeneous cloud over a ground quad (cloud-tomo at N = 10, M = 3: crossings at
     lateral offsets, blocked segments at the ground), in float64: jax.grad through the

@@ -334,7 +334,7 @@ def test_the_adjoint_preconditioner_is_the_transpose_of_the_forward_one(x64, mon
     np.testing.assert_array_equal(np.asarray(pre.transpose().apply((sigma_t, irr))[1]), irr)
 
 
-@pytest.mark.slow
+# default again since stop 83 (the suite compiles XLA's code at -O0: 20 s here; slow since stop 40)
 def test_a_gradient_through_the_preconditioned_adjoint_matches_finite_differences(x64):
     """Thick, nearly conservative fog (τ = 100, albedo 0.999) with the diffusion preconditioner:
     the tangent and adjoint solves are preconditioned too (as the forward GMRES is), and the
