@@ -487,6 +487,21 @@ def test_march_steps():
     assert march_steps(f, 0.0625, o, d) == 16 + 1  # tight for concrete rays
 
 
+def _rays_through_node_planes():
+    """(fields, origins, directions): rays straight down through a random linear-scheme
+    lattice, their march points falling on node planes every few steps (float64 under x64)."""
+    rng = np.random.default_rng(0)
+    n, h = (8, 7, 12), 1.0 / 12
+    f = LatticeFields(sigma_t=1.0 + 5 * rng.random(n), j_iso=rng.random(n), j_sun=rng.random(n),
+                      radiosity_ext=rng.random(n), sdf=np.full(n, 10.0), origin=(-0.25,) * 3,
+                      h=h, g=0.5, sun_dir=(0.3, -0.2, 0.9), sky=1.0,
+                      j_slope=rng.standard_normal(n + (6,)), sun_depth=3.0 * rng.random(n))
+    R = 24
+    o = np.column_stack([rng.uniform(-0.2, 0.3, (R, 2)), np.full(R, 1.5)])
+    d = np.tile([0.0, 0.0, -1.0], (R, 1))
+    return f, o, d
+
+
 # slow: the default suite's 12-minute budget on 2 cores (stop 56);
 # by default test_sweep.py's gradients against differences go through the compiled march
 @pytest.mark.slow
@@ -499,15 +514,7 @@ def test_the_compiled_march_equals_the_march_op_by_op(x64):
     top camera 149 of 365 rays (up to 7%), and its image gradients 2-11% off central
     differences (test_anisotropic.py, slow).  The march now carries each point's coordinates
     through its scan: compiled and op by op agree to rounding."""
-    rng = np.random.default_rng(0)
-    n, h = (8, 7, 12), 1.0 / 12
-    f = LatticeFields(sigma_t=1.0 + 5 * rng.random(n), j_iso=rng.random(n), j_sun=rng.random(n),
-                      radiosity_ext=rng.random(n), sdf=np.full(n, 10.0), origin=(-0.25,) * 3,
-                      h=h, g=0.5, sun_dir=(0.3, -0.2, 0.9), sky=1.0,
-                      j_slope=rng.standard_normal(n + (6,)), sun_depth=3.0 * rng.random(n))
-    R = 24
-    o = np.column_stack([rng.uniform(-0.2, 0.3, (R, 2)), np.full(R, 1.5)])
-    d = np.tile([0.0, 0.0, -1.0], (R, 1))
+    f, o, d = _rays_through_node_planes()
     compiled = jax.jit(lambda f: render_rays(f, o, d))(f)
     with jax.disable_jit():
         plain = render_rays(f, o, d)
@@ -521,15 +528,7 @@ def test_the_suites_xla_level_computes_what_users_run(x64):
     or the suite would pass code that users' builds get wrong: the rounding-sensitive march of
     the test above (rays whose points fall on node planes, which -O3's FMA once read a whole
     spacing off), compiled at each level, agrees to 1e-12."""
-    rng = np.random.default_rng(0)
-    n, h = (8, 7, 12), 1.0 / 12
-    f = LatticeFields(sigma_t=1.0 + 5 * rng.random(n), j_iso=rng.random(n), j_sun=rng.random(n),
-                      radiosity_ext=rng.random(n), sdf=np.full(n, 10.0), origin=(-0.25,) * 3,
-                      h=h, g=0.5, sun_dir=(0.3, -0.2, 0.9), sky=1.0,
-                      j_slope=rng.standard_normal(n + (6,)), sun_depth=3.0 * rng.random(n))
-    R = 24
-    o = np.column_stack([rng.uniform(-0.2, 0.3, (R, 2)), np.full(R, 1.5)])
-    d = np.tile([0.0, 0.0, -1.0], (R, 1))
+    f, o, d = _rays_through_node_planes()
     march = {level: jax.jit(lambda f: render_rays(f, o, d),
                             compiler_options={"xla_backend_optimization_level": level})(f)
              for level in (0, 3)}
