@@ -66,16 +66,18 @@ def pytest_configure(config):
     enable_compilation_cache(cache)
 
 
-# The test files that take longest, longest first (measured with --durations; the notebooks'
-# small runs alone take 3-4 minutes of one worker).  pytest-xdist hands each worker a whole
-# file at a time in collection order (addopts: --dist loadfile --no-loadscope-reorder); with the
-# long files first the short ones fill the gaps at the end, where alphabetical order, or
-# xdist's own by-test-count order, left one worker running the notebooks alone for minutes.
-LONGEST_FIRST = ["test_notebooks.py", "test_sweep.py", "test_interface.py", "test_fit.py",
-                 "test_sun_unknown.py",
-                 "test_tomography.py",
-                 "test_extremes.py", "test_cli.py", "test_splat.py", "test_camera.py",
-                 "test_thick.py", "test_linear_scheme.py", "test_anisotropic.py"]
+# The test files that take longest, longest first (junit times of the default suite at -O0,
+# stop 83: test_fit 170 s, test_native 118, test_extremes 98, test_sweep 94, test_tomography 72,
+# test_batch 64, then 30-50 s each; the notebooks' small runs are in test_notebooks' first
+# test).  pytest-xdist hands each worker a whole file at a time in collection order (addopts:
+# --dist loadfile --no-loadscope-reorder); with the long files first the short ones fill the
+# gaps at the end, where alphabetical order, or xdist's own by-test-count order, left one
+# worker running a long file alone for minutes (test_native.py, unlisted, ran last at stop 83).
+LONGEST_FIRST = ["test_fit.py", "test_native.py", "test_extremes.py", "test_sweep.py",
+                 "test_tomography.py", "test_batch.py", "test_anisotropic.py", "test_camera.py",
+                 "test_notebooks.py", "test_thick.py", "test_splat.py", "test_interface.py",
+                 "test_pallas.py", "test_cli.py", "test_substep.py", "test_slab_cameras.py",
+                 "test_linear_scheme.py", "test_sun_unknown.py"]
 
 
 def pytest_collection_modifyitems(config, items):
