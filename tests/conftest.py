@@ -25,8 +25,8 @@ def _xla_optimization(config) -> None:
     time (a fit's Jacobian program of the tests' 10-node model 5.6 s instead of 9.9 s): on a
     clean clone the suite took 8:04 (user 868 s) instead of 10:41 (user 1167 s) 40 minutes
     before, on this 2-core CPU, though warm renders run 2-2.5x slower at -O0 (the camera march
-    is XLA's code), which the tests' small lattices barely feel.  The native C++ kernels are built with -O3 either
-    way.  The values are the same to float32 rounding (three scenes' images and gradients at
+    is XLA's code), which the tests' small lattices barely feel.  The native C++ kernels are
+    built with -O3 either way.  The values are the same to float32 rounding (three scenes' images and gradients at
     both levels: at most 6e-6 apart), and ``test_camera.py::test_the_suites_xla_level_...``
     holds the rounding-sensitive camera march at both levels to 1e-12 on every run, so that a
     fault only -O3's code shows (the march's FMA rounding, stop 41) still fails the suite.
@@ -34,9 +34,14 @@ def _xla_optimization(config) -> None:
     opt = os.environ.get("DIFFFOG_TEST_XLA_OPT")
     if opt is None:
         opt = "0" if (config.getoption("markexpr", "") or "").strip() == DEFAULT_MARKS else ""
+    if opt in ("", "default"):
+        return
+    if opt not in ("0", "1", "2", "3"):
+        raise pytest.UsageError(f"DIFFFOG_TEST_XLA_OPT={opt!r}: use 0-3 (LLVM's level for XLA's "
+                                "code) or 'default' (XLA's own, -O3)")
     flags = os.environ.get("XLA_FLAGS", "")
-    if opt and opt != "default" and XLA_OPT_FLAG not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {XLA_OPT_FLAG}={int(opt)}".strip()
+    if XLA_OPT_FLAG not in flags:  # a level set by hand stays
+        os.environ["XLA_FLAGS"] = f"{flags} {XLA_OPT_FLAG}={opt}".strip()
 
 
 def pytest_configure(config):
