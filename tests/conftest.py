@@ -7,13 +7,11 @@ import pytest
 import notebook_runs
 from difffog import enable_compilation_cache
 from difffog._cache import release_if_crowded
-from helpers import MODELS, build_fit_model, build_model
+from helpers import MODELS, XLA_OPT_FLAG, build_fit_model, build_model
 
 
 #: the marker expression of the default suite (pyproject.toml's addopts)
 DEFAULT_MARKS = "not slow and not bench"
-#: how the default suite asks XLA for its optimization level (read when JAX starts its CPU client)
-XLA_OPT_FLAG = "--xla_backend_optimization_level"
 
 
 def _xla_optimization(config) -> None:
@@ -26,11 +24,12 @@ def _xla_optimization(config) -> None:
     clean clone the suite took 8:04 (user 868 s) instead of 10:41 (user 1167 s) 40 minutes
     before, on this 2-core CPU, though warm renders run 2-2.5x slower at -O0 (the camera march
     is XLA's code), which the tests' small lattices barely feel.  The native C++ kernels are
-    built with -O3 either way.  The values are the same to float32 rounding (three scenes' images and gradients at
-    both levels: at most 6e-6 apart), and ``test_camera.py::test_the_suites_xla_level_...``
-    holds the rounding-sensitive camera march at both levels to 1e-12 on every run, so that a
-    fault only -O3's code shows (the march's FMA rounding, stop 41) still fails the suite.
-    ``DIFFFOG_TEST_XLA_OPT=N`` asks for level N whatever the markers."""
+    built with -O3 either way.  The values are the same to float32 rounding (three scenes'
+    images and gradients at both levels: at most 6e-6 apart), and ``test_camera.py::
+    test_the_suites_xla_level_...`` holds the rounding-sensitive camera march at both levels to
+    1e-12 on every run, so that a fault only -O3's code shows (the march's FMA rounding, stop
+    41) still fails the suite.  ``DIFFFOG_TEST_XLA_OPT=N`` asks for level N whatever the
+    markers."""
     opt = os.environ.get("DIFFFOG_TEST_XLA_OPT")
     if opt is None:
         opt = "0" if (config.getoption("markexpr", "") or "").strip() == DEFAULT_MARKS else ""

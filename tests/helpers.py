@@ -79,13 +79,18 @@ def adding_doubling(albedo: float, tau: float, g: float = 0.0, *, quad_pts: int 
 SRC = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "src"))
 
 
+#: how the default suite asks XLA for its optimization level (conftest.py; read when JAX starts
+#: its CPU client)
+XLA_OPT_FLAG = "--xla_backend_optimization_level"
+
+
 def host_devices_env(n: int) -> dict:
     """The environment of a subprocess that runs JAX on ``n`` host (CPU) devices: the CPU
     platform forced (on a GPU machine JAX would otherwise pick the one GPU), and this checkout's
     ``src`` first on the path."""
     # XLA's optimization level as the suite set it (conftest.py), the device count replaced
     keep = [f for f in os.environ.get("XLA_FLAGS", "").split()
-            if f.startswith("--xla_backend_optimization_level=")]
+            if f.startswith(XLA_OPT_FLAG + "=")]
     flags = " ".join([*keep, f"--xla_force_host_platform_device_count={n}"])
     return dict(os.environ, XLA_FLAGS=flags,
                 JAX_PLATFORMS="cpu",
