@@ -30,6 +30,7 @@ import numpy as np
 
 import _common as C
 from difffog import Params, SweepSolver, load_scene, voxelize
+from difffog.geometry._lattice import VACUUM_MARGIN
 
 
 def scene_for(name: str, a: float):
@@ -54,9 +55,9 @@ def rel_err(x, ref):
 def run(name, a, N, M, cap, tol):
     scene = scene_for(name, a)
     # the furnace's exact value holds inside the box: no vacuum margin around it
-    # the renderer's vacuum margin (geometry._lattice.VACUUM_MARGIN: two nodes since stop 82,
-    # M + 1 before; results up to stop 82 were measured with M + 1)
-    lat = voxelize(scene, N, M, margin=0 if name == "furnace" else 2)
+    # the renderer's vacuum margin (two nodes since stop 82, M + 1 before: results up to stop 82
+    # were measured with M + 1)
+    lat = voxelize(scene, N, M, margin=0 if name == "furnace" else VACUUM_MARGIN)
     rows = []
     p32 = Params.from_scene(scene, jnp.float32)
     if name == "furnace":

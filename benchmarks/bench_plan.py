@@ -16,7 +16,7 @@ For each: the warm time of 10 Jacobi iterations (fixed work: the per-iteration s
 warm time of a default solve (GMRES to 1e-4, sun and sky passes included), and the largest
 difference between the two light fields (they must agree).  Writes plan.md (with the
 machine: JAX backend and devices, copy bandwidth, measured in the same run) to ``--out``
-(default benchmarks/results).  Public API only.
+(default benchmarks/results).  Public API only, and the renderer's vacuum margin.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import numpy as np
 
 import _common as C
 from difffog import Fog, Params, SweepSolver, load_scene, voxelize
+from difffog.geometry._lattice import VACUUM_MARGIN
 
 
 def timed(solver, scene, lat, p):
@@ -40,9 +41,9 @@ def timed(solver, scene, lat, p):
 
 
 def case(title, scene_auto, scene_all, N, M):
-    # the renderer's vacuum margin (VACUUM_MARGIN: two nodes since stop 82, M + 1 before)
-    lat_a = voxelize(scene_auto, N, M, margin=2)
-    lat_f = voxelize(scene_all, N, M, margin=2)
+    # the renderer's vacuum margin (two nodes since stop 82, M + 1 before)
+    lat_a = voxelize(scene_auto, N, M, margin=VACUUM_MARGIN)
+    lat_f = voxelize(scene_all, N, M, margin=VACUUM_MARGIN)
     pa = Params.from_scene(scene_auto, jnp.float32)
     pf = Params.from_scene(scene_all, jnp.float32)
     row = {"case": title}
